@@ -1,0 +1,1 @@
+"""Pure numerical core of the formation planner: no I/O, clocks or configuration files."""

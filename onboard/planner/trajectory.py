@@ -1,0 +1,143 @@
+"""Piecewise quintic trajectories in ENU metres with a global start time.
+
+A trajectory is M pieces; piece i is ``p_i(t) = sum_k coeffs[i, k] * t**k`` for
+``t in [0, durations_s[i]]``. Before its start a trajectory stays at its first point, after its end
+at its last point with zero derivatives (a drone that finished its plan hovers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+N_COEFFS = 6  # degree 5
+
+
+@njit(cache=True)
+def eval_piecewise(coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray) -> None:
+    """Position, velocity, acceleration, jerk of a piecewise quintic at ``t_rel`` from its start.
+
+    coeffs: (M, 6, 3); durations: (M,); out: (4, 3) receives p, v, a, j. Clamped at both ends
+    (derivatives are zero outside [0, sum(durations)]).
+    """
+    m = durations.shape[0]
+    inside = True
+    if t_rel <= 0.0:
+        i = 0
+        t = 0.0
+        inside = t_rel == 0.0
+    else:
+        i = 0
+        t = t_rel
+        while i < m - 1 and t > durations[i]:
+            t -= durations[i]
+            i += 1
+        if t > durations[i]:
+            t = durations[i]
+            inside = False
+    t2 = t * t
+    t3 = t2 * t
+    t4 = t3 * t
+    t5 = t4 * t
+    for d in range(3):
+        c0 = coeffs[i, 0, d]
+        c1 = coeffs[i, 1, d]
+        c2 = coeffs[i, 2, d]
+        c3 = coeffs[i, 3, d]
+        c4 = coeffs[i, 4, d]
+        c5 = coeffs[i, 5, d]
+        out[0, d] = c0 + c1 * t + c2 * t2 + c3 * t3 + c4 * t4 + c5 * t5
+        if inside:
+            out[1, d] = c1 + 2.0 * c2 * t + 3.0 * c3 * t2 + 4.0 * c4 * t3 + 5.0 * c5 * t4
+            out[2, d] = 2.0 * c2 + 6.0 * c3 * t + 12.0 * c4 * t2 + 20.0 * c5 * t3
+            out[3, d] = 6.0 * c3 + 24.0 * c4 * t + 60.0 * c5 * t2
+        else:
+            out[1, d] = 0.0
+            out[2, d] = 0.0
+            out[3, d] = 0.0
+
+
+@njit(cache=True)
+def eval_piecewise_many(
+    coeffs: np.ndarray, durations: np.ndarray, t_rel: np.ndarray, order: int
+) -> np.ndarray:
+    """Derivative ``order`` (0..3) at each of ``t_rel`` (K,), returned as (K, 3)."""
+    out = np.empty((t_rel.shape[0], 3))
+    buf = np.empty((4, 3))
+    for k in range(t_rel.shape[0]):
+        eval_piecewise(coeffs, durations, t_rel[k], buf)
+        for d in range(3):
+            out[k, d] = buf[order, d]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A piecewise quintic in ENU metres, starting at global time ``t0_s``.
+
+    coeffs: (M, 6, 3), ``coeffs[i, k]`` multiplies ``t**k`` on piece i (t from the piece start).
+    durations_s: (M,), all strictly positive.
+    """
+
+    t0_s: float
+    coeffs: np.ndarray
+    durations_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        c = np.ascontiguousarray(self.coeffs, dtype=np.float64)
+        T = np.ascontiguousarray(self.durations_s, dtype=np.float64).reshape(-1)
+        if c.ndim != 3 or c.shape[1:] != (N_COEFFS, 3):
+            raise ValueError(f"coeffs must have shape (M, 6, 3), got {c.shape}")
+        if T.shape[0] != c.shape[0] or T.shape[0] == 0:
+            raise ValueError(f"durations_s must have shape ({c.shape[0]},), got {T.shape}")
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite(T))):
+            raise ValueError("trajectory contains non-finite values")
+        if np.any(T <= 0.0):
+            raise ValueError("trajectory durations must be strictly positive")
+        if not np.isfinite(self.t0_s):
+            raise ValueError("trajectory start time must be finite")
+        c.setflags(write=False)
+        T.setflags(write=False)
+        object.__setattr__(self, "coeffs", c)
+        object.__setattr__(self, "durations_s", T)
+        object.__setattr__(self, "t0_s", float(self.t0_s))
+
+    @property
+    def n_pieces(self) -> int:
+        return int(self.durations_s.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(np.sum(self.durations_s))
+
+    @property
+    def t_end_s(self) -> float:
+        return self.t0_s + self.duration_s
+
+    def sample(self, t_global: np.ndarray | float, order: int = 0) -> np.ndarray:
+        """Derivative ``order`` (0 position .. 3 jerk) at global time(s): (3,) or (K, 3)."""
+        if not 0 <= order <= 3:
+            raise ValueError("order must be 0..3")
+        t = np.atleast_1d(np.asarray(t_global, dtype=np.float64)) - self.t0_s
+        out = eval_piecewise_many(self.coeffs, self.durations_s, t, order)
+        return out[0] if np.ndim(t_global) == 0 else out
+
+    def state(self, t_global: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position, velocity, acceleration) at a global time."""
+        buf = np.empty((4, 3))
+        eval_piecewise(self.coeffs, self.durations_s, float(t_global) - self.t0_s, buf)
+        return buf[0].copy(), buf[1].copy(), buf[2].copy()
+
+    def waypoints(self) -> np.ndarray:
+        """Positions at the piece boundaries, (M + 1, 3)."""
+        ends = np.concatenate([[0.0], np.cumsum(self.durations_s)])
+        return self.sample(self.t0_s + ends)
+
+    @staticmethod
+    def hover(position: np.ndarray, t0_s: float, duration_s: float = 1.0) -> Trajectory:
+        """A one-piece trajectory that stays at ``position``."""
+        c = np.zeros((1, N_COEFFS, 3))
+        c[0, 0] = np.asarray(position, dtype=np.float64).reshape(3)
+        return Trajectory(t0_s, c, np.array([duration_s]))
