@@ -16,7 +16,9 @@ N_COEFFS = 6  # degree 5
 
 
 @njit(cache=True)
-def eval_piecewise(coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray) -> None:
+def eval_piecewise(
+    coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray
+) -> None:
     """Position, velocity, acceleration, jerk of a piecewise quintic at ``t_rel`` from its start.
 
     coeffs: (M, 6, 3); durations: (M,); out: (4, 3) receives p, v, a, j. Clamped at both ends

@@ -1,0 +1,395 @@
+"""The spatial-temporal objective of paper Eq. (10), compiled: ``fun(x) -> (f, g)`` on one vector.
+
+Decision vector ``x = [q.ravel(), tau]``: inner waypoints q (M-1, 3) and virtual times tau (M,)
+with ``T = T(tau)`` (``timemap``). The pipeline is
+
+    tau -> T -> c = C(q, T) -> J(c, T) -> (dJ/dc, dJ/dT) -> adjoint -> (dJ/dq, dJ/dT) -> dJ/dtau
+
+``J = J_e + w_t J_t + J_o + J_f + J_r + J_d + J_u``. The sampled terms (o, f, r, d) are evaluated
+at the constraint points ``p_i(j / kappa * T_i)``, j = 0..kappa, with trapezoid weights
+``T_i / kappa * (1/2, 1, ..., 1, 1/2)`` (Eq. 16); each sample's penalty has partials with respect
+to position, velocity, acceleration and jerk (chained to c through the basis derivatives), and with
+respect to the global time tau of the peers' trajectories (J_f, J_r), which depends on every
+earlier piece duration (Eq. 20-22).
+
+Packed inputs (all float64 unless said):
+- ``prob``: (head (3,3), tail (3,3), kappa int, prm (N_PRM,), peer_c (P,K,6,3), peer_T (P,K),
+  peer_t0 (P,), Sdes (n,n), fmask (n,n)). Peer times are relative to the own start time; a
+  peer's unused pieces have zero coefficients. The formation graph is [own, peer 0, ...],
+  n = 1 + P when the formation term is on, else n may be 1.
+- ``fld``: (kind int, grid (nx,ny,nz), origin (3,), res float, cylinders (K,5), rings (R,7),
+  boxes (B,6), ground_z float): ``field.field_eval`` arguments.
+- ``work``: (band (6M,13), coeffs (6M,3), gc (6M,3), gT (M,), gq (M-1,3), costs (N_TERMS,)).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from onboard.planner.field import field_eval
+from onboard.planner.formation import metric_kernel
+from onboard.planner.lbfgs import LbfgsStatus, lbfgs_cancel, lbfgs_iterate, lbfgs_start
+from onboard.planner.minco import energy, propagate_gradient, solve_coeffs
+from onboard.planner.timemap import T_from_tau, grad_tau_from_grad_T
+from onboard.planner.trajectory import eval_piecewise
+
+# indices into the packed parameter vector ``prm``
+P_W_TIME = 0
+P_W_OBS = 1
+P_D_OBS = 2
+P_W_SWARM = 3
+P_D_SWARM = 4
+P_Z_SCALE = 5
+P_W_FEAS = 6
+P_V_MAX = 7
+P_A_MAX = 8
+P_J_MAX = 9
+P_W_UNIF = 10
+P_W_FORM = 11
+P_FORM_CUBIC = 12  # 1.0: max(f,0)^3, 0.0: linear f
+N_PRM = 13
+
+# indices into the per-term cost breakdown
+TERM_NAMES = ("energy", "time", "obstacle", "formation", "swarm", "feasibility", "uniformity")
+C_E, C_T, C_O, C_F, C_R, C_D, C_U = range(7)
+N_TERMS = 7
+
+EVALUATE = int(LbfgsStatus.EVALUATE)
+
+
+@njit(cache=True, nogil=True)
+def _limit(vec: np.ndarray, limit: float, w: float, g: np.ndarray) -> float:
+    """Penalty w * max(|vec|^2 - limit^2, 0)^3 (J_d, after EGO-Swarm); gradient added to g."""
+    sq = vec[0] * vec[0] + vec[1] * vec[1] + vec[2] * vec[2]
+    viol = sq - limit * limit
+    if viol <= 0.0:
+        return 0.0
+    k = w * 3.0 * viol * viol * 2.0
+    for d in range(3):
+        g[d] += k * vec[d]
+    return w * viol * viol * viol
+
+
+@njit(cache=True, nogil=True)
+def sampled_costs(
+    coeffs: np.ndarray,
+    T: np.ndarray,
+    prob: tuple,
+    fld: tuple,
+    gc: np.ndarray,
+    gT: np.ndarray,
+    costs: np.ndarray,
+) -> float:
+    """J_o + J_f + J_r + J_d + J_u with gradients ADDED to gc (6M,3) and gT (M,).
+
+    Implements Eq. (14)-(28) of the paper (J_d after EGO-Swarm: squared-norm limits on v, a, j;
+    J_u: variance of the squared distances between consecutive constraint points).
+    """
+    head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask = prob
+    kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
+    M = T.shape[0]
+    P = peer_T.shape[0]
+    n_form = Sdes.shape[0]
+    w_obs = prm[P_W_OBS]
+    d_obs = prm[P_D_OBS]
+    w_sw = prm[P_W_SWARM]
+    d_sw2 = prm[P_D_SWARM] * prm[P_D_SWARM]
+    zs2 = prm[P_Z_SCALE] * prm[P_Z_SCALE]
+    w_fe = prm[P_W_FEAS]
+    v_max = prm[P_V_MAX]
+    a_max = prm[P_A_MAX]
+    j_max = prm[P_J_MAX]
+    w_un = prm[P_W_UNIF]
+    w_fo = prm[P_W_FORM]
+    cubic = prm[P_FORM_CUBIC] > 0.5
+    use_form = w_fo > 0.0 and n_form > 1
+
+    der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
+    gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
+    pst = np.empty((4, 3))  # a peer's p, v, a, j
+    peer_pos = np.empty((max(P, 1), 3))
+    peer_vel = np.empty((max(P, 1), 3))
+    form_P = np.empty((max(n_form, 1), 3))
+    form_G = np.empty((max(n_form, 1), 3))
+    n_pts = M * kappa + 1
+    pts = np.empty((n_pts, 3))
+    pts_vel = np.empty((n_pts, 3))
+    gtau_piece = np.zeros(M)
+
+    total = 0.0
+    t_piece0 = 0.0  # start of piece i, relative to the own trajectory start
+    for i in range(M):
+        Ti = T[i]
+        step = Ti / kappa
+        b = 6 * i
+        for j in range(kappa + 1):
+            s = j / kappa
+            t = s * Ti
+            t2 = t * t
+            t3 = t2 * t
+            t4 = t3 * t
+            t5 = t4 * t
+            for d in range(3):
+                c0 = coeffs[b, d]
+                c1 = coeffs[b + 1, d]
+                c2 = coeffs[b + 2, d]
+                c3 = coeffs[b + 3, d]
+                c4 = coeffs[b + 4, d]
+                c5 = coeffs[b + 5, d]
+                der[0, d] = c0 + c1 * t + c2 * t2 + c3 * t3 + c4 * t4 + c5 * t5
+                der[1, d] = c1 + 2.0 * c2 * t + 3.0 * c3 * t2 + 4.0 * c4 * t3 + 5.0 * c5 * t4
+                der[2, d] = 2.0 * c2 + 6.0 * c3 * t + 12.0 * c4 * t2 + 20.0 * c5 * t3
+                der[3, d] = 6.0 * c3 + 24.0 * c4 * t + 60.0 * c5 * t2
+                der[4, d] = 24.0 * c4 + 120.0 * c5 * t
+            if j < kappa or i == M - 1:
+                k = i * kappa + j
+                for d in range(3):
+                    pts[k, d] = der[0, d]
+                    pts_vel[k, d] = der[1, d]
+            omg = 0.5 if (j == 0 or j == kappa) else 1.0
+            wq = omg * step
+            gder[:, :] = 0.0
+            gtau = 0.0
+            pen = 0.0
+
+            # J_o: obstacle, max(d_thr - d, 0)^3 (Eq. 14-19)
+            if w_obs > 0.0:
+                dist, gx, gy, gz = field_eval(
+                    kind,
+                    grid,
+                    origin,
+                    res,
+                    cyl,
+                    rings,
+                    boxes,
+                    ground_z,
+                    der[0, 0],
+                    der[0, 1],
+                    der[0, 2],
+                )
+                viol = d_obs - dist
+                if viol > 0.0:
+                    po = w_obs * viol * viol * viol
+                    k3 = w_obs * 3.0 * viol * viol
+                    gder[0, 0] -= k3 * gx
+                    gder[0, 1] -= k3 * gy
+                    gder[0, 2] -= k3 * gz
+                    pen += po
+                    costs[C_O] += wq * po
+
+            # J_d: feasibility (velocity, acceleration, jerk)
+            if w_fe > 0.0:
+                pd = _limit(der[1], v_max, w_fe, gder[1])
+                pd += _limit(der[2], a_max, w_fe, gder[2])
+                pd += _limit(der[3], j_max, w_fe, gder[3])
+                pen += pd
+                costs[C_D] += wq * pd
+
+            # peers at the same global time
+            if P > 0:
+                t_glob = t_piece0 + t
+                for ph in range(P):
+                    eval_piecewise(peer_c[ph], peer_T[ph], t_glob - peer_t0[ph], pst)
+                    for d in range(3):
+                        peer_pos[ph, d] = pst[0, d]
+                        peer_vel[ph, d] = pst[1, d]
+
+                # J_r: reciprocal avoidance, max(D_r^2 - d^2, 0)^3 (Eq. 29-34)
+                if w_sw > 0.0:
+                    for ph in range(P):
+                        dx = der[0, 0] - peer_pos[ph, 0]
+                        dy = der[0, 1] - peer_pos[ph, 1]
+                        dz = der[0, 2] - peer_pos[ph, 2]
+                        viol = d_sw2 - (dx * dx + dy * dy + zs2 * dz * dz)
+                        if viol > 0.0:
+                            pr = w_sw * viol * viol * viol
+                            k3 = w_sw * 3.0 * viol * viol * 2.0
+                            ex = k3 * dx
+                            ey = k3 * dy
+                            ez = k3 * zs2 * dz
+                            gder[0, 0] -= ex
+                            gder[0, 1] -= ey
+                            gder[0, 2] -= ez
+                            gtau += ex * peer_vel[ph, 0] + ey * peer_vel[ph, 1]
+                            gtau += ez * peer_vel[ph, 2]
+                            pen += pr
+                            costs[C_R] += wq * pr
+
+                # J_f: formation similarity of [own, peers] at the same global time (Eq. 20-28)
+                if use_form:
+                    for d in range(3):
+                        form_P[0, d] = der[0, d]
+                    for ph in range(n_form - 1):
+                        for d in range(3):
+                            form_P[ph + 1, d] = peer_pos[ph, d]
+                    f = metric_kernel(form_P, Sdes, fmask, form_G)
+                    if cubic:
+                        if f > 0.0:
+                            pf = w_fo * f * f * f
+                            kf = w_fo * 3.0 * f * f
+                        else:
+                            pf = 0.0
+                            kf = 0.0
+                    else:
+                        pf = w_fo * f
+                        kf = w_fo
+                    if kf != 0.0:
+                        for d in range(3):
+                            gder[0, d] += kf * form_G[0, d]
+                        for ph in range(n_form - 1):
+                            for d in range(3):
+                                gtau += kf * form_G[ph + 1, d] * peer_vel[ph, d]
+                    pen += pf
+                    costs[C_F] += wq * pf
+
+            if pen == 0.0 and gtau == 0.0:
+                continue
+            total += wq * pen
+            # chain to the coefficients of piece i: d(der_k)/dc_m = m!/(m-k)! t^(m-k)
+            for d in range(3):
+                gp = gder[0, d]
+                gv = gder[1, d]
+                ga = gder[2, d]
+                gj = gder[3, d]
+                gc[b, d] += wq * gp
+                gc[b + 1, d] += wq * (gp * t + gv)
+                gc[b + 2, d] += wq * (gp * t2 + 2.0 * gv * t + 2.0 * ga)
+                gc[b + 3, d] += wq * (gp * t3 + 3.0 * gv * t2 + 6.0 * ga * t + 6.0 * gj)
+                gc[b + 4, d] += wq * (gp * t4 + 4.0 * gv * t3 + 12.0 * ga * t2 + 24.0 * gj * t)
+                gc[b + 5, d] += wq * (gp * t5 + 5.0 * gv * t4 + 20.0 * ga * t3 + 60.0 * gj * t2)
+            dts = 0.0  # d pen / d t along the own trajectory
+            for d in range(3):
+                dts += (
+                    gder[0, d] * der[1, d]
+                    + gder[1, d] * der[2, d]
+                    + gder[2, d] * der[3, d]
+                    + gder[3, d] * der[4, d]
+                )
+            # T_i enters the weight (T_i / kappa), the own time t = s T_i and the global time
+            gT[i] += omg / kappa * pen + wq * s * (dts + gtau)
+            gtau_piece[i] += wq * gtau
+        t_piece0 += Ti
+
+    # the global time of a sample on piece i moves with every earlier duration T_l, l < i
+    acc = 0.0
+    for i in range(M - 1, 0, -1):
+        acc += gtau_piece[i]
+        gT[i - 1] += acc
+
+    # J_u: variance of the squared distances between consecutive constraint points
+    if w_un > 0.0 and n_pts > 2:
+        n_seg = n_pts - 1
+        mean = 0.0
+        for k in range(n_seg):
+            sq = 0.0
+            for d in range(3):
+                e = pts[k + 1, d] - pts[k, d]
+                sq += e * e
+            mean += sq
+        mean /= n_seg
+        var = 0.0
+        gpts = np.zeros((n_pts, 3))
+        for k in range(n_seg):
+            sq = 0.0
+            for d in range(3):
+                e = pts[k + 1, d] - pts[k, d]
+                sq += e * e
+            dev = sq - mean
+            var += dev * dev
+            kk = w_un * 2.0 * dev / n_seg * 2.0
+            for d in range(3):
+                e = kk * (pts[k + 1, d] - pts[k, d])
+                gpts[k + 1, d] += e
+                gpts[k, d] -= e
+        pu = w_un * var / n_seg
+        total += pu
+        costs[C_U] += pu
+        for k in range(n_pts):
+            if k == n_pts - 1:
+                i = M - 1
+                s = 1.0
+            else:
+                i = k // kappa
+                s = (k - i * kappa) / kappa
+            t = s * T[i]
+            b = 6 * i
+            tp = 1.0
+            for m in range(6):
+                for d in range(3):
+                    gc[b + m, d] += gpts[k, d] * tp
+                tp *= t
+            gT[i] += s * (
+                gpts[k, 0] * pts_vel[k, 0] + gpts[k, 1] * pts_vel[k, 1] + gpts[k, 2] * pts_vel[k, 2]
+            )
+    return total
+
+
+@njit(cache=True, nogil=True)
+def cost_c_T(
+    coeffs: np.ndarray,
+    T: np.ndarray,
+    prob: tuple,
+    fld: tuple,
+    gc: np.ndarray,
+    gT: np.ndarray,
+    costs: np.ndarray,
+) -> float:
+    """J(c, T) = J_e + w_t J_t + sampled terms; gradients written (not added) to gc, gT."""
+    prm = prob[3]
+    gc[:, :] = 0.0
+    gT[:] = 0.0
+    costs[:] = 0.0
+    je = energy(coeffs, T, gc, gT)
+    costs[C_E] = je
+    w_t = prm[P_W_TIME]
+    jt = 0.0
+    for i in range(T.shape[0]):
+        jt += T[i]
+        gT[i] += w_t
+    costs[C_T] = w_t * jt
+    return je + w_t * jt + sampled_costs(coeffs, T, prob, fld, gc, gT, costs)
+
+
+@njit(cache=True, nogil=True)
+def objective(x: np.ndarray, prob: tuple, fld: tuple, work: tuple, g: np.ndarray) -> float:
+    """f(x) with its gradient written to g: the whole pipeline of the module docstring."""
+    head, tail = prob[0], prob[1]
+    band, coeffs, gc, gT, gq, costs = work
+    M = gT.shape[0]
+    nq = 3 * (M - 1)
+    q = x[:nq].reshape((M - 1, 3))
+    tau = x[nq:]
+    T = T_from_tau(tau)
+    solve_coeffs(head, tail, q, T, band, coeffs)
+    f = cost_c_T(coeffs, T, prob, fld, gc, gT, costs)
+    propagate_gradient(band, coeffs, T, gc, gT, gq)
+    g[:nq] = gq.ravel()
+    g[nq:] = grad_tau_from_grad_T(tau, gT)
+    return f
+
+
+@njit(cache=True, nogil=True)
+def solve(
+    x: np.ndarray,
+    prob: tuple,
+    fld: tuple,
+    work: tuple,
+    lb_prm: np.ndarray,
+    ws: np.ndarray,
+    iw: np.ndarray,
+    cancel: np.ndarray,
+) -> int:
+    """Compiled L-BFGS driver (reverse communication); x holds the best point on return.
+
+    ``cancel[0] != 0`` (set from another thread) stops the solve before the next evaluation.
+    """
+    g = np.empty_like(x)
+    f = objective(x, prob, fld, work, g)
+    status = lbfgs_start(ws, iw, lb_prm, x, f, g)
+    while status == EVALUATE:
+        if cancel[0] != 0:
+            return lbfgs_cancel(ws, iw, x, g)
+        f = objective(x, prob, fld, work, g)
+        status = lbfgs_iterate(ws, iw, lb_prm, x, f, g)
+    return status

@@ -1,0 +1,119 @@
+"""Planner parameters: one frozen dataclass, every field documented with its meaning and default."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.planner.lbfgs import LbfgsParams
+
+FORMATION_PENALTIES = ("cubic", "linear")
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    """Weights and limits of the spatial-temporal optimisation (paper Eq. 10) and its driver."""
+
+    # --- trajectory shape -------------------------------------------------------------------
+    v_max_m_s: float = 0.5
+    """Speed limit of J_d (and the cruise speed of the initial guess)."""
+    a_max_m_s2: float = 3.0
+    """Acceleration limit of J_d."""
+    j_max_m_s3: float = 20.0
+    """Jerk limit of J_d (the public code has none; the paper lists it)."""
+    horizon_m: float = 7.5
+    """Planning horizon: the local target lies this far along the way to the goal."""
+    piece_length_m: float = 1.8
+    """Approximate length of one MINCO piece of the initial guess (sets the piece count M)."""
+    max_pieces: int = 8
+    """Upper bound on M."""
+    kappa: int = 8
+    """Constraint points per piece (kappa_i in the paper); kappa + 1 samples including ends."""
+
+    # --- cost weights (lambda of Eq. 10) ------------------------------------------------------
+    w_time: float = 40.0
+    """J_t: weight of the total duration."""
+    w_obstacle: float = 5.0e4
+    """J_o: weight of max(d_thr - d, 0)^3 over constraint points."""
+    obstacle_clearance_m: float = 0.6
+    """d_thr of J_o: distance to obstacle surfaces below which points are penalised."""
+    w_swarm: float = 5.0e4
+    """J_r: weight of max(D_r^2 - d^2, 0)^3 against every peer at the same global time."""
+    swarm_clearance_m: float = 0.75
+    """D_r of J_r, centre to centre."""
+    swarm_z_scale: float = 0.5
+    """Vertical separations count this much in J_r's distance (downwash: z counts half)."""
+    w_feasibility: float = 1.0e5
+    """J_d: weight of the velocity, acceleration and jerk limit penalties."""
+    w_uniform: float = 1.0e3
+    """J_u: weight of the variance of squared distances between consecutive constraint points."""
+    w_formation: float = 1.0e7
+    """J_f: weight of the formation penalty."""
+    formation_penalty: str = "cubic"
+    """'cubic': the paper's max(f, 0)^3; 'linear': the public code's f (exact gradient here)."""
+
+    # --- acceptance and fallbacks --------------------------------------------------------------
+    check_obstacle_m: float = 0.22
+    """A trajectory is unsafe where it comes closer than this to an obstacle surface."""
+    check_drone_m: float = 0.45
+    """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
+    check_step_s: float = 0.05
+    """Time step of the safety check of a new trajectory."""
+    astar_resolution_m: float = 0.2
+    """Cell size of the A* fallback search."""
+    z_limits_m: tuple[float, float] = (0.4, 3.0)
+    """Altitude band the A* search may use."""
+    lbfgs: LbfgsParams = field(
+        default_factory=lambda: LbfgsParams(
+            mem_size=16,
+            g_epsilon=1e-5,
+            past=3,
+            delta=1e-4,
+            max_iterations=200,
+            max_evaluations=400,
+        )
+    )
+    """Solver settings."""
+
+    def __post_init__(self) -> None:
+        positive = (
+            "v_max_m_s",
+            "a_max_m_s2",
+            "j_max_m_s3",
+            "horizon_m",
+            "piece_length_m",
+            "obstacle_clearance_m",
+            "swarm_clearance_m",
+            "swarm_z_scale",
+            "check_step_s",
+            "astar_resolution_m",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        nonneg = (
+            "w_time",
+            "w_obstacle",
+            "w_swarm",
+            "w_feasibility",
+            "w_uniform",
+            "w_formation",
+            "check_obstacle_m",
+            "check_drone_m",
+        )
+        for name in nonneg:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if self.kappa < 1 or self.max_pieces < 1:
+            raise ValueError("kappa and max_pieces must be at least 1")
+        if self.formation_penalty not in FORMATION_PENALTIES:
+            raise ValueError(
+                f"formation_penalty must be one of {FORMATION_PENALTIES}, "
+                f"got {self.formation_penalty!r}"
+            )
+        lo, hi = self.z_limits_m
+        if not lo < hi:
+            raise ValueError("z_limits_m must be (low, high) with low < high")

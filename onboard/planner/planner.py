@@ -1,0 +1,465 @@
+"""One drone's formation planner: ``plan(...)`` -> status + trajectory (paper Sec. IV).
+
+A replan picks a local target ``horizon_m`` along the way to the goal, builds an initial guess
+(the previous trajectory, else a straight line, else an A* path when the line is blocked),
+optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
+and accepts the result only if it passes a safety check against the distance field and the
+peers' trajectories. A failed attempt is retried from an A* path without the formation term;
+failing that the previous trajectory is kept if it is still safe, else an emergency stop is
+returned. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
+does no I/O; failure is a status, never an exception (bad *inputs* raise ValueError).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.planner import objective as obj
+from onboard.planner.astar import astar_path, segment_is_free
+from onboard.planner.field import DistanceField
+from onboard.planner.formation import complete_mask, normalized_adjacency
+from onboard.planner.lbfgs import (
+    LbfgsStatus,
+    lbfgs_evaluations,
+    lbfgs_iterations,
+    lbfgs_workspace,
+)
+from onboard.planner.minco import BAND_COLS, Minco
+from onboard.planner.params import PlannerParams
+from onboard.planner.timemap import T_from_tau, tau_from_T
+from onboard.planner.trajectory import Trajectory
+
+
+class PlanStatus(str, enum.Enum):
+    """Outcome of one replan."""
+
+    OK = "ok"
+    """New optimised trajectory, formation term on, passed the safety check."""
+    OK_NO_FORMATION = "ok-no-formation"
+    """The formation attempt failed the check; the A* retry without formation passed."""
+    KEPT_PREVIOUS = "kept-previous"
+    """Both attempts failed; the previous trajectory is still safe and is kept."""
+    EMERGENCY = "emergency"
+    """Nothing safe was found: the trajectory is a braking stop; the service should hover/land."""
+
+
+@dataclass(frozen=True)
+class PeerTrajectory:
+    """A peer's latest broadcast trajectory (global times) and its formation slot."""
+
+    drone_id: int
+    slot: int
+    trajectory: Trajectory
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """What one replan produced. ``trajectory`` is always set (new, previous or a stop)."""
+
+    status: PlanStatus
+    trajectory: Trajectory
+    iterations: int = 0
+    evaluations: int = 0
+    solver_status: LbfgsStatus | None = None
+    message: str = ""
+    costs: dict[str, float] = field(default_factory=dict)
+
+
+class Problem:
+    """One optimisation problem, ready to evaluate or solve (x = [q.ravel(), tau])."""
+
+    def __init__(
+        self,
+        params: PlannerParams,
+        t_start_s: float,
+        head: np.ndarray,
+        tail: np.ndarray,
+        q0: np.ndarray,
+        T0: np.ndarray,
+        prob: tuple,
+        fld: tuple,
+    ) -> None:
+        self.params = params
+        self.t_start_s = t_start_s
+        self.M = int(T0.shape[0])
+        self.head = head
+        self.tail = tail
+        self.x0 = np.concatenate([q0.ravel(), tau_from_T(T0)])
+        self.prob = prob
+        self.fld = fld
+        M = self.M
+        self.work = (
+            np.zeros((6 * M, BAND_COLS)),
+            np.zeros((6 * M, 3)),
+            np.zeros((6 * M, 3)),
+            np.zeros(M),
+            np.zeros((M - 1, 3)),
+            np.zeros(obj.N_TERMS),
+        )
+        self.lb_prm = params.lbfgs.to_array()
+        self.cancel_flag = np.zeros(1, dtype=np.int64)
+        self.iterations = 0
+        self.evaluations = 0
+
+    def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """(f, df/dx) at x."""
+        g = np.empty_like(x)
+        f = obj.objective(
+            np.ascontiguousarray(x, dtype=np.float64), self.prob, self.fld, self.work, g
+        )
+        return float(f), g
+
+    def cost_terms(self, x: np.ndarray) -> dict[str, float]:
+        """The weighted value of each of the seven terms at x."""
+        self.objective(x)
+        return {name: float(v) for name, v in zip(obj.TERM_NAMES, self.work[5], strict=True)}
+
+    def solve(self) -> tuple[np.ndarray, LbfgsStatus]:
+        """Run L-BFGS from x0; returns (best x, solver status)."""
+        x = self.x0.copy()
+        ws, iw = lbfgs_workspace(x.shape[0], self.params.lbfgs.mem_size)
+        status = obj.solve(x, self.prob, self.fld, self.work, self.lb_prm, ws, iw, self.cancel_flag)
+        self.iterations = int(lbfgs_iterations(iw))
+        self.evaluations = int(lbfgs_evaluations(iw)) + 1
+        return x, LbfgsStatus(status)
+
+    def trajectory(self, x: np.ndarray) -> Trajectory:
+        """The trajectory that x describes."""
+        M = self.M
+        q = x[: 3 * (M - 1)].reshape(M - 1, 3)
+        T = T_from_tau(np.ascontiguousarray(x[3 * (M - 1) :]))
+        m = Minco(M)
+        m.set_conditions(self.head, self.tail)
+        m.set_parameters(q, T)
+        return Trajectory(self.t_start_s, m.coeffs, T)
+
+
+def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be a finite 3-vector, got {v!r}")
+    return a.copy()
+
+
+def _resample_polyline(path: np.ndarray, n_pieces: int) -> np.ndarray:
+    """n_pieces + 1 points equally spaced in arc length along a polyline (K, 3)."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0.0:
+        return np.repeat(path[:1], n_pieces + 1, axis=0)
+    targets = np.linspace(0.0, s[-1], n_pieces + 1)
+    return np.stack([np.interp(targets, s, path[:, d]) for d in range(3)], axis=1)
+
+
+def _polyline_length(path: np.ndarray) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+
+
+class FormationPlanner:
+    """Plans one drone's trajectory in the formation (its ``slot`` of ``formation``)."""
+
+    def __init__(
+        self,
+        params: PlannerParams,
+        formation: np.ndarray,
+        slot: int,
+        edge_mask: np.ndarray | None = None,
+    ) -> None:
+        F = np.asarray(formation, dtype=np.float64)
+        if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] < 1 or not np.all(np.isfinite(F)):
+            raise ValueError(f"formation must be a finite (N, 3) array, got shape {F.shape}")
+        if not 0 <= slot < F.shape[0]:
+            raise ValueError(f"slot {slot} is outside the formation of {F.shape[0]} drones")
+        mask = complete_mask(F.shape[0]) if edge_mask is None else np.asarray(edge_mask, float)
+        if mask.shape != (F.shape[0], F.shape[0]):
+            raise ValueError("edge_mask must be (N, N)")
+        self.params = params
+        self.formation = F
+        self.slot = slot
+        self.mask = mask
+        self._active: Problem | None = None
+
+    def cancel(self) -> None:
+        """Ask a running solve (in another thread) to stop at its next evaluation."""
+        if self._active is not None:
+            self._active.cancel_flag[0] = 1
+
+    # --- problem set-up ---------------------------------------------------------------------
+
+    def _local_target(
+        self, start: np.ndarray, goal: np.ndarray, field: DistanceField
+    ) -> np.ndarray:
+        """Goal if within the horizon, else the point horizon_m along the line, moved along the
+        line to the nearest point clear of obstacles by the optimiser's clearance."""
+        d = goal - start
+        dist = float(np.linalg.norm(d))
+        p = self.params
+        if dist <= p.horizon_m:
+            return goal.copy()
+        u = d / dist
+        offsets = np.arange(0.0, dist - p.horizon_m, 0.1)
+        cand = np.concatenate([p.horizon_m + offsets, p.horizon_m - np.arange(0.1, 3.0, 0.1)])
+        cand = cand[(cand > 0.5) & (cand <= dist)]
+        pts = start + cand[:, None] * u
+        dd, _ = field.distance(pts)
+        ok = np.nonzero(dd >= p.obstacle_clearance_m)[0]
+        if ok.size == 0:
+            return start + p.horizon_m * u
+        return pts[ok[np.argmin(np.abs(cand[ok] - p.horizon_m))]]
+
+    def _guess_path(
+        self,
+        t_start: float,
+        start: np.ndarray,
+        target: np.ndarray,
+        field: DistanceField,
+        previous: Trajectory | None,
+        force_astar: bool,
+    ) -> np.ndarray:
+        p = self.params
+        if not force_astar and previous is not None and previous.t_end_s > t_start + 0.2:
+            ts = np.linspace(t_start, previous.t_end_s, 12)
+            path = previous.sample(ts)
+            if np.linalg.norm(path[-1] - target) > 1e-3:
+                path = np.vstack([path, target])
+            return path
+        line = np.vstack([start, target])
+        if not force_astar and segment_is_free(field, start, target, p.check_obstacle_m):
+            return line
+        astar = astar_path(
+            field,
+            start,
+            target,
+            clearance_m=p.obstacle_clearance_m,
+            resolution_m=p.astar_resolution_m,
+            z_limits=p.z_limits_m,
+        )
+        if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
+            astar = astar_path(
+                field,
+                start,
+                target,
+                clearance_m=p.check_obstacle_m,
+                resolution_m=p.astar_resolution_m,
+                z_limits=p.z_limits_m,
+            )
+        return line if astar is None else astar
+
+    def _peer_arrays(self, t_start: float, peers: Sequence[PeerTrajectory]) -> tuple:
+        P = len(peers)
+        K = max((pt.trajectory.n_pieces for pt in peers), default=1)
+        pc = np.zeros((P, K, 6, 3))
+        pT = np.ones((P, K))
+        pt0 = np.zeros(P)
+        for k, pt in enumerate(peers):
+            tr = pt.trajectory
+            n = tr.n_pieces
+            pc[k, :n] = tr.coeffs
+            pT[k, :n] = tr.durations_s
+            # unused pieces continue as a hover at the end point (zero velocity)
+            pc[k, n:, 0] = tr.sample(tr.t_end_s)
+            pt0[k] = tr.t0_s - t_start
+        return pc, pT, pt0
+
+    def prepare(
+        self,
+        t_start_s: float,
+        start_p: np.ndarray,
+        start_v: np.ndarray,
+        start_a: np.ndarray,
+        goal: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        field: DistanceField,
+        previous: Trajectory | None = None,
+        use_formation: bool = True,
+        force_astar: bool = False,
+    ) -> Problem:
+        """Build the optimisation problem of one replan (validated inputs, initial guess)."""
+        p = self.params
+        if not np.isfinite(t_start_s):
+            raise ValueError("t_start_s must be finite")
+        sp = _vec3("start_p", start_p)
+        sv = _vec3("start_v", start_v)
+        sa = _vec3("start_a", start_a)
+        gl = _vec3("goal", goal)
+        seen: set[int] = {self.slot}
+        for pt in peers:
+            if not 0 <= pt.slot < self.formation.shape[0]:
+                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot} outside the formation")
+            if pt.slot in seen:
+                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
+            seen.add(pt.slot)
+        target = self._local_target(sp, gl, field)
+        path = self._guess_path(t_start_s, sp, target, field, previous, force_astar)
+        path[0] = sp
+        length = _polyline_length(path)
+        M = int(np.clip(np.ceil(length / p.piece_length_m), 1, p.max_pieces))
+        wps = _resample_polyline(path, M)
+        seg = np.linalg.norm(np.diff(wps, axis=0), axis=1)
+        T0 = np.maximum(seg / p.v_max_m_s, 0.3)
+        T0[0] += 0.5 * max(0.0, p.v_max_m_s - float(np.linalg.norm(sv))) / p.a_max_m_s2 * 4
+        T0[-1] += 1.0  # braking at the target
+        head = np.stack([sp, sv, sa])
+        tail = np.stack([target, np.zeros(3), np.zeros(3)])
+        pc, pT, pt0 = self._peer_arrays(t_start_s, peers)
+        if use_formation and p.w_formation > 0 and len(peers) > 0:
+            idx = np.array([self.slot] + [pt.slot for pt in peers])
+            m = np.ascontiguousarray(self.mask[np.ix_(idx, idx)])
+            sdes = normalized_adjacency(np.ascontiguousarray(self.formation[idx]), m)
+        else:
+            m = np.zeros((1, 1))
+            sdes = np.zeros((1, 1))
+        prm = np.zeros(obj.N_PRM)
+        prm[obj.P_W_TIME] = p.w_time
+        prm[obj.P_W_OBS] = p.w_obstacle
+        prm[obj.P_D_OBS] = p.obstacle_clearance_m
+        prm[obj.P_W_SWARM] = p.w_swarm
+        prm[obj.P_D_SWARM] = p.swarm_clearance_m
+        prm[obj.P_Z_SCALE] = p.swarm_z_scale
+        prm[obj.P_W_FEAS] = p.w_feasibility
+        prm[obj.P_V_MAX] = p.v_max_m_s
+        prm[obj.P_A_MAX] = p.a_max_m_s2
+        prm[obj.P_J_MAX] = p.j_max_m_s3
+        prm[obj.P_W_UNIF] = p.w_uniform
+        prm[obj.P_W_FORM] = p.w_formation if use_formation else 0.0
+        prm[obj.P_FORM_CUBIC] = 1.0 if p.formation_penalty == "cubic" else 0.0
+        prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m)
+        fd = field.kernel_data()
+        fld = (
+            int(fd.kind),
+            fd.grid,
+            fd.origin,
+            float(fd.res),
+            fd.cylinders,
+            fd.rings,
+            fd.boxes,
+            float(fd.ground_z),
+        )
+        problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld)
+        return problem
+
+    # --- acceptance -------------------------------------------------------------------------
+
+    def check(
+        self,
+        traj: Trajectory,
+        t_from_s: float,
+        field: DistanceField,
+        peers: Sequence[PeerTrajectory],
+    ) -> tuple[bool, str]:
+        """Is ``traj`` clear of obstacles and peers from ``t_from_s`` to its end?"""
+        p = self.params
+        t_end = max(traj.t_end_s, t_from_s)
+        ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
+        pos = traj.sample(ts)
+        if not np.all(np.isfinite(pos)):
+            return False, "non-finite trajectory"
+        d, _ = field.distance(pos)
+        k = int(np.argmin(d))
+        if d[k] < p.check_obstacle_m:
+            return False, f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s"
+        for pt in peers:
+            other = pt.trajectory.sample(ts)
+            dd = np.linalg.norm(pos - other, axis=1)
+            k = int(np.argmin(dd))
+            if dd[k] < p.check_drone_m:
+                return False, (
+                    f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s"
+                )
+        return True, ""
+
+    def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
+        """A one-piece braking trajectory to rest."""
+        speed = float(np.linalg.norm(sv))
+        Tb = max(0.5, 3.0 * speed / self.params.a_max_m_s2)
+        m = Minco(1)
+        m.set_conditions(np.stack([sp, sv, sa]), np.stack([sp + 0.5 * Tb * sv, 0 * sv, 0 * sv]))
+        m.set_parameters(np.zeros((0, 3)), np.array([Tb]))
+        return Trajectory(t_start, m.coeffs, np.array([Tb]))
+
+    # --- the replan -------------------------------------------------------------------------
+
+    def plan(
+        self,
+        t_start_s: float,
+        start_p: np.ndarray,
+        start_v: np.ndarray,
+        start_a: np.ndarray,
+        goal: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        field: DistanceField,
+        previous: Trajectory | None = None,
+    ) -> PlanResult:
+        """One replan; see the module docstring for the sequence of attempts."""
+        sp = _vec3("start_p", start_p)
+        sv = _vec3("start_v", start_v)
+        sa = _vec3("start_a", start_a)
+        gl = _vec3("goal", goal)
+        if np.linalg.norm(gl - sp) < 0.02 and np.linalg.norm(sv) < 0.05:
+            hover = Trajectory.hover(gl, t_start_s, duration_s=1.0)
+            return PlanResult(PlanStatus.OK, hover, message="at goal")
+        iters = evals = 0
+        messages = []
+        last_status: LbfgsStatus | None = None
+        attempts = ((True, False, PlanStatus.OK), (False, True, PlanStatus.OK_NO_FORMATION))
+        for use_formation, force_astar, ok_status in attempts:
+            problem = self.prepare(
+                t_start_s,
+                sp,
+                sv,
+                sa,
+                gl,
+                peers,
+                field,
+                previous,
+                use_formation=use_formation,
+                force_astar=force_astar,
+            )
+            self._active = problem
+            x, last_status = problem.solve()
+            self._active = None
+            iters += problem.iterations
+            evals += problem.evaluations
+            if last_status == LbfgsStatus.CANCELED:
+                messages.append("canceled")
+                break
+            if not np.all(np.isfinite(x)):
+                messages.append("non-finite solution")
+                continue
+            traj = problem.trajectory(x)
+            safe, why = self.check(traj, t_start_s, field, peers)
+            if safe:
+                return PlanResult(
+                    ok_status,
+                    traj,
+                    iters,
+                    evals,
+                    last_status,
+                    "; ".join(messages),
+                    problem.cost_terms(x),
+                )
+            messages.append(f"{'formation' if use_formation else 'a* retry'}: {why}")
+        if previous is not None:
+            safe, why = self.check(previous, t_start_s, field, peers)
+            if safe:
+                return PlanResult(
+                    PlanStatus.KEPT_PREVIOUS,
+                    previous,
+                    iters,
+                    evals,
+                    last_status,
+                    "; ".join(messages),
+                )
+            messages.append(f"previous: {why}")
+        return PlanResult(
+            PlanStatus.EMERGENCY,
+            self._stop(t_start_s, sp, sv, sa),
+            iters,
+            evals,
+            last_status,
+            "; ".join(messages),
+        )

@@ -1,0 +1,106 @@
+"""MINCO: boundary conditions, optimality (C^4 at inner waypoints), energy, adjoint gradients."""
+
+import numpy as np
+import pytest
+from scipy.integrate import trapezoid
+
+from onboard.planner.minco import Minco
+from onboard.planner.trajectory import Trajectory
+
+
+def _random_minco(seed: int, M: int) -> Minco:
+    rng = np.random.default_rng(seed)
+    m = Minco(M)
+    head = rng.normal(size=(3, 3))
+    tail = rng.normal(size=(3, 3))
+    m.set_conditions(head, tail)
+    q = np.cumsum(rng.normal(size=(M - 1, 3)) + 1.0, axis=0)
+    T = rng.uniform(0.5, 2.0, size=M)
+    m.set_parameters(q, T)
+    return m
+
+
+def _derivs(c: np.ndarray, t: float) -> np.ndarray:
+    """Derivatives 0..4 of one piece (6, 3) at t, as (5, 3)."""
+    out = np.zeros((5, 3))
+    for k in range(5):
+        for j in range(k, 6):
+            fac = np.prod(np.arange(j - k + 1, j + 1)) if k > 0 else 1.0
+            out[k] += fac * c[j] * t ** (j - k)
+    return out
+
+
+@pytest.mark.parametrize("M", [1, 2, 5])
+def test_boundary_conditions_and_waypoints(M: int) -> None:
+    m = _random_minco(1, M)
+    c = m.coeffs
+    start = _derivs(c[0], 0.0)
+    end = _derivs(c[-1], m.T[-1])
+    np.testing.assert_allclose(start[:3], m.head, atol=1e-9)
+    np.testing.assert_allclose(end[:3], m.tail, atol=1e-8)
+    for i in range(M - 1):
+        np.testing.assert_allclose(_derivs(c[i], m.T[i])[0], m.q[i], atol=1e-8)
+
+
+def test_derivatives_zero_to_four_continuous_at_inner_waypoints() -> None:
+    m = _random_minco(2, 6)
+    c = m.coeffs
+    for i in range(5):
+        left = _derivs(c[i], m.T[i])
+        right = _derivs(c[i + 1], 0.0)
+        np.testing.assert_allclose(left, right, rtol=1e-7, atol=1e-7)
+
+
+def test_energy_equals_numerical_integral_of_squared_jerk() -> None:
+    m = _random_minco(3, 4)
+    e, _, _ = m.energy()
+    traj = Trajectory(0.0, m.coeffs, m.T)
+    t = np.linspace(0.0, traj.duration_s, 200_001)
+    j = traj.sample(t, order=3)
+    numeric = trapezoid(np.sum(j * j, axis=1), t)
+    assert e == pytest.approx(numeric, rel=1e-6)
+
+
+def _central_diff(fun, x: np.ndarray, h: float = 1e-6) -> np.ndarray:  # type: ignore[no-untyped-def]
+    g = np.zeros_like(x)
+    for k in range(x.size):
+        e = np.zeros_like(x)
+        e.flat[k] = h
+        g.flat[k] = (fun(x + e) - fun(x - e)) / (2 * h)
+    return g
+
+
+def test_adjoint_gradient_of_energy_and_arbitrary_cost() -> None:
+    """dJ/dq, dJ/dT through c = C(q, T) for J = energy + a random linear + quadratic in c, T."""
+    M = 5
+    base = _random_minco(4, M)
+    rng = np.random.default_rng(5)
+    Wc = rng.normal(size=(M, 6, 3))
+    wT = rng.normal(size=M)
+
+    def J_and_grads(q: np.ndarray, T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        m = Minco(M)
+        m.set_conditions(base.head, base.tail)
+        m.set_parameters(q, T)
+        e, gce, gTe = m.energy()
+        c = m.coeffs
+        val = e + np.sum(Wc * c) + 0.1 * np.sum(c**2) + np.sum(wT * T**2)
+        gc = gce + Wc + 0.2 * c
+        gT = gTe + 2 * wT * T
+        gq, gTt = m.propagate(gc, gT)
+        return val, gq, gTt
+
+    q0, T0 = base.q.copy(), base.T.copy()
+    _, gq, gT = J_and_grads(q0, T0)
+    num_q = _central_diff(lambda q: J_and_grads(q, T0)[0], q0)
+    num_T = _central_diff(lambda T: J_and_grads(q0, T)[0], T0)
+    np.testing.assert_allclose(gq, num_q, rtol=1e-5, atol=1e-5 * np.abs(num_q).max())
+    np.testing.assert_allclose(gT, num_T, rtol=1e-5, atol=1e-5 * np.abs(num_T).max())
+
+
+def test_invalid_parameters_are_rejected() -> None:
+    m = Minco(2)
+    with pytest.raises(ValueError):
+        m.set_parameters(np.zeros((1, 3)), np.array([1.0, 0.0]))
+    with pytest.raises(ValueError):
+        Minco(0)

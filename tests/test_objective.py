@@ -1,0 +1,200 @@
+"""Central-difference checks of every cost term (in c, T), of the whole objective (in x = q, tau),
+and of the global-time gradient through earlier pieces (peers' motion included)."""
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from onboard.planner import objective as obj
+from onboard.planner.formation import complete_mask, normalized_adjacency
+from onboard.planner.minco import BAND_COLS, Minco
+from onboard.planner.timemap import tau_from_T
+from onboard.world import World
+
+RTOL = 1e-5
+
+
+def _peer(rng: np.random.Generator, offset: np.ndarray, n_pieces: int) -> Minco:
+    m = Minco(n_pieces)
+    head = np.stack([offset, [0.4, 0.05, 0.0], [0.0, 0.0, 0.0]])
+    tail = np.stack([offset + [4.0, 0.3, 0.1], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    m.set_conditions(head, tail)
+    q = np.linspace(head[0], tail[0], n_pieces + 1)[1:-1] + rng.normal(
+        scale=0.1, size=(n_pieces - 1, 3)
+    )
+    m.set_parameters(q, rng.uniform(1.5, 2.5, n_pieces))
+    return m
+
+
+def _setup(seed: int, weights: dict[str, float], cubic: bool = True):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(seed)
+    M = 4
+    head = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    tail = np.array([[5.0, 0.5, 1.2], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    q = np.linspace(head[0], tail[0], M + 1)[1:-1] + rng.normal(scale=0.2, size=(M - 1, 3))
+    T = rng.uniform(1.0, 2.0, M)
+    # peers close enough for J_r to be active, with their own start times and piece counts
+    peers = [
+        _peer(rng, np.array([0.2, 0.5, 1.1]), 3),
+        _peer(rng, np.array([-0.3, -0.4, 0.9]), 2),
+        _peer(rng, np.array([0.5, 1.5, 1.0]), 4),
+    ]
+    K = max(p.M for p in peers)
+    pc = np.zeros((3, K, 6, 3))
+    pT = np.ones((3, K))
+    for k, p in enumerate(peers):
+        pc[k, : p.M] = p.coeffs
+        pT[k, : p.M] = p.T
+        pc[k, p.M :, 0] = p.tail[0]
+    pt0 = np.array([-0.4, 0.3, 0.0])
+    formation = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 2.0, 0.0]])
+    mask = complete_mask(4)
+    sdes = normalized_adjacency(formation, mask)
+    prm = np.zeros(obj.N_PRM)
+    prm[obj.P_D_OBS] = 0.9
+    prm[obj.P_D_SWARM] = 0.9
+    prm[obj.P_Z_SCALE] = 0.5
+    prm[obj.P_V_MAX] = 0.5
+    prm[obj.P_A_MAX] = 0.3
+    prm[obj.P_J_MAX] = 0.4
+    prm[obj.P_FORM_CUBIC] = 1.0 if cubic else 0.0
+    for key, idx in (
+        ("time", obj.P_W_TIME),
+        ("obstacle", obj.P_W_OBS),
+        ("swarm", obj.P_W_SWARM),
+        ("feasibility", obj.P_W_FEAS),
+        ("uniformity", obj.P_W_UNIF),
+        ("formation", obj.P_W_FORM),
+    ):
+        prm[idx] = weights.get(key, 0.0)
+    prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask)
+    world = World(
+        cylinders=np.array([[1.5, 0.6, 0.3, 0.0, 3.0], [3.2, -0.2, 0.25, 0.0, 3.0]]),
+        rings=np.array([[4.2, 0.4, 1.3, 0.3, 0.7, 0.5, 0.05]]),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+    fd = world.field().kernel_data()
+    fld = (
+        int(fd.kind),
+        fd.grid,
+        fd.origin,
+        float(fd.res),
+        fd.cylinders,
+        fd.rings,
+        fd.boxes,
+        float(fd.ground_z),
+    )
+    return M, head, tail, q, T, prob, fld
+
+
+def _rel_err(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
+
+
+def _num_grad(fun: Callable[[np.ndarray], float], x: np.ndarray, h: float) -> np.ndarray:
+    g = np.zeros_like(x)
+    for k in range(x.size):
+        e = np.zeros_like(x)
+        e.flat[k] = h
+        g.flat[k] = (fun(x + e) - fun(x - e)) / (2 * h)
+    return g
+
+
+TERMS = {
+    "energy+time": {"time": 3.0},
+    "obstacle": {"obstacle": 50.0},
+    "swarm": {"swarm": 50.0},
+    "feasibility": {"feasibility": 20.0},
+    "uniformity": {"uniformity": 30.0},
+    "formation": {"formation": 1e3},
+}
+
+
+@pytest.mark.parametrize("term", list(TERMS))
+def test_cost_term_gradient_in_c_and_T(term: str) -> None:
+    M, head, tail, q, T, prob, fld = _setup(11, TERMS[term])
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    c0 = m.c.copy()
+    costs = np.zeros(obj.N_TERMS)
+
+    def f_c(c: np.ndarray) -> float:
+        return obj.cost_c_T(c, T, prob, fld, np.zeros_like(c), np.zeros(M), costs)
+
+    def f_T(TT: np.ndarray) -> float:
+        return obj.cost_c_T(c0, TT, prob, fld, np.zeros_like(c0), np.zeros(M), costs)
+
+    gc = np.zeros_like(c0)
+    gT = np.zeros(M)
+    obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
+    if term != "energy+time":
+        name = term
+        assert costs[obj.TERM_NAMES.index(name)] > 0.0, f"{term} not active in the test setup"
+    assert _rel_err(gc, _num_grad(f_c, c0, 1e-6)) <= RTOL
+    assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
+
+
+def test_linear_formation_variant_gradient() -> None:
+    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, cubic=False)
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    c0 = m.c.copy()
+    costs = np.zeros(obj.N_TERMS)
+    gc = np.zeros_like(c0)
+    gT = np.zeros(M)
+    obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
+    num_T = _num_grad(
+        lambda TT: obj.cost_c_T(c0, TT, prob, fld, np.zeros_like(c0), np.zeros(M), costs), T, 1e-6
+    )
+    assert _rel_err(gT, num_T) <= RTOL
+
+
+def test_time_gradient_includes_peer_motion() -> None:
+    """With the formation term on, dJ/dT_0 must move when the peers' velocity is ignored."""
+    M, head, tail, q, T, prob, fld = _setup(13, {"formation": 1e3})
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    gT = np.zeros(M)
+    costs = np.zeros(obj.N_TERMS)
+    obj.cost_c_T(m.c, T, prob, fld, np.zeros_like(m.c), gT, costs)
+    still = list(prob)
+    pc = prob[4].copy()
+    pc[:, :, 1:] = 0.0  # frozen peers
+    still[4] = pc
+    gT_still = np.zeros(M)
+    obj.cost_c_T(m.c, T, tuple(still), fld, np.zeros_like(m.c), gT_still, costs)
+    assert np.abs(gT[0] - gT_still[0]) > 1e-6 * np.abs(gT).max()
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_whole_objective_gradient_in_q_and_tau(seed: int) -> None:
+    weights = {
+        "time": 5.0,
+        "obstacle": 50.0,
+        "swarm": 50.0,
+        "feasibility": 20.0,
+        "uniformity": 30.0,
+        "formation": 1e3,
+    }
+    M, head, tail, q, T, prob, fld = _setup(seed, weights)
+    x = np.concatenate([q.ravel(), tau_from_T(T)])
+    work = (
+        np.zeros((6 * M, BAND_COLS)),
+        np.zeros((6 * M, 3)),
+        np.zeros((6 * M, 3)),
+        np.zeros(M),
+        np.zeros((M - 1, 3)),
+        np.zeros(obj.N_TERMS),
+    )
+    g = np.empty_like(x)
+    obj.objective(x, prob, fld, work, g)
+
+    def f(xx: np.ndarray) -> float:
+        return obj.objective(xx, prob, fld, work, np.empty_like(xx))
+
+    assert _rel_err(g, _num_grad(f, x, 1e-6)) <= RTOL
