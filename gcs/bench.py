@@ -1,0 +1,259 @@
+"""Planner benchmark: replay the replans of a recorded flight and time them.
+
+Timings use ``time.perf_counter``; on a shared machine they are noisy, so each problem's time
+is the median of its repeats (after one untimed warm-up run) and one objective evaluation is the
+fastest of several batches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+import platform
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from collections.abc import Callable, Sequence
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from gcs.fastsim import PlanCall, SimConfig, replay_inputs, run_sim
+from gcs.metrics import summary
+
+if TYPE_CHECKING:
+    from onboard.planner.params import PlannerParams
+
+
+def machine_info() -> dict[str, Any]:
+    """Platform, CPU model, core count and library versions."""
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith(("model name", "hardware", "cpu model")):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+
+    def version(pkg: str) -> str:
+        try:
+            return metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            return "absent"
+
+    return {
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": version("numpy"),
+        "scipy": version("scipy"),
+        "numba": version("numba"),
+        "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+    }
+
+
+_STARTUP_SCRIPT = textwrap.dedent(
+    """
+    import time
+    t0 = time.perf_counter()
+    import pickle, sys
+    from onboard.planner.planner import FormationPlanner
+    t_import = time.perf_counter() - t0
+    with open(sys.argv[1], "rb") as fh:
+        params, formation, call = pickle.load(fh)
+    planner = FormationPlanner(params, formation, call.slot)
+    t1 = time.perf_counter()
+    res = planner.plan(call.t_start_s, call.start_p, call.start_v, call.start_a, call.goal,
+                       list(call.peers), call.world.field(), call.previous)
+    t2 = time.perf_counter()
+    print(f"{t_import} {t2 - t1} {t2 - t0} {res.status.value}")
+    """
+)
+
+
+def measure_startup(
+    params: PlannerParams, formation: np.ndarray, call: PlanCall, runs: int = 2
+) -> dict[str, Any]:
+    """Wall time for fresh interpreters to import the planner and finish one plan.
+
+    Runs ``runs`` processes one after the other (the first one may still fill numba's cache);
+    ``startup_s`` is the last one, measured from outside (interpreter start included).
+    Raises RuntimeError when the probe fails.
+    """
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    walls: list[float] = []
+    lines: list[str] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        blob = Path(tmp) / "problem.pkl"
+        blob.write_bytes(pickle.dumps((params, formation, call)))
+        for _ in range(runs):
+            w0 = time.perf_counter()
+            out = subprocess.run(
+                [sys.executable, "-c", _STARTUP_SCRIPT, str(blob)],
+                capture_output=True,
+                text=True,
+                env=env,
+                check=False,
+            )
+            walls.append(time.perf_counter() - w0)
+            if out.returncode != 0:
+                raise RuntimeError(f"startup probe failed:\n{out.stderr[-2000:]}")
+            lines.append(out.stdout.strip().splitlines()[-1])
+    t_import, t_plan, t_total, status = lines[-1].split()
+    return {
+        "startup_s": walls[-1],
+        "startup_runs_s": walls,
+        "import_s": float(t_import),
+        "first_plan_ms": float(t_plan) * 1e3,
+        "in_process_s": float(t_total),
+        "first_plan_status": status,
+    }
+
+
+def select_calls(
+    calls: Sequence[PlanCall], n_drones: int, skip_s: float, max_problems: int
+) -> list[PlanCall]:
+    """Replans from ``skip_s`` on with every peer known, evenly thinned to ``max_problems``.
+
+    Falls back to all replans after ``skip_s`` (then to all) when none has every peer.
+    """
+    chosen = [c for c in calls if c.t_start_s >= skip_s and len(c.peers) == n_drones - 1]
+    if not chosen:
+        chosen = [c for c in calls if c.t_start_s >= skip_s] or list(calls)
+    if max_problems > 0 and len(chosen) > max_problems:
+        idx = np.unique(np.linspace(0, len(chosen) - 1, max_problems).round().astype(int))
+        chosen = [chosen[i] for i in idx]
+    return chosen
+
+
+def _pick(values: Sequence[float], keys: Sequence[str] = ("median", "p90", "max")) -> dict:
+    s = summary(values)
+    return {k: s[k] for k in keys}
+
+
+def _eval_us(objective: Callable[[np.ndarray], Any], x: np.ndarray, calls: int) -> float:
+    """Fastest per-call time [us] of ``objective(x)`` over 5 batches of ``calls / 5`` calls."""
+    objective(x)
+    per = max(1, calls // 5)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(per):
+            objective(x)
+        best = min(best, (time.perf_counter() - t0) / per)
+    return best * 1e6
+
+
+def bench_planner(
+    cfg: SimConfig,
+    repeats: int = 5,
+    skip_s: float = 5.0,
+    max_problems: int = 300,
+    eval_calls: int = 200,
+    startup: bool = True,
+    sim_progress: Callable[[float, float], None] | None = None,
+    replay_progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Record the flight ``cfg``, replay the chosen replans and return the report (JSON-able).
+
+    Per problem: ``prepare(...) + solve()`` timed ``repeats`` times after one untimed run
+    (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
+    count, and one objective evaluation at x0 (``eval_us``). Breakdown per problem:
+    cost = evaluations x eval_us, solver and set-up overhead = replan - cost (medians reported).
+    """
+    from onboard.config import load_planner_params
+    from onboard.planner.planner import FormationPlanner
+
+    if repeats < 1:
+        raise ValueError("repeats must be >= 1")
+    calls: list[PlanCall] = []
+    flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
+    chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
+    base = cfg.planner if cfg.planner is not None else load_planner_params()
+    params = dataclasses.replace(base, v_max_m_s=cfg.v_max_m_s)
+    planners = [FormationPlanner(params, cfg.formation.points, i) for i in range(cfg.formation.n)]
+
+    replan_ms: list[float] = []
+    plan_ms: list[float] = []
+    iters: list[float] = []
+    evals: list[float] = []
+    eval_us: list[float] = []
+    cost_ms: list[float] = []
+    overhead_ms: list[float] = []
+    pieces: list[float] = []
+    statuses: dict[str, int] = {}
+    for k_call, call in enumerate(chosen):
+        planner = planners[call.slot]
+        args = replay_inputs(call)  # the distance field is built here, outside the timing
+        times: list[float] = []
+        problem = None
+        for k in range(repeats + 1):
+            t0 = time.perf_counter()
+            problem = planner.prepare(*args)
+            problem.solve()
+            dt = (time.perf_counter() - t0) * 1e3
+            if k > 0:
+                times.append(dt)
+        assert problem is not None
+        ptimes: list[float] = []
+        for k in range(repeats + 1):
+            t0 = time.perf_counter()
+            res = planner.plan(*args)
+            dt = (time.perf_counter() - t0) * 1e3
+            if k > 0:
+                ptimes.append(dt)
+        key = str(res.status.value)
+        statuses[key] = statuses.get(key, 0) + 1
+        e_us = _eval_us(problem.objective, problem.x0, eval_calls)
+        t_ms = float(np.median(times))
+        c_ms = problem.evaluations * e_us * 1e-3
+        replan_ms.append(t_ms)
+        plan_ms.append(float(np.median(ptimes)))
+        iters.append(problem.iterations)
+        evals.append(problem.evaluations)
+        eval_us.append(e_us)
+        cost_ms.append(c_ms)
+        overhead_ms.append(t_ms - c_ms)
+        pieces.append(problem.M)
+        if replay_progress is not None:
+            replay_progress(k_call + 1, len(chosen))
+
+    report: dict[str, Any] = {
+        "scenario": {
+            "formation": cfg.formation.name,
+            "world": cfg.world.name,
+            "seed": cfg.seed,
+            "v_max_m_s": cfg.v_max_m_s,
+            "flight_success": flight.success,
+            "flight_replans": len(calls),
+            "skip_s": skip_s,
+        },
+        "problems": len(chosen),
+        "repeats": repeats,
+        "replan_ms": _pick(replan_ms, ("median", "p90", "max", "mean")),
+        "plan_ms": _pick(plan_ms, ("median", "p90", "max", "mean")),
+        "iterations": _pick(iters),
+        "evaluations": _pick(evals),
+        "eval_us": summary(eval_us)["median"],
+        "breakdown": {
+            "cost_eval_ms_median": summary(cost_ms)["median"],
+            "solver_overhead_ms_median": summary(overhead_ms)["median"],
+        },
+        "pieces": {"median": summary(pieces)["median"]},
+        "plan_status_counts": statuses,
+        "machine": machine_info(),
+        "startup_s": None,
+    }
+    if startup and chosen:
+        st = measure_startup(params, cfg.formation.points, chosen[0])
+        report["startup_s"] = st["startup_s"]
+        report["startup"] = st
+    return report

@@ -1,0 +1,386 @@
+"""``swarm-gcs``: ground-side tools — fast-time swarm simulation and planner benchmark."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from onboard.config import (
+    ConfigError,
+    load_formation,
+    load_planner_params,
+    load_world_spec,
+    merge_mappings,
+    parse_override,
+)
+
+if TYPE_CHECKING:
+    from gcs.fastsim import SimConfig, SimResult
+    from onboard.planner.params import PlannerParams
+
+
+def _console(quiet: bool) -> Console:
+    return Console(quiet=quiet, highlight=False)
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+
+
+def _planner_params(planner_file: Path | None, sets: Sequence[str]) -> PlannerParams:
+    overrides: dict[str, Any] = {}
+    for s in sets:
+        overrides = merge_mappings(overrides, parse_override(s))
+    return load_planner_params(planner_file, **overrides)
+
+
+@contextmanager
+def _sim_progress(console: Console, label: str) -> Iterator[Any]:
+    """A rich progress bar over simulated time; yields the callback run_sim wants."""
+    if console.quiet:
+        yield None
+        return
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:6.1f} / {task.total:.0f} s simulated"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task(label, total=1.0)
+
+        def update(t_s: float, limit_s: float) -> None:
+            bar.update(task, completed=t_s, total=limit_s)
+
+        yield update
+
+
+def _fmt(x: float | None, spec: str = ".3f") -> str:
+    if x is None or not np.isfinite(x):
+        return "-"
+    return format(x, spec)
+
+
+def _sim_table(r: SimResult) -> Table:
+    t = Table(title=f"{r.formation_name} through {r.world_name}, seed {r.seed}", show_header=False)
+    t.add_column("metric", style="bold")
+    t.add_column("value")
+    arrived = int(np.sum(r.arrived))
+    ok = "[green]yes[/green]" if r.success else "[red]no[/red]"
+    t.add_row("success", ok)
+    t.add_row("arrived", f"{arrived} / {r.arrived.shape[0]}" + (" (timed out)" * r.timed_out))
+    t.add_row(
+        "collisions",
+        f"{r.collisions} (obstacle {r.obstacle_collisions}, drone {r.drone_collisions})",
+    )
+    t.add_row("min obstacle clearance", f"{_fmt(r.min_obstacle_clearance_m)} m")
+    t.add_row("min drone distance", f"{_fmt(r.min_drone_distance_m)} m")
+    t.add_row(
+        "e_sim mean / max",
+        f"{_fmt(r.e_sim_mean, '.4f')} / {_fmt(r.e_sim_max, '.4f')}"
+        f"  (cluttered {_fmt(r.e_sim_mean_cluttered, '.4f')})",
+    )
+    t.add_row("e_dist mean / max", f"{_fmt(r.e_dist_mean)} / {_fmt(r.e_dist_max)} m")
+    t.add_row("flight time", f"{_fmt(r.flight_time_s, '.1f')} s")
+    rm = r.replan_ms
+    t.add_row(
+        "replan ms median / p90 / max",
+        f"{_fmt(rm['median'], '.2f')} / {_fmt(rm['p90'], '.2f')} / {_fmt(rm['max'], '.2f')}"
+        f"  ({rm['count']} replans)",
+    )
+    it = r.iterations
+    t.add_row(
+        "iterations median / p90 / max",
+        f"{_fmt(it['median'], '.0f')} / {_fmt(it['p90'], '.0f')} / {_fmt(it['max'], '.0f')}",
+    )
+    t.add_row("plan status", ", ".join(f"{k} {v}" for k, v in sorted(r.status_counts.items())))
+    t.add_row("wall time", f"{_fmt(r.sim_wall_s, '.1f')} s (planner warm-up {r.warmup_s:.1f} s)")
+    return t
+
+
+def _sim_config(
+    formation: str,
+    world: str,
+    seed: int,
+    v_max: float,
+    params: PlannerParams,
+    time_limit: float | None = None,
+    silent: Sequence[int] = (),
+) -> SimConfig:
+    from gcs.fastsim import SimConfig
+
+    f = load_formation(formation)
+    w = load_world_spec(world)
+    bad = [i for i in silent if not 0 <= i < f.n]
+    if bad:
+        raise ConfigError(f"--silent: drones {bad} are not in the {f.n}-drone formation")
+    return SimConfig(
+        formation=f,
+        world=w,
+        seed=seed,
+        v_max_m_s=v_max,
+        planner=params,
+        time_limit_s=time_limit,
+        silent_drones=tuple(silent),
+    )
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Ground-side tools of the swarm formation system."""
+
+
+_formation_opt = click.option(
+    "--formation",
+    default="hexagon-7",
+    show_default=True,
+    help="Formation name (config/formations) or YAML/JSON file.",
+)
+_world_opt = click.option(
+    "--world",
+    default="forest-medium",
+    show_default=True,
+    help="World name (config/worlds) or YAML/JSON file.",
+)
+_seed_opt = click.option("--seed", default=1, show_default=True, help="Seed of the world.")
+_vmax_opt = click.option(
+    "--v-max", "v_max", default=0.5, show_default=True, type=float, help="Speed limit [m/s]."
+)
+_planner_opt = click.option(
+    "--planner",
+    "planner_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Planner parameter file (default config/planner.yaml).",
+)
+_set_opt = click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a planner parameter, e.g. --set w_formation=1e6 (repeatable).",
+)
+
+
+@main.command()
+@_formation_opt
+@_world_opt
+@_seed_opt
+@_vmax_opt
+@_planner_opt
+@_set_opt
+@click.option("--time-limit", type=float, default=None, help="Simulated seconds [default: auto].")
+@click.option(
+    "--silent",
+    type=int,
+    multiple=True,
+    help="Drone whose broadcasts are lost (repeatable): a failed radio.",
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option("--tracks", is_flag=True, help="Include the 10 Hz tracks in the JSON.")
+@click.option(
+    "--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG."
+)
+@click.option("--check", is_flag=True, help="Exit with status 1 unless the flight succeeded.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def sim(
+    formation: str,
+    world: str,
+    seed: int,
+    v_max: float,
+    planner_file: Path | None,
+    sets: tuple[str, ...],
+    time_limit: float | None,
+    silent: tuple[int, ...],
+    json_path: Path | None,
+    tracks: bool,
+    plot_path: Path | None,
+    check: bool,
+    quiet: bool,
+) -> None:
+    """Fly a formation through a world in fast simulated time and score the flight."""
+    from gcs.fastsim import run_sim
+
+    console = _console(quiet)
+    try:
+        params = _planner_params(planner_file, sets)
+        cfg = _sim_config(formation, world, seed, v_max, params, time_limit, silent)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    try:
+        with _sim_progress(console, f"{cfg.formation.name} / {cfg.world.name}") as cb:
+            result = run_sim(cfg, progress=cb)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    console.print(_sim_table(result))
+    for ev in result.events:
+        console.print(
+            f"  collision t={ev.t_s:.2f} s {ev.kind} {list(ev.ids)} at {ev.distance_m:.3f} m"
+        )
+    if json_path is not None:
+        _write_json(json_path, result.to_json(include_tracks=tracks))
+        console.print(f"wrote {json_path}")
+    if plot_path is not None:
+        from gcs.plots import plot_top_view
+
+        plot_top_view(result, plot_path)
+        console.print(f"wrote {plot_path}")
+    if check and not result.success:
+        raise SystemExit(1)
+
+
+@main.group()
+def bench() -> None:
+    """Benchmarks: print a table and write JSON to compare run to run."""
+
+
+@bench.command("planner")
+@_formation_opt
+@_world_opt
+@_seed_opt
+@_vmax_opt
+@_planner_opt
+@_set_opt
+@click.option("--repeats", default=5, show_default=True, help="Timed solves per problem.")
+@click.option(
+    "--skip-s",
+    default=5.0,
+    show_default=True,
+    help="Use replans starting after this simulated time (peers known).",
+)
+@click.option(
+    "--max-problems",
+    default=300,
+    show_default=True,
+    help="Replay at most this many recorded replans (evenly spread; 0 = all).",
+)
+@click.option(
+    "--eval-calls",
+    default=200,
+    show_default=True,
+    help="Objective evaluations timed per problem for eval_us.",
+)
+@click.option(
+    "--startup/--no-startup",
+    default=True,
+    show_default=True,
+    help="Measure a fresh process's import + first plan.",
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_planner(
+    formation: str,
+    world: str,
+    seed: int,
+    v_max: float,
+    planner_file: Path | None,
+    sets: tuple[str, ...],
+    repeats: int,
+    skip_s: float,
+    max_problems: int,
+    eval_calls: int,
+    startup: bool,
+    json_path: Path | None,
+    quiet: bool,
+) -> None:
+    """Replay the replans of a recorded flight and time the planner.
+
+    Records a seeded flight, keeps the replans made after --skip-s with all peers known, and
+    times each one's prepare() + solve() --repeats times after one untimed warm-up run
+    (medians per problem), plus the full plan() call and one objective evaluation.
+    """
+    from gcs import bench as gb
+
+    if repeats < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--repeats")
+    console = _console(quiet)
+    try:
+        params = _planner_params(planner_file, sets)
+        cfg = _sim_config(formation, world, seed, v_max, params)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+        disable=quiet,
+    ) as bar:
+        sim_task = bar.add_task("recording flight [s]", total=None)
+        replay_task = bar.add_task("replaying replans", total=None, visible=False)
+
+        def sim_cb(t_s: float, limit_s: float) -> None:
+            bar.update(sim_task, completed=t_s, total=limit_s)
+
+        def replay_cb(done: int, total: int) -> None:
+            bar.update(sim_task, visible=False)
+            bar.update(replay_task, completed=done, total=total, visible=True)
+
+        try:
+            report = gb.bench_planner(
+                cfg,
+                repeats=repeats,
+                skip_s=skip_s,
+                max_problems=max_problems,
+                eval_calls=eval_calls,
+                startup=startup,
+                sim_progress=sim_cb,
+                replay_progress=replay_cb,
+            )
+        except (RuntimeError, ConfigError) as e:
+            raise click.ClickException(str(e)) from e
+
+    t = Table(title=f"planner benchmark: {report['problems']} replans x {repeats}")
+    t.add_column("quantity")
+    t.add_column("median", justify="right")
+    t.add_column("p90", justify="right")
+    t.add_column("max", justify="right")
+    for name, key in (
+        ("prepare+solve (ms)", "replan_ms"),
+        ("plan() (ms)", "plan_ms"),
+        ("iterations", "iterations"),
+        ("evaluations", "evaluations"),
+    ):
+        s = report[key]
+        t.add_row(name, _fmt(s["median"], ".2f"), _fmt(s["p90"], ".2f"), _fmt(s["max"], ".2f"))
+    console.print(t)
+    b = report["breakdown"]
+    console.print(
+        f"one evaluation {_fmt(report['eval_us'], '.1f')} us; median cost "
+        f"{_fmt(b['cost_eval_ms_median'], '.2f')} ms + solver/set-up "
+        f"{_fmt(b['solver_overhead_ms_median'], '.2f')} ms; "
+        f"pieces median {_fmt(report['pieces']['median'], '.0f')}"
+    )
+    if report["startup_s"] is not None:
+        st = report["startup"]
+        console.print(
+            f"fresh process: import + first plan {st['startup_s']:.2f} s "
+            f"(import {st['import_s']:.2f} s, first plan {st['first_plan_ms']:.1f} ms)"
+        )
+    m = report["machine"]
+    console.print(f"{m['cpu']} x{m['cpu_count']}, Python {m['python']}, numba {m['numba']}")
+    if json_path is not None:
+        _write_json(json_path, report)
+        console.print(f"wrote {json_path}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,494 @@
+"""Fast-time swarm simulation: N onboard planners, an in-memory bus, perfect tracking.
+
+Every drone runs its own ``FormationPlanner`` on what it has sensed so far and on the latest
+trajectories its peers broadcast (delivered with a delay). Drones track their trajectories
+perfectly; the simulation checks collisions against the full world at ``dt_s`` (100 Hz) and
+samples positions and the formation metric at 10 Hz. Simulated time runs as fast as the planner
+allows; each plan call is timed with the wall clock.
+
+Timeline of one replan of drone i at simulated time t (every ``replan_period_s``, drone i offset
+by ``i * replan_period_s / N``): sense (obstacles with surface within ``sensing_radius_m`` join
+the drone's own map), read peers from the bus, plan from the state of the trajectory in flight at
+``t + plan_ahead_s``, publish at t; the new trajectory takes over at its start time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from gcs.metrics import e_dist, summary
+from onboard.comm import InMemoryBus, TrajectoryMsg
+from onboard.config import Formation, WorldSpec, load_planner_params
+from onboard.planner.formation import similarity
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+if TYPE_CHECKING:
+    from onboard.planner.params import PlannerParams
+    from onboard.planner.planner import PeerTrajectory
+
+_EPS_T = 1e-9
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """One simulated flight. Lengths in metres, times in seconds (simulated)."""
+
+    formation: Formation
+    world: WorldSpec
+    seed: int = 0
+    v_max_m_s: float = 0.5
+    """Speed limit handed to every planner (overrides ``planner.v_max_m_s``)."""
+    sensing_radius_m: float = 5.0
+    replan_period_s: float = 1.0
+    plan_ahead_s: float = 0.1
+    bus_delay_s: float = 0.05
+    dt_s: float = 0.01
+    """Step of motion and collision checks (100 Hz)."""
+    sample_period_s: float = 0.1
+    """Step of the recorded tracks and formation metrics (10 Hz)."""
+    time_limit_s: float | None = None
+    """None: 2 x (longest start-goal distance / v_max) + 30 s."""
+    goal_tolerance_m: float = 0.5
+    arrival_speed_m_s: float = 0.1
+    collision_obstacle_m: float = 0.2
+    """A drone collides when its centre is closer than this to an obstacle surface."""
+    collision_drone_m: float = 0.4
+    """Two drones collide when their centres are closer than this."""
+    planner: PlannerParams | None = None
+    """None: ``load_planner_params()`` (config/planner.yaml)."""
+    silent_drones: tuple[int, ...] = ()
+    """Drones whose broadcasts never reach anyone (a failed radio)."""
+    max_events: int = 20
+    """Collision events kept in the result (all are counted)."""
+    warmup: bool = True
+    """Plan one small problem before the flight, untimed, so that replan_ms measures steady
+    state rather than numba's compilation or cache loading (reported as ``warmup_s``)."""
+
+    def __post_init__(self) -> None:
+        positive = ("v_max_m_s", "replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
+        for name in positive:
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0")
+        if self.plan_ahead_s < 0.0 or self.bus_delay_s < 0.0 or self.sensing_radius_m < 0.0:
+            raise ValueError("plan_ahead_s, bus_delay_s and sensing_radius_m must be >= 0")
+        if self.time_limit_s is not None and not self.time_limit_s > 0.0:
+            raise ValueError("time_limit_s must be > 0")
+
+
+@dataclass(frozen=True, eq=False)
+class PlanCall:
+    """Everything one plan call received; enough to replay it (``gcs.cli bench planner``)."""
+
+    drone_id: int
+    slot: int
+    t_start_s: float
+    start_p: np.ndarray
+    start_v: np.ndarray
+    start_a: np.ndarray
+    goal: np.ndarray
+    peers: tuple[PeerTrajectory, ...]
+    world: World
+    previous: Trajectory | None
+
+
+@dataclass(frozen=True)
+class CollisionEvent:
+    """The start of a collision: ``kind`` 'obstacle' (ids = (drone,)) or 'drone' (ids = pair)."""
+
+    t_s: float
+    kind: str
+    ids: tuple[int, ...]
+    distance_m: float
+
+
+@dataclass(frozen=True, eq=False)
+class Tracks:
+    """Recorded at ``sample_period_s``: t (T,), pos (T, N, 3), e_sim (T,), e_dist (T,)."""
+
+    t: np.ndarray
+    pos: np.ndarray
+    e_sim: np.ndarray
+    e_dist: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """Outcome and metrics of one simulated flight."""
+
+    success: bool
+    """All drones arrived and no collision happened."""
+    arrived: np.ndarray
+    """(N,) bool: within goal tolerance and slower than the arrival speed at the end."""
+    collisions: int
+    obstacle_collisions: int
+    drone_collisions: int
+    events: tuple[CollisionEvent, ...]
+    min_obstacle_clearance_m: float
+    """Minimum over time and drones of the drone-centre-to-obstacle-surface distance."""
+    min_drone_distance_m: float
+    e_sim_mean: float
+    e_sim_max: float
+    e_sim_mean_cluttered: float
+    """Mean e_sim while the swarm's centroid is inside the cluttered x span."""
+    e_dist_mean: float
+    e_dist_max: float
+    flight_time_s: float
+    timed_out: bool
+    replan_ms: dict[str, float]
+    iterations: dict[str, float]
+    evaluations: dict[str, float]
+    status_counts: dict[str, int]
+    sim_wall_s: float
+    warmup_s: float
+    tracks: Tracks
+    world: World
+    starts: np.ndarray
+    goals: np.ndarray
+    formation_name: str
+    world_name: str
+    seed: int
+    cluttered_x: tuple[float, float]
+    config: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
+        """A JSON-serialisable summary (tracks only when asked: they are large)."""
+        out: dict[str, Any] = {
+            "success": bool(self.success),
+            "arrived": [bool(a) for a in self.arrived],
+            "n_arrived": int(np.sum(self.arrived)),
+            "n_drones": int(self.arrived.shape[0]),
+            "collisions": int(self.collisions),
+            "obstacle_collisions": int(self.obstacle_collisions),
+            "drone_collisions": int(self.drone_collisions),
+            "events": [dataclasses.asdict(e) for e in self.events],
+            "min_obstacle_clearance_m": _num(self.min_obstacle_clearance_m),
+            "min_drone_distance_m": _num(self.min_drone_distance_m),
+            "e_sim_mean": _num(self.e_sim_mean),
+            "e_sim_max": _num(self.e_sim_max),
+            "e_sim_mean_cluttered": _num(self.e_sim_mean_cluttered),
+            "e_dist_mean": _num(self.e_dist_mean),
+            "e_dist_max": _num(self.e_dist_max),
+            "flight_time_s": _num(self.flight_time_s),
+            "timed_out": bool(self.timed_out),
+            "replan_ms": {k: _num(v) for k, v in self.replan_ms.items()},
+            "iterations": {k: _num(v) for k, v in self.iterations.items()},
+            "evaluations": {k: _num(v) for k, v in self.evaluations.items()},
+            "status_counts": dict(self.status_counts),
+            "sim_wall_s": _num(self.sim_wall_s),
+            "warmup_s": _num(self.warmup_s),
+            "formation": self.formation_name,
+            "world": self.world_name,
+            "seed": int(self.seed),
+            "cluttered_x": [float(x) for x in self.cluttered_x],
+            "n_obstacles": {
+                "cylinders": int(self.world.cylinders.shape[0]),
+                "rings": int(self.world.rings.shape[0]),
+                "boxes": int(self.world.boxes.shape[0]),
+            },
+            "starts": self.starts.tolist(),
+            "goals": self.goals.tolist(),
+            "config": self.config,
+        }
+        if include_tracks:
+            out["tracks"] = {
+                "t": self.tracks.t.tolist(),
+                "pos": self.tracks.pos.tolist(),
+                "e_sim": self.tracks.e_sim.tolist(),
+                "e_dist": self.tracks.e_dist.tolist(),
+            }
+        return out
+
+
+def _num(x: float) -> float | int | None:
+    """JSON has no NaN/inf: map them to null (integers stay integers)."""
+    if isinstance(x, (int, np.integer)) and not isinstance(x, bool):
+        return int(x)
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def default_time_limit_s(starts: np.ndarray, goals: np.ndarray, v_max_m_s: float) -> float:
+    """2 x (longest start-goal distance / v_max) + 30 s."""
+    return float(np.max(np.linalg.norm(goals - starts, axis=1))) / v_max_m_s * 2.0 + 30.0
+
+
+def _config_summary(cfg: SimConfig, params: PlannerParams) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        if f.name in ("formation", "world", "planner"):
+            continue
+        v = getattr(cfg, f.name)
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    out["planner"] = _jsonable(dataclasses.asdict(params))
+    return out
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return _num(float(x))
+    if isinstance(x, np.integer):
+        return int(x)
+    if hasattr(x, "value") and not isinstance(x, (int, str, bool)):  # enums
+        return _jsonable(x.value)
+    return x
+
+
+class _Drone:
+    """Simulation-side state of one drone (its planner, map and trajectories)."""
+
+    def __init__(
+        self, i: int, start: np.ndarray, goal: np.ndarray, planner: Any, ground_z: float | None
+    ) -> None:
+        self.i = i
+        self.goal = goal
+        self.planner = planner
+        self.current = Trajectory.hover(start, 0.0)
+        self.queue: list[Trajectory] = []  # published, not yet started; increasing t0_s
+        self.traj_id = 0
+        self.seen = World.empty(ground_z)
+        self.field = self.seen.field()
+        self.next_replan_s = 0.0
+
+    def flying(self, t: float) -> Trajectory:
+        """The trajectory that will be in control at time t (>= now)."""
+        out = self.current
+        for q in self.queue:
+            if t >= q.t0_s - _EPS_T:
+                out = q
+        return out
+
+    def advance(self, t: float) -> None:
+        """Hand control to every queued trajectory whose start time has come."""
+        while self.queue and t >= self.queue[0].t0_s - _EPS_T:
+            self.current = self.queue.pop(0)
+
+    def schedule(self, new: Trajectory) -> None:
+        """``new`` takes control at its start time, replacing what was queued from then on."""
+        if new is self.current or any(new is q for q in self.queue):
+            return
+        self.queue = [q for q in self.queue if q.t0_s < new.t0_s - _EPS_T]
+        self.queue.append(new)
+
+    def sense(self, world: World, p: np.ndarray, radius: float) -> None:
+        new = self.seen.merged(world.within(p, radius))
+        if new.n_primitives != self.seen.n_primitives:
+            self.seen = new
+            self.field = new.field()
+
+
+def _warm_up(planner: Any, starts: np.ndarray, peer_type: Any) -> float:
+    """Plan a 3 m hop of drone 0 among its hovering peers in an empty world; returns seconds."""
+    t0 = time.perf_counter()
+    peers = [peer_type(i, i, Trajectory.hover(starts[i], 0.0, 30.0)) for i in range(1, len(starts))]
+    z3 = np.zeros(3)
+    goal = starts[0] + np.array([3.0, 0.0, 0.0])
+    planner.plan(0.0, starts[0], z3, z3, goal, peers, World.empty().field(), None)
+    return time.perf_counter() - t0
+
+
+def run_sim(
+    cfg: SimConfig,
+    recorder: Callable[[PlanCall], None] | None = None,
+    progress: Callable[[float, float], None] | None = None,
+) -> SimResult:
+    """Fly ``cfg.formation`` through ``cfg.world`` (seeded) and measure the flight.
+
+    recorder: called with every plan call's inputs before the call. progress: called about once
+    per simulated second with (t_s, time_limit_s).
+    """
+    from onboard.planner.planner import FormationPlanner, PeerTrajectory
+
+    wall0 = time.perf_counter()
+    world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
+    n = cfg.formation.n
+    base = cfg.planner if cfg.planner is not None else load_planner_params()
+    params = dataclasses.replace(base, v_max_m_s=cfg.v_max_m_s)
+    t_limit = (
+        cfg.time_limit_s
+        if cfg.time_limit_s is not None
+        else default_time_limit_s(starts, goals, cfg.v_max_m_s)
+    )
+    silent = frozenset(cfg.silent_drones)
+    bus = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
+    drones = [
+        _Drone(
+            i,
+            starts[i],
+            goals[i],
+            FormationPlanner(params, cfg.formation.points, i),
+            world.ground_z,
+        )
+        for i in range(n)
+    ]
+    warmup_s = _warm_up(drones[0].planner, starts, PeerTrajectory) if cfg.warmup else 0.0
+    for d in drones:
+        d.next_replan_s = d.i * cfg.replan_period_s / n
+        bus.publish(TrajectoryMsg(d.i, d.traj_id, d.i, d.current), 0.0)
+
+    replan_ms: list[float] = []
+    iterations: list[float] = []
+    evaluations: list[float] = []
+    status_counts: dict[str, int] = {}
+
+    def replan(d: _Drone, t: float, p_now: np.ndarray) -> None:
+        d.sense(world, p_now, cfg.sensing_radius_m)
+        t_start = t + cfg.plan_ahead_s
+        flying = d.flying(t_start)
+        sp, sv, sa = flying.state(t_start)
+        msgs = bus.receive(d.i, t)
+        peers = tuple(
+            PeerTrajectory(m.drone_id, m.slot, m.trajectory) for _, m in sorted(msgs.items())
+        )
+        if recorder is not None:
+            recorder(PlanCall(d.i, d.i, t_start, sp, sv, sa, d.goal, peers, d.seen, flying))
+        c0 = time.perf_counter()
+        res = d.planner.plan(t_start, sp, sv, sa, d.goal, peers, d.field, flying)
+        replan_ms.append((time.perf_counter() - c0) * 1e3)
+        iterations.append(float(res.iterations))
+        evaluations.append(float(res.evaluations))
+        key = str(getattr(res.status, "value", res.status))
+        status_counts[key] = status_counts.get(key, 0) + 1
+        new: Trajectory = res.trajectory
+        d.traj_id += 1
+        bus.publish(TrajectoryMsg(d.i, d.traj_id, d.i, new), t)
+        d.schedule(new)
+
+    dt = cfg.dt_s
+    sample_every = max(1, int(round(cfg.sample_period_s / dt)))
+    progress_every = max(1, int(round(1.0 / dt)))
+    n_steps_max = int(math.ceil(t_limit / dt))
+    iu, ju = np.triu_indices(n, 1)
+    in_obstacle = np.zeros(n, dtype=bool)
+    in_contact = np.zeros(iu.shape[0], dtype=bool)
+    events: list[CollisionEvent] = []
+    n_obst_events = 0
+    n_drone_events = 0
+    min_clear = math.inf
+    min_pair = math.inf
+    samples_t: list[float] = []
+    samples_p: list[np.ndarray] = []
+    samples_e: list[float] = []
+    pos = np.empty((n, 3))
+    vel = np.empty((n, 3))
+    timed_out = True
+    t = 0.0
+    for k in range(n_steps_max + 1):
+        t = k * dt
+        for d in drones:
+            d.advance(t)
+            pos[d.i] = d.current.sample(t)
+        for d in sorted(drones, key=lambda q: q.next_replan_s):
+            if t >= d.next_replan_s - _EPS_T:
+                replan(d, t, pos[d.i].copy())
+                d.next_replan_s += cfg.replan_period_s
+                d.advance(t)
+                pos[d.i] = d.current.sample(t)
+
+        # Collisions, against the full world.
+        dist, _ = world.distance(pos)
+        min_clear = min(min_clear, float(np.min(dist)))
+        hit = dist < cfg.collision_obstacle_m
+        for i in np.flatnonzero(hit & ~in_obstacle):
+            n_obst_events += 1
+            if len(events) < cfg.max_events:
+                events.append(CollisionEvent(t, "obstacle", (int(i),), float(dist[i])))
+        in_obstacle = hit
+        if iu.shape[0]:
+            pair = np.linalg.norm(pos[iu] - pos[ju], axis=1)
+            min_pair = min(min_pair, float(np.min(pair)))
+            touch = pair < cfg.collision_drone_m
+            for q in np.flatnonzero(touch & ~in_contact):
+                n_drone_events += 1
+                if len(events) < cfg.max_events:
+                    ids = (int(iu[q]), int(ju[q]))
+                    events.append(CollisionEvent(t, "drone", ids, float(pair[q])))
+            in_contact = touch
+
+        if k % sample_every == 0:
+            samples_t.append(t)
+            samples_p.append(pos.copy())
+            samples_e.append(similarity(pos, cfg.formation.points)[0])
+            for d in drones:
+                vel[d.i] = d.current.sample(t, order=1)
+            near = np.linalg.norm(pos - goals, axis=1) <= cfg.goal_tolerance_m
+            slow = np.linalg.norm(vel, axis=1) < cfg.arrival_speed_m_s
+            if np.all(near & slow):
+                timed_out = False
+                break
+        if progress is not None and k % progress_every == 0:
+            progress(t, t_limit)
+
+    if progress is not None:
+        progress(t, t_limit)
+    for d in drones:
+        vel[d.i] = d.current.sample(t, order=1)
+    arrived = (np.linalg.norm(pos - goals, axis=1) <= cfg.goal_tolerance_m) & (
+        np.linalg.norm(vel, axis=1) < cfg.arrival_speed_m_s
+    )
+    tr_t = np.array(samples_t)
+    tr_p = np.array(samples_p).reshape(-1, n, 3)
+    tr_e = np.array(samples_e)
+    template = cfg.formation.points
+    tr_d = np.array([e_dist(p, template) for p in tr_p])
+    cx = tr_p[:, :, 0].mean(axis=1) if tr_p.shape[0] else np.zeros(0)
+    lo, hi = cfg.world.cluttered_x
+    inside = (cx >= lo) & (cx <= hi)
+    collisions = n_obst_events + n_drone_events
+    return SimResult(
+        success=bool(np.all(arrived) and collisions == 0),
+        arrived=arrived,
+        collisions=collisions,
+        obstacle_collisions=n_obst_events,
+        drone_collisions=n_drone_events,
+        events=tuple(events),
+        min_obstacle_clearance_m=min_clear,
+        min_drone_distance_m=min_pair,
+        e_sim_mean=float(np.mean(tr_e)) if tr_e.size else math.nan,
+        e_sim_max=float(np.max(tr_e)) if tr_e.size else math.nan,
+        e_sim_mean_cluttered=float(np.mean(tr_e[inside])) if np.any(inside) else math.nan,
+        e_dist_mean=float(np.mean(tr_d)) if tr_d.size else math.nan,
+        e_dist_max=float(np.max(tr_d)) if tr_d.size else math.nan,
+        flight_time_s=t,
+        timed_out=timed_out,
+        replan_ms=summary(replan_ms),
+        iterations=summary(iterations),
+        evaluations=summary(evaluations),
+        status_counts=status_counts,
+        sim_wall_s=time.perf_counter() - wall0,
+        warmup_s=warmup_s,
+        tracks=Tracks(tr_t, tr_p, tr_e, tr_d),
+        world=world,
+        starts=starts,
+        goals=goals,
+        formation_name=cfg.formation.name,
+        world_name=cfg.world.name,
+        seed=cfg.seed,
+        cluttered_x=(float(lo), float(hi)),
+        config=_config_summary(cfg, params),
+    )
+
+
+def replay_inputs(call: PlanCall) -> tuple[Any, ...]:
+    """The positional arguments of ``FormationPlanner.plan`` / ``prepare`` for a recorded call."""
+    return (
+        call.t_start_s,
+        call.start_p,
+        call.start_v,
+        call.start_a,
+        call.goal,
+        list(call.peers),
+        call.world.field(),
+        call.previous,
+    )

@@ -1,0 +1,96 @@
+"""Figures of simulated flights (matplotlib, Agg backend: no display needed)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection, PatchCollection  # noqa: E402
+from matplotlib.patches import Circle, Rectangle  # noqa: E402
+
+if TYPE_CHECKING:
+    from gcs.fastsim import SimResult
+
+
+def plot_top_view(result: SimResult, path: str | Path, title: str | None = None) -> Path:
+    """Top view (x east, y north) of a flight, saved to ``path`` (PNG, PDF, SVG by suffix).
+
+    Cylinders as disks, rings as their horizontal footprint segments, boxes as rectangles,
+    every drone's track in its own colour with start (circle) and goal (cross), the cluttered
+    x span shaded, collision events marked in red. Equal aspect.
+    """
+    world = result.world
+    fig, ax = plt.subplots(figsize=(12, 6), dpi=120)
+    lo, hi = result.cluttered_x
+    ax.axvspan(lo, hi, color="0.93", zorder=0, label="cluttered area")
+
+    cyl = world.cylinders
+    if cyl.shape[0]:
+        disks = [Circle((c[0], c[1]), c[2]) for c in cyl]
+        ax.add_collection(
+            PatchCollection(disks, facecolor="0.35", edgecolor="0.15", linewidth=0.5, zorder=2)
+        )
+    rings = world.rings
+    if rings.shape[0]:
+        segs = []
+        for cx, cy, _cz, yaw, rh, _rv, _tube in rings:
+            u = np.array([-math.sin(yaw), math.cos(yaw)])
+            c = np.array([cx, cy])
+            segs.append([c - rh * u, c + rh * u])
+        ax.add_collection(LineCollection(segs, colors="tab:brown", linewidths=3.0, zorder=2))
+    boxes = world.boxes
+    if boxes.shape[0]:
+        rects = [Rectangle((b[0], b[1]), b[3] - b[0], b[4] - b[1]) for b in boxes]
+        ax.add_collection(
+            PatchCollection(rects, facecolor="0.55", edgecolor="0.15", linewidth=0.5, zorder=2)
+        )
+
+    pos = result.tracks.pos  # (T, N, 3)
+    n = result.starts.shape[0]
+    cmap = plt.get_cmap("tab10" if n <= 10 else "tab20")
+    for i in range(n):
+        color = cmap(i % cmap.N)
+        if pos.shape[0]:
+            ax.plot(pos[:, i, 0], pos[:, i, 1], color=color, linewidth=1.2, zorder=3)
+        ax.plot(*result.starts[i, :2], "o", color=color, markersize=5, zorder=4)
+        ax.plot(*result.goals[i, :2], "x", color=color, markersize=7, mew=2, zorder=4)
+    for ev in result.events:
+        k = int(np.searchsorted(result.tracks.t, ev.t_s)) if result.tracks.t.size else 0
+        k = min(k, max(pos.shape[0] - 1, 0))
+        if pos.shape[0]:
+            for i in ev.ids:
+                ax.plot(*pos[k, i, :2], "o", mfc="none", mec="red", markersize=12, zorder=5)
+
+    pts = np.concatenate(
+        [result.starts[:, :2], result.goals[:, :2], pos[:, :, :2].reshape(-1, 2)]
+        + ([cyl[:, :2]] if cyl.shape[0] else [])
+    )
+    margin = 1.5
+    ax.set_xlim(float(pts[:, 0].min()) - margin, float(pts[:, 0].max()) + margin)
+    ax.set_ylim(float(pts[:, 1].min()) - margin, float(pts[:, 1].max()) + margin)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+    if title is None:
+        outcome = "success" if result.success else "FAILED"
+        title = (
+            f"{result.formation_name} through {result.world_name} (seed {result.seed}): "
+            f"{outcome}, {result.collisions} collisions, "
+            f"min clearance {result.min_obstacle_clearance_m:.2f} m, "
+            f"e_sim mean {result.e_sim_mean:.4f}"
+        )
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, linewidth=0.3, alpha=0.5)
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out

@@ -1,0 +1,228 @@
+"""Differentiable formation similarity metric (paper Sec. III, Eq. 1-9).
+
+The formation of N drones is a weighted graph: edge weight ``w_ij = mask_ij * ||p_i - p_j||^2``
+(Eq. 1; the paper uses the complete graph, ``mask`` selects a subgraph), degree
+``d_i = sum_j w_ij`` (Eq. 2) and normalised Laplacian ``L^ = I - D^-1/2 A D^-1/2`` (Eq. 3).
+The similarity metric between the current and the desired formation is (Eq. 4)
+
+    f = ||L^ - L^_des||_F^2 = sum_{i != j} (S_ij - Sdes_ij)^2,   S_ij = w_ij / sqrt(d_i d_j),
+
+where ``S`` is the normalised adjacency (the off-diagonal of ``-L^``). f is invariant to
+translation, rotation and uniform scaling of either formation and to a consistent relabelling of
+the drones; f = 0 exactly when the current formation is a similar copy of the desired one.
+
+Regularisation: every degree is used as ``d_i + EPS_DEG`` so that coincident points give a finite
+f and gradient (S_ij = 0 for an isolated vertex). The gradient below is exact for that
+regularised f. With ``d_i`` the regularised degree, ``G_ij = 2 (S_ij - Sdes_ij)`` (symmetrised when
+Sdes is not symmetric), ``h_i = sum_j G_ij S_ij / d_i`` and for every edge
+``K_ab = 2 G_ab / sqrt(d_a d_b) - h_a - h_b = df/dw_ab`` (Eq. 5-8), the chain rule through Eq. 1
+gives (Eq. 9)
+
+    df/dp_a = sum_b K_ab mask_ab 2 (p_a - p_b).
+
+Everything is O(N^2). Units: points in metres; f is dimensionless; df/dp in 1/m.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import carray, njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+EPS_DEG = 1e-12
+"""Regulariser added to every vertex degree [m^2]: keeps S finite for coincident points."""
+
+STACK_N = 64
+"""Up to this many points ``metric_kernel`` keeps its 2N scratch values on the stack (no heap)."""
+
+
+@intrinsic
+def _stack_f64(typingctx: Any, size: Any) -> Any:
+    """Pointer to ``size`` (a compile-time integer) float64 slots on the caller's stack frame.
+
+    The alloca is placed in the function's entry block, so it is reserved once per call (also
+    when LLVM inlines the caller into a loop) and never touches the allocator.
+    """
+    if not isinstance(size, types.IntegerLiteral):
+        return None
+    count = size.literal_value
+    sig = types.CPointer(types.float64)(size)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=count)
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True)
+def normalized_adjacency(P: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Normalised adjacency ``S = D^-1/2 A D^-1/2`` of the formation graph (Eq. 1-3).
+
+    P: (n, 3) points [m]; mask: (n, n) float64 edge mask (symmetric, 0/1, zero diagonal).
+    Returns S: (n, n), symmetric, zero diagonal, ``S_ij = w_ij / sqrt((d_i + EPS) (d_j + EPS))``.
+    ``-S`` is the off-diagonal of the normalised Laplacian L^ = I - S.
+    """
+    n = P.shape[0]
+    r = np.empty(n)
+    for i in range(n):
+        d = 0.0
+        for j in range(n):
+            if j != i:
+                dx = P[i, 0] - P[j, 0]
+                dy = P[i, 1] - P[j, 1]
+                dz = P[i, 2] - P[j, 2]
+                d += mask[i, j] * (dx * dx + dy * dy + dz * dz)
+        r[i] = 1.0 / np.sqrt(d + EPS_DEG)
+    S = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            s = mask[i, j] * (dx * dx + dy * dy + dz * dz) * r[i] * r[j]
+            S[i, j] = s
+            S[j, i] = s
+    return S
+
+
+@njit(cache=True, nogil=True)
+def _metric_core(
+    P: np.ndarray,
+    Sdes: np.ndarray,
+    mask: np.ndarray,
+    grad_out: np.ndarray,
+    r: np.ndarray,
+    h: np.ndarray,
+) -> float:
+    """Body of ``metric_kernel`` with caller-provided scratch ``r``, ``h`` (each >= n floats)."""
+    n = P.shape[0]
+    # Pass 1: r_i = 1 / sqrt(d_i + EPS) with d_i = sum_j mask_ij ||p_i - p_j||^2 (Eq. 2).
+    for i in range(n):
+        r[i] = 0.0
+        h[i] = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            w = mask[i, j] * (dx * dx + dy * dy + dz * dz)
+            r[i] += w
+            r[j] += w
+    for i in range(n):
+        r[i] = 1.0 / np.sqrt(r[i] + EPS_DEG)
+    # Pass 2: f (Eq. 4) and h_i * d_i = sum_j G_ij S_ij.
+    f = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            s = mask[i, j] * (dx * dx + dy * dy + dz * dz) * r[i] * r[j]
+            e_ij = s - Sdes[i, j]
+            e_ji = s - Sdes[j, i]
+            f += e_ij * e_ij + e_ji * e_ji
+            gs = (e_ij + e_ji) * s
+            h[i] += gs
+            h[j] += gs
+    for i in range(n):
+        h[i] *= r[i] * r[i]
+    # Pass 3: df/dp_a = sum_b K_ab mask_ab 2 (p_a - p_b) (Eq. 5-9), accumulated per edge.
+    for i in range(n):
+        grad_out[i, 0] = 0.0
+        grad_out[i, 1] = 0.0
+        grad_out[i, 2] = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = mask[i, j]
+            if m == 0.0:
+                continue
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            rr = r[i] * r[j]
+            s = m * (dx * dx + dy * dy + dz * dz) * rr
+            g = 2.0 * s - Sdes[i, j] - Sdes[j, i]  # G_ij, symmetrised
+            c = 2.0 * m * (2.0 * g * rr - h[i] - h[j])
+            cx = c * dx
+            cy = c * dy
+            cz = c * dz
+            grad_out[i, 0] += cx
+            grad_out[i, 1] += cy
+            grad_out[i, 2] += cz
+            grad_out[j, 0] -= cx
+            grad_out[j, 1] -= cy
+            grad_out[j, 2] -= cz
+    return f
+
+
+@njit(cache=True, nogil=True)
+def metric_kernel(P: np.ndarray, Sdes: np.ndarray, mask: np.ndarray, grad_out: np.ndarray) -> float:
+    """Similarity metric f (Eq. 4) and its gradient df/dP (Eq. 5-9); the optimiser's hot path.
+
+    P: (n, 3) current points [m]; Sdes: (n, n) = ``normalized_adjacency(desired, mask)``;
+    mask: (n, n) float64 edge mask; grad_out: (n, 3), OVERWRITTEN with df/dP [1/m].
+    Returns f. No input validation (see ``similarity``). No heap allocation for n <= STACK_N.
+    """
+    n = P.shape[0]
+    if n <= STACK_N:
+        r = carray(_stack_f64(STACK_N), (STACK_N,))
+        h = carray(_stack_f64(STACK_N), (STACK_N,))
+    else:
+        r = np.empty(n)
+        h = np.empty(n)
+    return _metric_core(P, Sdes, mask, grad_out, r, h)
+
+
+def complete_mask(n: int) -> np.ndarray:
+    """Edge mask of the complete graph over n vertices: (n, n) float64, ones off the diagonal."""
+    if int(n) != n or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    n = int(n)
+    return np.ones((n, n)) - np.eye(n)
+
+
+def _points(name: str, a: np.ndarray) -> np.ndarray:
+    arr = np.ascontiguousarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if arr.shape[0] < 2:
+        raise ValueError(f"{name} must hold at least 2 points, got {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains non-finite values")
+    return arr
+
+
+def _mask(mask: np.ndarray | None, n: int) -> np.ndarray:
+    if mask is None:
+        return complete_mask(n)
+    m = np.ascontiguousarray(mask, dtype=np.float64)
+    if m.shape != (n, n):
+        raise ValueError(f"mask must have shape ({n}, {n}), got {m.shape}")
+    if not np.all((m == 0.0) | (m == 1.0)):
+        raise ValueError("mask entries must be 0 or 1")
+    if not np.array_equal(m, m.T):
+        raise ValueError("mask must be symmetric")
+    if np.any(np.diag(m) != 0.0):
+        raise ValueError("mask diagonal must be zero")
+    return m
+
+
+def similarity(
+    points: np.ndarray, desired: np.ndarray, mask: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """Validated similarity metric: ``(f, df/dpoints)`` with the gradient of shape (N, 3).
+
+    points, desired: (N, 3) finite, N >= 2, same N [m]; mask: (N, N) symmetric 0/1 with zero
+    diagonal, default the complete graph. Raises ValueError on bad input.
+    """
+    P = _points("points", points)
+    Q = _points("desired", desired)
+    if P.shape != Q.shape:
+        raise ValueError(f"points {P.shape} and desired {Q.shape} must have the same shape")
+    m = _mask(mask, P.shape[0])
+    grad = np.empty_like(P)
+    f = metric_kernel(P, normalized_adjacency(Q, m), m, grad)
+    return float(f), grad

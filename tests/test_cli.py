@@ -1,0 +1,64 @@
+"""``swarm-gcs`` end to end, headless, through click's CliRunner."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from gcs.cli import main
+
+SMALL = ["--formation", "triangle-3", "--world", "forest-small", "--v-max", "1.0", "--seed", "1"]
+
+
+def test_help_lists_commands() -> None:
+    out = CliRunner().invoke(main, ["--help"])
+    assert out.exit_code == 0
+    assert "sim" in out.output and "bench" in out.output
+    out = CliRunner().invoke(main, ["bench", "--help"])
+    assert out.exit_code == 0 and "planner" in out.output
+
+
+def test_sim_writes_json_and_plot(tmp_path: Path) -> None:
+    js, png = tmp_path / "out" / "sim.json", tmp_path / "sim.png"
+    out = CliRunner().invoke(
+        main, ["sim", *SMALL, "--json", str(js), "--plot", str(png), "--check"]
+    )
+    assert out.exit_code == 0, out.output
+    assert "success" in out.output and "replan ms" in out.output
+    data = json.loads(js.read_text())
+    assert data["success"] is True and data["collisions"] == 0
+    for key in ("min_obstacle_clearance_m", "min_drone_distance_m", "e_sim_mean"):
+        assert isinstance(data[key], float)
+    assert {"median", "p90", "max"} <= set(data["replan_ms"])
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_sim_quiet_and_config_errors(tmp_path: Path) -> None:
+    out = CliRunner().invoke(main, ["sim", *SMALL, "--quiet", "--set", "w_obstacle=x"])
+    assert out.exit_code != 0
+    assert "planner.w_obstacle: expected a number, got 'x'" in out.output
+    out = CliRunner().invoke(main, ["sim", "--formation", "no-such-formation", "--quiet"])
+    assert out.exit_code != 0 and "no file named 'no-such-formation'" in out.output
+    out = CliRunner().invoke(main, ["sim", *SMALL, "--quiet", "--time-limit", "1"])
+    assert out.exit_code == 0 and out.output == ""
+
+
+def test_bench_planner_small(tmp_path: Path) -> None:
+    js = tmp_path / "bench.json"
+    args = [
+        "bench", "planner", *SMALL, "--repeats", "1", "--max-problems", "4", "--skip-s", "2",
+        "--eval-calls", "10", "--json", str(js),
+    ]  # fmt: skip
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert data["problems"] == 4
+    for key in ("replan_ms", "iterations", "evaluations"):
+        assert {"median", "p90", "max"} <= set(data[key])
+    assert data["replan_ms"]["median"] > 0 and data["eval_us"] > 0
+    assert set(data["breakdown"]) == {"cost_eval_ms_median", "solver_overhead_ms_median"}
+    assert data["pieces"]["median"] >= 1
+    assert data["startup_s"] > 0 and data["startup"]["first_plan_status"]
+    assert {"platform", "cpu", "python", "numpy", "numba"} <= set(data["machine"])

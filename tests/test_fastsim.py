@@ -1,0 +1,118 @@
+"""Fast-time simulation: a small flight end to end, collision counting, a silent drone."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcs.fastsim import PlanCall, SimConfig, SimResult, run_sim
+from onboard.config import Formation, load_formation, load_world_spec
+
+JSON_KEYS = {
+    "success",
+    "arrived",
+    "collisions",
+    "events",
+    "min_obstacle_clearance_m",
+    "min_drone_distance_m",
+    "e_sim_mean",
+    "e_sim_max",
+    "e_dist_mean",
+    "flight_time_s",
+    "replan_ms",
+    "iterations",
+    "status_counts",
+}
+
+
+@pytest.fixture(scope="module")
+def small_flight() -> tuple[SimResult, list[PlanCall]]:
+    calls: list[PlanCall] = []
+    cfg = SimConfig(
+        load_formation("triangle-3"), load_world_spec("forest-small"), seed=1, v_max_m_s=1.0
+    )
+    return run_sim(cfg, recorder=calls.append), calls
+
+
+def test_small_flight_arrives_without_collision(
+    small_flight: tuple[SimResult, list[PlanCall]],
+) -> None:
+    r, _ = small_flight
+    assert r.success, r.to_json()
+    assert np.all(r.arrived) and r.collisions == 0 and not r.timed_out
+    assert r.min_obstacle_clearance_m > 0.2 and r.min_drone_distance_m > 0.4
+    assert np.allclose(r.tracks.pos[-1], r.goals, atol=0.5)
+    assert np.allclose(r.tracks.pos[0], r.starts)
+    # ~16 m at <= 1 m/s: at least 16 s; far below the time limit.
+    assert 16.0 <= r.flight_time_s < 60.0
+    assert r.replan_ms["count"] == sum(r.status_counts.values()) > 0
+    assert 0.0 <= r.e_sim_mean <= r.e_sim_max
+
+
+def test_json_schema(small_flight: tuple[SimResult, list[PlanCall]]) -> None:
+    r, _ = small_flight
+    d = r.to_json()
+    assert JSON_KEYS <= set(d)
+    assert {"median", "p90", "max"} <= set(d["replan_ms"])
+    json.dumps(d, allow_nan=False)
+    t = r.to_json(include_tracks=True)["tracks"]
+    assert np.asarray(t["pos"]).shape == r.tracks.pos.shape
+
+
+def test_recorded_calls_see_sensed_obstacles_and_peers(
+    small_flight: tuple[SimResult, list[PlanCall]],
+) -> None:
+    r, calls = small_flight
+    assert len(calls) == r.replan_ms["count"]
+    full = {tuple(row) for row in r.world.cylinders}
+    for c in calls:
+        seen = {tuple(row) for row in c.world.cylinders}
+        assert seen <= full
+        assert {p.drone_id for p in c.peers} <= {0, 1, 2} - {c.drone_id}
+    # Drones are staggered by a third of the period (on the 10 ms grid); start 0.1 s ahead.
+    assert [c.drone_id for c in calls[:3]] == [0, 1, 2]
+    expected = [0.1, 1 / 3 + 0.1, 2 / 3 + 0.1]
+    assert [c.t_start_s for c in calls[:3]] == pytest.approx(expected, abs=0.0101)
+    # Later replans know every peer and have sensed part of the world, never all of it early.
+    late = [c for c in calls if c.t_start_s > 2.0]
+    assert all(len(c.peers) == 2 for c in late)
+    assert calls[0].world.cylinders.shape[0] < r.world.cylinders.shape[0]
+
+
+def test_silent_drone_terminates_cleanly() -> None:
+    calls: list[PlanCall] = []
+    cfg = SimConfig(
+        load_formation("triangle-3"),
+        load_world_spec("forest-small"),
+        seed=1,
+        v_max_m_s=1.0,
+        silent_drones=(1,),
+        time_limit_s=12.0,
+    )
+    r = run_sim(cfg, recorder=calls.append)
+    assert r.flight_time_s <= 12.0 + 1e-9
+    assert all(1 not in {p.drone_id for p in c.peers} for c in calls if c.drone_id != 1)
+    assert any(len(c.peers) == 2 for c in calls if c.drone_id == 1)
+    json.dumps(r.to_json(), allow_nan=False)
+
+
+def test_collisions_are_counted(tmp_path: Path) -> None:
+    # Drone 0 starts inside a trunk and 0.35 m from drone 1: one event of each kind at t = 0.
+    w = tmp_path / "trap.yaml"
+    w.write_text(
+        "cylinders: [[0, 0, 0.1, 0, 3]]\n"
+        "cluttered_x: [0, 1]\nstart_center: [0, 0, 1]\ngoal_center: [3, 0, 1]\n"
+        "starts: [[0, 0, 1], [0, 0.35, 1]]\ngoals: [[3, 0, 1], [3, 0.35, 1]]\n"
+    )
+    pair = Formation("pair", np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    cfg = SimConfig(pair, load_world_spec(w), time_limit_s=2.0, v_max_m_s=1.0)
+    r = run_sim(cfg)
+    assert not r.success
+    kinds = {(e.kind, e.ids) for e in r.events if e.t_s == 0.0}
+    assert kinds == {("obstacle", (0,)), ("drone", (0, 1))}
+    assert r.collisions == r.obstacle_collisions + r.drone_collisions >= 2
+    assert r.min_obstacle_clearance_m < 0.0
+    assert r.min_drone_distance_m <= 0.35 + 1e-9

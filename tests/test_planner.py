@@ -1,0 +1,164 @@
+"""Planner API: plans that arrive and stay clear, fallbacks, failure as a value, bad inputs."""
+
+import numpy as np
+import pytest
+
+from onboard.planner.lbfgs import LbfgsStatus
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+LINE3 = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+ZERO = np.zeros(3)
+
+
+def _world(cylinders: list[list[float]]) -> World:
+    return World(
+        cylinders=np.array(cylinders, dtype=float).reshape(-1, 5),
+        rings=np.zeros((0, 7)),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+
+
+def _speeds(traj: Trajectory) -> np.ndarray:
+    ts = np.linspace(traj.t0_s, traj.t_end_s, 400)
+    return np.linalg.norm(traj.sample(ts, order=1), axis=1)
+
+
+def test_free_space_plan_reaches_goal_within_limits() -> None:
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([5.0, 0.0, 1.0])
+    res = planner.plan(2.0, start, ZERO, ZERO, goal, [], _world([]).field())
+    assert res.status == PlanStatus.OK
+    tr = res.trajectory
+    assert tr.t0_s == 2.0
+    np.testing.assert_allclose(tr.sample(tr.t0_s), start, atol=1e-9)
+    np.testing.assert_allclose(tr.sample(tr.t_end_s), goal, atol=1e-6)
+    np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-6)
+    assert _speeds(tr).max() <= 1.1 * params.v_max_m_s
+    assert res.iterations > 0 and res.evaluations >= res.iterations
+
+
+def test_local_target_is_within_the_horizon() -> None:
+    params = PlannerParams(v_max_m_s=1.0, horizon_m=5.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([0.0, 0.0, 1.0])
+    res = planner.plan(0.0, start, ZERO, ZERO, np.array([40.0, 0, 1]), [], _world([]).field())
+    assert res.status == PlanStatus.OK
+    end = res.trajectory.sample(res.trajectory.t_end_s)
+    assert np.linalg.norm(end - start) == pytest.approx(5.0, abs=0.2)
+
+
+def test_plan_around_a_wall_of_trunks_keeps_clearance() -> None:
+    # a wall across the line with a gap at y = 1.2
+    wall = [[3.0, y, 0.3, 0.0, 3.0] for y in (-3.0, -2.0, -1.0, 0.0, 2.4, 3.4)]
+    world = _world(wall)
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], world.field())
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    tr = res.trajectory
+    ts = np.linspace(tr.t0_s, tr.t_end_s, 500)
+    d, _ = world.distance(tr.sample(ts))
+    assert d.min() >= params.check_obstacle_m
+    np.testing.assert_allclose(tr.sample(tr.t_end_s), goal, atol=1e-6)
+
+
+def test_two_drones_pass_each_other_with_separation() -> None:
+    params = PlannerParams(v_max_m_s=1.0, w_formation=0.0)
+    a = FormationPlanner(params, LINE3, slot=0)
+    b = FormationPlanner(params, LINE3, slot=2)
+    field = _world([]).field()
+    pa, pb = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.05, 1.0])
+    ra = a.plan(0.0, pa, ZERO, ZERO, pb, [], field)
+    rb = b.plan(0.0, pb, ZERO, ZERO, pa, [PeerTrajectory(0, 0, ra.trajectory)], field)
+    assert rb.status == PlanStatus.OK
+    ts = np.linspace(0.0, max(ra.trajectory.t_end_s, rb.trajectory.t_end_s), 800)
+    sep = np.linalg.norm(ra.trajectory.sample(ts) - rb.trajectory.sample(ts), axis=1)
+    assert sep.min() >= params.check_drone_m
+
+
+def test_unreachable_goal_keeps_the_safe_previous_trajectory() -> None:
+    # the goal is inside a trunk: no new trajectory can be safe
+    world = _world([[4.0, 0.0, 0.5, 0.0, 3.0]])
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([0.0, 0.0, 1.0])
+    previous = Trajectory.hover(start, 0.0, duration_s=3.0)
+    goal = np.array([4.0, 0.0, 1.0])
+    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], world.field(), previous=previous)
+    assert res.status == PlanStatus.KEPT_PREVIOUS
+    assert res.trajectory is previous
+    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], world.field(), previous=None)
+    assert res.status == PlanStatus.EMERGENCY
+    tr = res.trajectory
+    np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
+    np.testing.assert_allclose(tr.sample(tr.t0_s), start, atol=1e-9)
+
+
+def test_emergency_stop_brakes_from_speed() -> None:
+    world = _world([[4.0, 0.0, 0.5, 0.0, 3.0]])
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    v = np.array([0.8, 0.0, 0.0])
+    res = planner.plan(0.0, np.array([0.0, 0, 1]), v, ZERO, np.array([4.0, 0, 1]), [],
+                       world.field())  # fmt: skip
+    assert res.status == PlanStatus.EMERGENCY
+    tr = res.trajectory
+    np.testing.assert_allclose(tr.sample(tr.t0_s, order=1), v, atol=1e-9)
+    np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
+
+
+def test_cancel_returns_the_best_point() -> None:
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    problem = planner.prepare(
+        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], _world([]).field()
+    )
+    problem.cancel_flag[0] = 1
+    x, status = problem.solve()
+    assert status == LbfgsStatus.CANCELED
+    assert np.all(np.isfinite(x))
+    f0, _ = problem.objective(problem.x0)
+    f, _ = problem.objective(x)
+    assert f <= f0
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"start_p": np.array([np.nan, 0, 1])},
+        {"goal": np.array([1.0, 2.0])},
+        {"peers": [PeerTrajectory(5, 1, Trajectory.hover(np.array([1.0, 1, 1]), 0.0))]},
+        {"peers": [PeerTrajectory(5, 7, Trajectory.hover(np.array([1.0, 1, 1]), 0.0))]},
+    ],
+)
+def test_bad_inputs_raise_value_error(kwargs: dict) -> None:
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    args = {
+        "t_start_s": 0.0,
+        "start_p": np.array([0.0, 0, 1]),
+        "start_v": ZERO,
+        "start_a": ZERO,
+        "goal": np.array([5.0, 0, 1]),
+        "peers": [],
+        "field": _world([]).field(),
+    }
+    args.update(kwargs)
+    with pytest.raises(ValueError):
+        planner.plan(**args)
+
+
+def test_bad_construction_raises() -> None:
+    with pytest.raises(ValueError):
+        FormationPlanner(PlannerParams(), LINE3, slot=3)
+    with pytest.raises(ValueError):
+        FormationPlanner(PlannerParams(), np.zeros((3, 2)), slot=0)
+    with pytest.raises(ValueError):
+        PlannerParams(v_max_m_s=-1.0)
+    with pytest.raises(ValueError):
+        PlannerParams(formation_penalty="quartic")
