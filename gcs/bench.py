@@ -139,17 +139,23 @@ def _pick(values: Sequence[float], keys: Sequence[str] = ("median", "p90", "max"
     return {k: s[k] for k in keys}
 
 
-def _eval_us(objective: Callable[[np.ndarray], Any], x: np.ndarray, calls: int) -> float:
-    """Fastest per-call time [us] of ``objective(x)`` over 5 batches of ``calls / 5`` calls."""
-    objective(x)
-    per = max(1, calls // 5)
-    best = float("inf")
-    for _ in range(5):
-        t0 = time.perf_counter()
-        for _ in range(per):
-            objective(x)
-        best = min(best, (time.perf_counter() - t0) / per)
-    return best * 1e6
+def _eval_us(problem: Any, x_end: np.ndarray, calls: int) -> float:
+    """Time [us] of one objective evaluation inside compiled code, as the solver sees it: the
+    mean of its cost at the initial guess and at the solution (penalties active at each differ),
+    each the median of 5 batches of ``calls / 10`` evaluations."""
+    from onboard.planner.objective import repeat_objective
+
+    per = max(1, calls // 10)
+    out = []
+    for x in (problem.x0.copy(), x_end.copy()):
+        repeat_objective(x, problem.prob, problem.fld, problem.work, 1)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            repeat_objective(x, problem.prob, problem.fld, problem.work, per)
+            times.append((time.perf_counter() - t0) / per)
+        out.append(float(np.median(times)))
+    return float(np.mean(out)) * 1e6
 
 
 def bench_planner(
@@ -181,8 +187,9 @@ def bench_planner(
     params = dataclasses.replace(base, v_max_m_s=cfg.v_max_m_s)
     planners = [FormationPlanner(params, cfg.formation.points, i) for i in range(cfg.formation.n)]
 
-    replan_ms: list[float] = []
-    plan_ms: list[float] = []
+    replan_ms: list[float] = []  # the whole plan() call
+    solve_ms: list[float] = []  # Problem.solve() alone
+    setup_ms: list[float] = []  # prepare(): local target, guess, packing
     iters: list[float] = []
     evals: list[float] = []
     eval_us: list[float] = []
@@ -190,38 +197,43 @@ def bench_planner(
     overhead_ms: list[float] = []
     pieces: list[float] = []
     statuses: dict[str, int] = {}
+    solver_statuses: dict[str, int] = {}
     for k_call, call in enumerate(chosen):
         planner = planners[call.slot]
         args = replay_inputs(call)  # the distance field is built here, outside the timing
-        times: list[float] = []
+        t_prep: list[float] = []
+        t_solve: list[float] = []
+        t_plan: list[float] = []
         problem = None
-        for k in range(repeats + 1):
+        res = None
+        x_end = np.zeros(0)
+        for k in range(repeats + 1):  # the first round is a warm-up, not timed
             t0 = time.perf_counter()
             problem = planner.prepare(*args)
-            problem.solve()
-            dt = (time.perf_counter() - t0) * 1e3
-            if k > 0:
-                times.append(dt)
-        assert problem is not None
-        ptimes: list[float] = []
-        for k in range(repeats + 1):
-            t0 = time.perf_counter()
+            t1 = time.perf_counter()
+            x_end, _ = problem.solve()
+            t2 = time.perf_counter()
             res = planner.plan(*args)
-            dt = (time.perf_counter() - t0) * 1e3
+            t3 = time.perf_counter()
             if k > 0:
-                ptimes.append(dt)
-        key = str(res.status.value)
-        statuses[key] = statuses.get(key, 0) + 1
-        e_us = _eval_us(problem.objective, problem.x0, eval_calls)
-        t_ms = float(np.median(times))
+                t_prep.append((t1 - t0) * 1e3)
+                t_solve.append((t2 - t1) * 1e3)
+                t_plan.append((t3 - t2) * 1e3)
+        assert problem is not None and res is not None
+        statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
+        sname = res.solver_status.name if res.solver_status is not None else "none"
+        solver_statuses[sname] = solver_statuses.get(sname, 0) + 1
+        e_us = _eval_us(problem, x_end, eval_calls)
+        s_ms = float(np.median(t_solve))
         c_ms = problem.evaluations * e_us * 1e-3
-        replan_ms.append(t_ms)
-        plan_ms.append(float(np.median(ptimes)))
-        iters.append(problem.iterations)
-        evals.append(problem.evaluations)
+        replan_ms.append(float(np.median(t_plan)))
+        solve_ms.append(s_ms)
+        setup_ms.append(float(np.median(t_prep)))
+        iters.append(res.iterations)
+        evals.append(res.evaluations)
         eval_us.append(e_us)
         cost_ms.append(c_ms)
-        overhead_ms.append(t_ms - c_ms)
+        overhead_ms.append(s_ms - c_ms)
         pieces.append(problem.M)
         if replay_progress is not None:
             replay_progress(k_call + 1, len(chosen))
@@ -239,14 +251,20 @@ def bench_planner(
         "problems": len(chosen),
         "repeats": repeats,
         "replan_ms": _pick(replan_ms, ("median", "p90", "max", "mean")),
-        "plan_ms": _pick(plan_ms, ("median", "p90", "max", "mean")),
+        "solve_ms": _pick(solve_ms, ("median", "p90", "max", "mean")),
         "iterations": _pick(iters),
         "evaluations": _pick(evals),
         "eval_us": summary(eval_us)["median"],
         "breakdown": {
+            "setup_ms_median": summary(setup_ms)["median"],
+            "solve_ms_median": summary(solve_ms)["median"],
             "cost_eval_ms_median": summary(cost_ms)["median"],
             "solver_overhead_ms_median": summary(overhead_ms)["median"],
+            "check_and_rest_ms_median": summary(
+                [r - s - p for r, s, p in zip(replan_ms, solve_ms, setup_ms, strict=True)]
+            )["median"],
         },
+        "solver_status_counts": solver_statuses,
         "pieces": {"median": summary(pieces)["median"]},
         "plan_status_counts": statuses,
         "machine": machine_info(),

@@ -58,7 +58,15 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     for key in ("replan_ms", "iterations", "evaluations"):
         assert {"median", "p90", "max"} <= set(data[key])
     assert data["replan_ms"]["median"] > 0 and data["eval_us"] > 0
-    assert set(data["breakdown"]) == {"cost_eval_ms_median", "solver_overhead_ms_median"}
+    assert set(data["breakdown"]) == {
+        "setup_ms_median",
+        "solve_ms_median",
+        "cost_eval_ms_median",
+        "solver_overhead_ms_median",
+        "check_and_rest_ms_median",
+    }
+    assert data["solve_ms"]["median"] <= data["replan_ms"]["max"]
+    assert sum(data["solver_status_counts"].values()) == data["problems"]
     assert data["pieces"]["median"] >= 1
     assert data["startup_s"] > 0 and data["startup"]["first_plan_status"]
     assert {"platform", "cpu", "python", "numpy", "numba"} <= set(data["machine"])

@@ -259,3 +259,11 @@ def test_config_dir_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
     assert config_dir() == tmp_path
     assert load_formation("pair").n == 2
     assert load_planner_params() == PlannerParams()  # no planner.yaml there: defaults
+
+
+def test_shipped_planner_file_equals_the_dataclass_defaults() -> None:
+    """config/planner.yaml documents the defaults; retuning must change both."""
+    from onboard.config import load_planner_params
+    from onboard.planner.params import PlannerParams
+
+    assert load_planner_params() == PlannerParams()

@@ -7,6 +7,7 @@ import pytest
 
 from onboard.planner.formation import (
     EPS_DEG,
+    STACK_N,
     complete_mask,
     metric_kernel,
     normalized_adjacency,
@@ -84,12 +85,13 @@ def test_kernel_matches_wrapper_and_overwrites_output() -> None:
     np.testing.assert_array_equal(out, g)
 
 
-def test_kernel_large_n_uses_heap_fallback() -> None:
+@pytest.mark.parametrize("n", [STACK_N, STACK_N + 1, 70])
+def test_kernel_stack_limit_and_heap_fallback(n: int) -> None:
     rng = np.random.default_rng(2)
-    P = rng.normal(size=(70, 3))
-    Q = rng.normal(size=(70, 3))
+    P = rng.normal(size=(n, 3))
+    Q = rng.normal(size=(n, 3))
     f, g = similarity(P, Q)
-    gn = numeric_grad(P, Q, complete_mask(70))
+    gn = numeric_grad(P, Q, complete_mask(n))
     assert np.isfinite(f)
     assert np.linalg.norm(g - gn) <= 1e-5 * np.linalg.norm(gn)
 
@@ -226,3 +228,25 @@ def test_bad_inputs_raise(
 ) -> None:
     with pytest.raises(ValueError, match=match):
         similarity(points, desired, mask)
+
+
+def test_hot_path_kernel_matches_the_full_gradient() -> None:
+    from onboard.planner.formation import metric_kernel, metric_own_rate, normalized_adjacency
+
+    rng = np.random.default_rng(99)
+    for n in (2, 4, 7, 10):
+        P = rng.normal(size=(n, 3)) * 2.0
+        V = rng.normal(size=(n, 3))
+        desired = rng.normal(size=(n, 3))
+        mask = complete_mask(n)
+        if n > 3:
+            mask[0, 2] = mask[2, 0] = 0.0
+        sdes = normalized_adjacency(desired, mask)
+        G = np.empty((n, 3))
+        f_full = metric_kernel(P, sdes, mask, G)
+        f, gx, gy, gz, rate = metric_own_rate(
+            P, V, sdes, mask, np.empty((n, n)), np.empty(n), np.empty(n)
+        )
+        assert f == pytest.approx(f_full, rel=1e-12, abs=1e-15)
+        np.testing.assert_allclose([gx, gy, gz], G[0], rtol=1e-10, atol=1e-13)
+        assert rate == pytest.approx(float(np.sum(G[1:] * V[1:])), rel=1e-10, abs=1e-13)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -61,7 +62,7 @@ def rosen_start(n: int) -> np.ndarray:
 class Recorder:
     """Wraps an objective, recording every evaluated point and value."""
 
-    def __init__(self, fun):  # type: ignore[no-untyped-def]
+    def __init__(self, fun: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> None:
         self.fun = fun
         self.xs: list[np.ndarray] = []
         self.fs: list[float] = []
@@ -83,7 +84,7 @@ def test_rosenbrock_converges(n: int) -> None:
     assert r.f < 1e-12
     assert r.f == rosenbrock(r.x)[0]
     np.testing.assert_array_equal(r.g, rosenbrock(r.x)[1])
-    assert np.linalg.norm(r.g) < 1e-8 * max(1.0, np.linalg.norm(r.x))
+    assert np.linalg.norm(r.g) < 1e-8 * max(1.0, float(np.linalg.norm(r.x)))
     assert r.evaluations == len(rec.fs)
     assert 10 < r.iterations < r.evaluations < 300
 
@@ -108,13 +109,13 @@ def test_convex_quadratic_50d() -> None:
     # (||g|| ~ 1e-6 is where f's rounding noise starts to dominate its decrease here)
     r = minimize(fun, np.zeros(n), LbfgsParams(g_epsilon=1e-6, past=0))
     assert r.status == LbfgsStatus.CONVERGENCE
-    np.testing.assert_allclose(r.x, x_star, rtol=0, atol=1e-6 * np.linalg.norm(x_star))
+    np.testing.assert_allclose(r.x, x_star, rtol=0, atol=1e-6 * float(np.linalg.norm(x_star)))
     assert r.evaluations < 400
     # asking for more than the arithmetic can give ends in a line-search failure, best point kept
     r2 = minimize(fun, np.zeros(n), LbfgsParams(g_epsilon=1e-12, past=0))
     assert r2.status == LbfgsStatus.LINESEARCH_FAILED
     assert r2.f <= r.f
-    np.testing.assert_allclose(r2.x, x_star, rtol=0, atol=1e-6 * np.linalg.norm(x_star))
+    np.testing.assert_allclose(r2.x, x_star, rtol=0, atol=1e-6 * float(np.linalg.norm(x_star)))
 
 
 def test_already_converged_start() -> None:

@@ -27,7 +27,7 @@ def _peer(rng: np.random.Generator, offset: np.ndarray, n_pieces: int) -> Minco:
     return m
 
 
-def _setup(seed: int, weights: dict[str, float], cubic: bool = True):  # type: ignore[no-untyped-def]
+def _setup(seed: int, weights: dict[str, float], cubic: bool = True, stride: int = 1):  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(seed)
     M = 4
     head = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.0], [0.0, 0.1, 0.0]])
@@ -59,6 +59,8 @@ def _setup(seed: int, weights: dict[str, float], cubic: bool = True):  # type: i
     prm[obj.P_A_MAX] = 0.3
     prm[obj.P_J_MAX] = 0.4
     prm[obj.P_FORM_CUBIC] = 1.0 if cubic else 0.0
+    prm[obj.P_TAU_SCALE] = 1.0
+    prm[obj.P_FORM_STRIDE] = stride
     for key, idx in (
         ("time", obj.P_W_TIME),
         ("obstacle", obj.P_W_OBS),
@@ -137,8 +139,9 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
     assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
 
 
-def test_linear_formation_variant_gradient() -> None:
-    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, cubic=False)
+@pytest.mark.parametrize("stride", [1, 5])
+def test_linear_formation_variant_gradient(stride: int) -> None:
+    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, cubic=False, stride=stride)
     m = Minco(M)
     m.set_conditions(head, tail)
     m.set_parameters(q, T)

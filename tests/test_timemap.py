@@ -45,9 +45,7 @@ def test_monotone() -> None:
     assert np.all(np.diff(T_from_tau(tau)) > 0.0)
 
 
-@pytest.mark.parametrize(
-    "tau0", [-30.0, -3.0, -0.7, -1e-3, -1e-7, 0.0, 1e-7, 1e-3, 0.7, 3.0, 30.0]
-)
+@pytest.mark.parametrize("tau0", [-30.0, -3.0, -0.7, -1e-3, -1e-7, 0.0, 1e-7, 1e-3, 0.7, 3.0, 30.0])
 def test_derivative_by_central_differences(tau0: float) -> None:
     h = 1e-6 * max(1.0, abs(tau0))
     num = (T_from_tau_scalar(tau0 + h) - T_from_tau_scalar(tau0 - h)) / (2 * h)

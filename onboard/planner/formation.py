@@ -35,8 +35,9 @@ from numba.extending import intrinsic
 EPS_DEG = 1e-12
 """Regulariser added to every vertex degree [m^2]: keeps S finite for coincident points."""
 
-STACK_N = 64
-"""Up to this many points ``metric_kernel`` keeps its 2N scratch values on the stack (no heap)."""
+STACK_N = 32
+"""Up to this many points ``metric_kernel`` keeps its scratch on the stack (8.5 KiB, no heap)."""
+_STACK_NN = STACK_N * STACK_N
 
 
 @intrinsic
@@ -88,7 +89,7 @@ def normalized_adjacency(P: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return S
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _metric_core(
     P: np.ndarray,
     Sdes: np.ndarray,
@@ -96,65 +97,78 @@ def _metric_core(
     grad_out: np.ndarray,
     r: np.ndarray,
     h: np.ndarray,
+    W: np.ndarray,
+    ld: int,
 ) -> float:
-    """Body of ``metric_kernel`` with caller-provided scratch ``r``, ``h`` (each >= n floats)."""
+    """Body of ``metric_kernel`` with caller-provided scratch.
+
+    r, h: (>= n,) per-vertex scratch; W: (>= n * ld,) pair scratch, ``W[i * ld + j]`` holds w_ij
+    above the diagonal and G_ij below it; ld >= n.
+    """
     n = P.shape[0]
-    # Pass 1: r_i = 1 / sqrt(d_i + EPS) with d_i = sum_j mask_ij ||p_i - p_j||^2 (Eq. 2).
     for i in range(n):
         r[i] = 0.0
         h[i] = 0.0
+        grad_out[i, 0] = 0.0
+        grad_out[i, 1] = 0.0
+        grad_out[i, 2] = 0.0
+    # Pass 1: w_ij (Eq. 1) and degrees d_i (Eq. 2); then r_i = 1 / sqrt(d_i + EPS_DEG).
     for i in range(n):
+        xi = P[i, 0]
+        yi = P[i, 1]
+        zi = P[i, 2]
         for j in range(i + 1, n):
-            dx = P[i, 0] - P[j, 0]
-            dy = P[i, 1] - P[j, 1]
-            dz = P[i, 2] - P[j, 2]
+            dx = xi - P[j, 0]
+            dy = yi - P[j, 1]
+            dz = zi - P[j, 2]
             w = mask[i, j] * (dx * dx + dy * dy + dz * dz)
+            W[i * ld + j] = w
             r[i] += w
             r[j] += w
     for i in range(n):
         r[i] = 1.0 / np.sqrt(r[i] + EPS_DEG)
-    # Pass 2: f (Eq. 4) and h_i * d_i = sum_j G_ij S_ij.
+    # Pass 2: S_ij (Eq. 3), f (Eq. 4), G_ij (symmetrised) and h_i = sum_j G_ij S_ij / d_i.
     f = 0.0
     for i in range(n):
+        ri = r[i]
+        hi = 0.0
         for j in range(i + 1, n):
-            dx = P[i, 0] - P[j, 0]
-            dy = P[i, 1] - P[j, 1]
-            dz = P[i, 2] - P[j, 2]
-            s = mask[i, j] * (dx * dx + dy * dy + dz * dz) * r[i] * r[j]
+            s = W[i * ld + j] * ri * r[j]
             e_ij = s - Sdes[i, j]
             e_ji = s - Sdes[j, i]
             f += e_ij * e_ij + e_ji * e_ji
-            gs = (e_ij + e_ji) * s
-            h[i] += gs
+            g = e_ij + e_ji
+            W[j * ld + i] = g
+            gs = g * s
+            hi += gs
             h[j] += gs
+        h[i] += hi
     for i in range(n):
         h[i] *= r[i] * r[i]
-    # Pass 3: df/dp_a = sum_b K_ab mask_ab 2 (p_a - p_b) (Eq. 5-9), accumulated per edge.
+    # Pass 3: K_ab = df/dw_ab (Eq. 5-8), df/dp_a = sum_b K_ab mask_ab 2 (p_a - p_b) (Eq. 9).
     for i in range(n):
-        grad_out[i, 0] = 0.0
-        grad_out[i, 1] = 0.0
-        grad_out[i, 2] = 0.0
-    for i in range(n):
+        xi = P[i, 0]
+        yi = P[i, 1]
+        zi = P[i, 2]
+        ri = r[i]
+        hi = h[i]
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
         for j in range(i + 1, n):
-            m = mask[i, j]
-            if m == 0.0:
-                continue
-            dx = P[i, 0] - P[j, 0]
-            dy = P[i, 1] - P[j, 1]
-            dz = P[i, 2] - P[j, 2]
-            rr = r[i] * r[j]
-            s = m * (dx * dx + dy * dy + dz * dz) * rr
-            g = 2.0 * s - Sdes[i, j] - Sdes[j, i]  # G_ij, symmetrised
-            c = 2.0 * m * (2.0 * g * rr - h[i] - h[j])
-            cx = c * dx
-            cy = c * dy
-            cz = c * dz
-            grad_out[i, 0] += cx
-            grad_out[i, 1] += cy
-            grad_out[i, 2] += cz
+            c = 2.0 * mask[i, j] * (2.0 * W[j * ld + i] * ri * r[j] - hi - h[j])
+            cx = c * (xi - P[j, 0])
+            cy = c * (yi - P[j, 1])
+            cz = c * (zi - P[j, 2])
+            gx += cx
+            gy += cy
+            gz += cz
             grad_out[j, 0] -= cx
             grad_out[j, 1] -= cy
             grad_out[j, 2] -= cz
+        grad_out[i, 0] += gx
+        grad_out[i, 1] += gy
+        grad_out[i, 2] += gz
     return f
 
 
@@ -164,16 +178,19 @@ def metric_kernel(P: np.ndarray, Sdes: np.ndarray, mask: np.ndarray, grad_out: n
 
     P: (n, 3) current points [m]; Sdes: (n, n) = ``normalized_adjacency(desired, mask)``;
     mask: (n, n) float64 edge mask; grad_out: (n, 3), OVERWRITTEN with df/dP [1/m].
-    Returns f. No input validation (see ``similarity``). No heap allocation for n <= STACK_N.
+    Returns f. No input validation (see ``similarity``). No heap allocation for n <= STACK_N
+    (its scratch lives on the stack); larger n falls back to heap scratch.
     """
     n = P.shape[0]
     if n <= STACK_N:
         r = carray(_stack_f64(STACK_N), (STACK_N,))
         h = carray(_stack_f64(STACK_N), (STACK_N,))
-    else:
-        r = np.empty(n)
-        h = np.empty(n)
-    return _metric_core(P, Sdes, mask, grad_out, r, h)
+        W = carray(_stack_f64(_STACK_NN), (_STACK_NN,))
+        return _metric_core(P, Sdes, mask, grad_out, r, h, W, STACK_N)
+    r = np.empty(n)
+    h = np.empty(n)
+    W = np.empty(n * n)
+    return _metric_core(P, Sdes, mask, grad_out, r, h, W, n)
 
 
 def complete_mask(n: int) -> np.ndarray:
@@ -226,3 +243,76 @@ def similarity(
     grad = np.empty_like(P)
     f = metric_kernel(P, normalized_adjacency(Q, m), m, grad)
     return float(f), grad
+
+
+@njit(cache=True, nogil=True)
+def metric_own_rate(
+    P: np.ndarray,
+    V: np.ndarray,
+    Sdes: np.ndarray,
+    mask: np.ndarray,
+    W: np.ndarray,
+    r: np.ndarray,
+    h: np.ndarray,
+) -> tuple[float, float, float, float, float]:
+    """The metric for the optimiser's hot path: f, df/dP[0] and sum_{i>=1} df/dP[i] . V[i].
+
+    The same f and gradient as ``metric_kernel`` (Eq. 4-9), but it returns only what one
+    drone's cost term needs: the gradient row of its own point (index 0) and the rate of change
+    of f as the peers (rows 1..n-1) move with velocities V (the tau term of Eq. 28).
+    P, V: (n, 3); Sdes, mask: (n, n); scratch W: (n, n), r, h: (n,), all overwritten.
+    Returns (f, gx, gy, gz, rate).
+    """
+    n = P.shape[0]
+    for i in range(n):
+        r[i] = 0.0
+        h[i] = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            w = mask[i, j] * (dx * dx + dy * dy + dz * dz)
+            W[i, j] = w
+            r[i] += w
+            r[j] += w
+    for i in range(n):
+        r[i] = 1.0 / np.sqrt(r[i] + EPS_DEG)
+    f = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = W[i, j] * r[i] * r[j]
+            W[i, j] = s
+            e_ij = s - Sdes[i, j]
+            e_ji = s - Sdes[j, i]
+            f += e_ij * e_ij + e_ji * e_ji
+            gs = (e_ij + e_ji) * s
+            h[i] += gs
+            h[j] += gs
+    for i in range(n):
+        h[i] *= r[i] * r[i]
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    rate = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = mask[i, j]
+            if m == 0.0:
+                continue
+            s = W[i, j]
+            g = 2.0 * s - Sdes[i, j] - Sdes[j, i]
+            c = 2.0 * m * (2.0 * g * r[i] * r[j] - h[i] - h[j])
+            dx = P[i, 0] - P[j, 0]
+            dy = P[i, 1] - P[j, 1]
+            dz = P[i, 2] - P[j, 2]
+            if i == 0:
+                gx += c * dx
+                gy += c * dy
+                gz += c * dz
+                rate -= c * (dx * V[j, 0] + dy * V[j, 1] + dz * V[j, 2])
+            else:
+                rate += c * (
+                    dx * (V[i, 0] - V[j, 0]) + dy * (V[i, 1] - V[j, 1]) + dz * (V[i, 2] - V[j, 2])
+                )
+    return f, gx, gy, gz, rate

@@ -13,6 +13,10 @@ respect to the global time tau of the peers' trajectories (J_f, J_r), which depe
 earlier piece duration (Eq. 20-22).
 
 Packed inputs (all float64 unless said):
+J_f is evaluated on every ``stride``-th constraint point only (kappa divisible by stride), with the
+trapezoid weights of that coarser grid: the formation error varies slowly along a piece, while
+obstacles need the dense sampling.
+
 - ``prob``: (head (3,3), tail (3,3), kappa int, prm (N_PRM,), peer_c (P,K,6,3), peer_T (P,K),
   peer_t0 (P,), Sdes (n,n), fmask (n,n)). Peer times are relative to the own start time; a
   peer's unused pieces have zero coefficients. The formation graph is [own, peer 0, ...],
@@ -28,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from onboard.planner.field import field_eval
-from onboard.planner.formation import metric_kernel
+from onboard.planner.formation import metric_own_rate
 from onboard.planner.lbfgs import LbfgsStatus, lbfgs_cancel, lbfgs_iterate, lbfgs_start
 from onboard.planner.minco import energy, propagate_gradient, solve_coeffs
 from onboard.planner.timemap import T_from_tau, grad_tau_from_grad_T
@@ -48,7 +52,9 @@ P_J_MAX = 9
 P_W_UNIF = 10
 P_W_FORM = 11
 P_FORM_CUBIC = 12  # 1.0: max(f,0)^3, 0.0: linear f
-N_PRM = 13
+P_TAU_SCALE = 13  # x holds tau / scale: conditions the time block against the waypoints
+P_FORM_STRIDE = 14  # J_f on every stride-th constraint point (trapezoid on that coarser grid)
+N_PRM = 15
 
 # indices into the per-term cost breakdown
 TERM_NAMES = ("energy", "time", "obstacle", "formation", "swarm", "feasibility", "uniformity")
@@ -104,14 +110,19 @@ def sampled_costs(
     w_fo = prm[P_W_FORM]
     cubic = prm[P_FORM_CUBIC] > 0.5
     use_form = w_fo > 0.0 and n_form > 1
+    stride = max(int(prm[P_FORM_STRIDE]), 1)
 
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
     pst = np.empty((4, 3))  # a peer's p, v, a, j
     peer_pos = np.empty((max(P, 1), 3))
     peer_vel = np.empty((max(P, 1), 3))
-    form_P = np.empty((max(n_form, 1), 3))
-    form_G = np.empty((max(n_form, 1), 3))
+    nf = max(n_form, 1)
+    form_P = np.empty((nf, 3))
+    form_V = np.zeros((nf, 3))
+    form_W = np.empty((nf, nf))
+    form_r = np.empty(nf)
+    form_h = np.empty(nf)
     n_pts = M * kappa + 1
     pts = np.empty((n_pts, 3))
     pts_vel = np.empty((n_pts, 3))
@@ -217,13 +228,16 @@ def sampled_costs(
                             costs[C_R] += wq * pr
 
                 # J_f: formation similarity of [own, peers] at the same global time (Eq. 20-28)
-                if use_form:
+                if use_form and j % stride == 0:
                     for d in range(3):
                         form_P[0, d] = der[0, d]
                     for ph in range(n_form - 1):
                         for d in range(3):
                             form_P[ph + 1, d] = peer_pos[ph, d]
-                    f = metric_kernel(form_P, Sdes, fmask, form_G)
+                            form_V[ph + 1, d] = peer_vel[ph, d]
+                    f, fgx, fgy, fgz, frate = metric_own_rate(
+                        form_P, form_V, Sdes, fmask, form_W, form_r, form_h
+                    )
                     if cubic:
                         if f > 0.0:
                             pf = w_fo * f * f * f
@@ -234,12 +248,13 @@ def sampled_costs(
                     else:
                         pf = w_fo * f
                         kf = w_fo
-                    if kf != 0.0:
-                        for d in range(3):
-                            gder[0, d] += kf * form_G[0, d]
-                        for ph in range(n_form - 1):
-                            for d in range(3):
-                                gtau += kf * form_G[ph + 1, d] * peer_vel[ph, d]
+                    # the coarser grid's trapezoid weight is stride times the fine one
+                    pf *= stride
+                    kf *= stride
+                    gder[0, 0] += kf * fgx
+                    gder[0, 1] += kf * fgy
+                    gder[0, 2] += kf * fgz
+                    gtau += kf * frate
                     pen += pf
                     costs[C_F] += wq * pf
 
@@ -359,13 +374,14 @@ def objective(x: np.ndarray, prob: tuple, fld: tuple, work: tuple, g: np.ndarray
     M = gT.shape[0]
     nq = 3 * (M - 1)
     q = x[:nq].reshape((M - 1, 3))
-    tau = x[nq:]
+    sc = prob[3][P_TAU_SCALE]
+    tau = x[nq:] * sc
     T = T_from_tau(tau)
     solve_coeffs(head, tail, q, T, band, coeffs)
     f = cost_c_T(coeffs, T, prob, fld, gc, gT, costs)
     propagate_gradient(band, coeffs, T, gc, gT, gq)
     g[:nq] = gq.ravel()
-    g[nq:] = grad_tau_from_grad_T(tau, gT)
+    g[nq:] = grad_tau_from_grad_T(tau, gT) * sc
     return f
 
 
@@ -393,3 +409,14 @@ def solve(
         f = objective(x, prob, fld, work, g)
         status = lbfgs_iterate(ws, iw, lb_prm, x, f, g)
     return status
+
+
+@njit(cache=True, nogil=True)
+def repeat_objective(x: np.ndarray, prob: tuple, fld: tuple, work: tuple, n: int) -> float:
+    """Evaluate the objective n times in compiled code (benchmarks time one evaluation as the
+    solver sees it, without the Python call overhead)."""
+    g = np.empty_like(x)
+    f = 0.0
+    for _ in range(n):
+        f = objective(x, prob, fld, work, g)
+    return f

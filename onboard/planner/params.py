@@ -50,6 +50,10 @@ class PlannerParams:
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
     w_formation: float = 1.0e7
     """J_f: weight of the formation penalty."""
+    formation_stride: int = 2
+    """J_f is evaluated on every formation_stride-th constraint point (kappa must divide)."""
+    tau_scale: float = 1.0
+    """The solver sees tau / tau_scale: balances the time variables against the waypoints."""
     formation_penalty: str = "cubic"
     """'cubic': the paper's max(f, 0)^3; 'linear': the public code's f (exact gradient here)."""
 
@@ -69,7 +73,7 @@ class PlannerParams:
             mem_size=16,
             g_epsilon=1e-5,
             past=3,
-            delta=1e-4,
+            delta=1e-3,
             max_iterations=200,
             max_evaluations=400,
         )
@@ -109,6 +113,11 @@ class PlannerParams:
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
         if self.kappa < 1 or self.max_pieces < 1:
             raise ValueError("kappa and max_pieces must be at least 1")
+        if self.formation_stride < 1 or self.kappa % self.formation_stride != 0:
+            raise ValueError(
+                f"formation_stride ({self.formation_stride}) must be >= 1 and divide kappa "
+                f"({self.kappa})"
+            )
         if self.formation_penalty not in FORMATION_PENALTIES:
             raise ValueError(
                 f"formation_penalty must be one of {FORMATION_PENALTIES}, "

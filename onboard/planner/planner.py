@@ -12,6 +12,7 @@ does no I/O; failure is a status, never an exception (bad *inputs* raise ValueEr
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -82,13 +83,15 @@ class Problem:
         T0: np.ndarray,
         prob: tuple,
         fld: tuple,
+        lb_prm: np.ndarray,
     ) -> None:
         self.params = params
         self.t_start_s = t_start_s
         self.M = int(T0.shape[0])
         self.head = head
         self.tail = tail
-        self.x0 = np.concatenate([q0.ravel(), tau_from_T(T0)])
+        self.tau_scale = float(prob[3][obj.P_TAU_SCALE])
+        self.x0 = np.concatenate([q0.ravel(), tau_from_T(T0) / self.tau_scale])
         self.prob = prob
         self.fld = fld
         M = self.M
@@ -100,7 +103,7 @@ class Problem:
             np.zeros((M - 1, 3)),
             np.zeros(obj.N_TERMS),
         )
-        self.lb_prm = params.lbfgs.to_array()
+        self.lb_prm = lb_prm
         self.cancel_flag = np.zeros(1, dtype=np.int64)
         self.iterations = 0
         self.evaluations = 0
@@ -118,20 +121,24 @@ class Problem:
         self.objective(x)
         return {name: float(v) for name, v in zip(obj.TERM_NAMES, self.work[5], strict=True)}
 
-    def solve(self) -> tuple[np.ndarray, LbfgsStatus]:
-        """Run L-BFGS from x0; returns (best x, solver status)."""
-        x = self.x0.copy()
+    def solve(
+        self, x_start: np.ndarray | None = None, lb_prm: np.ndarray | None = None
+    ) -> tuple[np.ndarray, LbfgsStatus]:
+        """Run L-BFGS from x_start (default x0) with the packed solver parameters lb_prm
+        (default the planner's); returns (best x, solver status). Counters accumulate."""
+        x = (self.x0 if x_start is None else x_start).copy()
         ws, iw = lbfgs_workspace(x.shape[0], self.params.lbfgs.mem_size)
-        status = obj.solve(x, self.prob, self.fld, self.work, self.lb_prm, ws, iw, self.cancel_flag)
-        self.iterations = int(lbfgs_iterations(iw))
-        self.evaluations = int(lbfgs_evaluations(iw)) + 1
+        prm = self.lb_prm if lb_prm is None else lb_prm
+        status = obj.solve(x, self.prob, self.fld, self.work, prm, ws, iw, self.cancel_flag)
+        self.iterations += int(lbfgs_iterations(iw))
+        self.evaluations += int(lbfgs_evaluations(iw))
         return x, LbfgsStatus(status)
 
     def trajectory(self, x: np.ndarray) -> Trajectory:
         """The trajectory that x describes."""
         M = self.M
         q = x[: 3 * (M - 1)].reshape(M - 1, 3)
-        T = T_from_tau(np.ascontiguousarray(x[3 * (M - 1) :]))
+        T = T_from_tau(np.ascontiguousarray(x[3 * (M - 1) :]) * self.tau_scale)
         m = Minco(M)
         m.set_conditions(self.head, self.tail)
         m.set_parameters(q, T)
@@ -145,14 +152,16 @@ def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     return a.copy()
 
 
-def _resample_polyline(path: np.ndarray, n_pieces: int) -> np.ndarray:
-    """n_pieces + 1 points equally spaced in arc length along a polyline (K, 3)."""
+def _resample_polyline(path: np.ndarray, n_pieces: int) -> tuple[np.ndarray, np.ndarray]:
+    """n_pieces + 1 points equally spaced in arc length along a polyline (K, 3), and their
+    arc lengths."""
     seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
-    if s[-1] <= 0.0:
-        return np.repeat(path[:1], n_pieces + 1, axis=0)
     targets = np.linspace(0.0, s[-1], n_pieces + 1)
-    return np.stack([np.interp(targets, s, path[:, d]) for d in range(3)], axis=1)
+    if s[-1] <= 0.0:
+        return np.repeat(path[:1], n_pieces + 1, axis=0), targets
+    pts = np.stack([np.interp(targets, s, path[:, d]) for d in range(3)], axis=1)
+    return pts, targets
 
 
 def _polyline_length(path: np.ndarray) -> float:
@@ -182,6 +191,49 @@ class FormationPlanner:
         self.slot = slot
         self.mask = mask
         self._active: Problem | None = None
+        self._prm_formation = self._param_vector(use_formation=True)
+        self._prm_no_formation = self._param_vector(use_formation=False)
+        self._lb_prm = params.lbfgs.to_array()
+        # a solution that fails the safety check is refined with tight tolerances first
+        self._lb_prm_refine = dataclasses.replace(
+            params.lbfgs, delta=min(params.lbfgs.delta, 1e-6), g_epsilon=1e-7
+        ).to_array()
+        self._desired_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}
+
+    def _param_vector(self, use_formation: bool) -> np.ndarray:
+        """The packed weights and limits the compiled objective reads."""
+        p = self.params
+        prm = np.zeros(obj.N_PRM)
+        prm[obj.P_W_TIME] = p.w_time
+        prm[obj.P_W_OBS] = p.w_obstacle
+        prm[obj.P_D_OBS] = p.obstacle_clearance_m
+        prm[obj.P_W_SWARM] = p.w_swarm
+        prm[obj.P_D_SWARM] = p.swarm_clearance_m
+        prm[obj.P_Z_SCALE] = p.swarm_z_scale
+        prm[obj.P_W_FEAS] = p.w_feasibility
+        prm[obj.P_V_MAX] = p.v_max_m_s
+        prm[obj.P_A_MAX] = p.a_max_m_s2
+        prm[obj.P_J_MAX] = p.j_max_m_s3
+        prm[obj.P_W_UNIF] = p.w_uniform
+        prm[obj.P_W_FORM] = p.w_formation if use_formation else 0.0
+        prm[obj.P_FORM_CUBIC] = 1.0 if p.formation_penalty == "cubic" else 0.0
+        prm[obj.P_TAU_SCALE] = p.tau_scale
+        prm[obj.P_FORM_STRIDE] = p.formation_stride
+        prm.setflags(write=False)
+        return prm
+
+    def _desired(self, slots: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Desired normalised adjacency and edge mask of the sub-formation [own, peers...]."""
+        hit = self._desired_cache.get(slots)
+        if hit is None:
+            idx = np.array(slots)
+            m = np.ascontiguousarray(self.mask[np.ix_(idx, idx)])
+            sdes = normalized_adjacency(np.ascontiguousarray(self.formation[idx]), m)
+            if len(self._desired_cache) > 256:
+                self._desired_cache.clear()
+            hit = (sdes, m)
+            self._desired_cache[slots] = hit
+        return hit
 
     def cancel(self) -> None:
         """Ask a running solve (in another thread) to stop at its next evaluation."""
@@ -201,6 +253,10 @@ class FormationPlanner:
         if dist <= p.horizon_m:
             return goal.copy()
         u = d / dist
+        first = start + p.horizon_m * u
+        dd0, _ = field.distance(first[None, :])
+        if dd0[0] >= p.obstacle_clearance_m:
+            return first
         offsets = np.arange(0.0, dist - p.horizon_m, 0.1)
         cand = np.concatenate([p.horizon_m + offsets, p.horizon_m - np.arange(0.1, 3.0, 0.1)])
         cand = cand[(cand > 0.5) & (cand <= dist)]
@@ -219,17 +275,22 @@ class FormationPlanner:
         field: DistanceField,
         previous: Trajectory | None,
         force_astar: bool,
-    ) -> np.ndarray:
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Initial path (K, 3) and, when it follows the previous trajectory, its times (K,)
+        relative to t_start (the warm start keeps the previous timing)."""
         p = self.params
         if not force_astar and previous is not None and previous.t_end_s > t_start + 0.2:
-            ts = np.linspace(t_start, previous.t_end_s, 12)
+            ts = np.linspace(t_start, previous.t_end_s, 24)
             path = previous.sample(ts)
-            if np.linalg.norm(path[-1] - target) > 1e-3:
+            times = ts - t_start
+            extra = float(np.linalg.norm(path[-1] - target))
+            if extra > 1e-3:
                 path = np.vstack([path, target])
-            return path
+                times = np.append(times, times[-1] + extra / p.v_max_m_s + 0.5)
+            return path, times
         line = np.vstack([start, target])
         if not force_astar and segment_is_free(field, start, target, p.check_obstacle_m):
-            return line
+            return line, None
         astar = astar_path(
             field,
             start,
@@ -247,7 +308,7 @@ class FormationPlanner:
                 resolution_m=p.astar_resolution_m,
                 z_limits=p.z_limits_m,
             )
-        return line if astar is None else astar
+        return (line if astar is None else astar), None
 
     def _peer_arrays(self, t_start: float, peers: Sequence[PeerTrajectory]) -> tuple:
         P = len(peers)
@@ -261,7 +322,7 @@ class FormationPlanner:
             pc[k, :n] = tr.coeffs
             pT[k, :n] = tr.durations_s
             # unused pieces continue as a hover at the end point (zero velocity)
-            pc[k, n:, 0] = tr.sample(tr.t_end_s)
+            pc[k, n:, 0] = tr.end_position
             pt0[k] = tr.t0_s - t_start
         return pc, pT, pt0
 
@@ -294,39 +355,31 @@ class FormationPlanner:
                 raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
             seen.add(pt.slot)
         target = self._local_target(sp, gl, field)
-        path = self._guess_path(t_start_s, sp, target, field, previous, force_astar)
+        path, times = self._guess_path(t_start_s, sp, target, field, previous, force_astar)
         path[0] = sp
         length = _polyline_length(path)
         M = int(np.clip(np.ceil(length / p.piece_length_m), 1, p.max_pieces))
-        wps = _resample_polyline(path, M)
-        seg = np.linalg.norm(np.diff(wps, axis=0), axis=1)
-        T0 = np.maximum(seg / p.v_max_m_s, 0.3)
-        T0[0] += 0.5 * max(0.0, p.v_max_m_s - float(np.linalg.norm(sv))) / p.a_max_m_s2 * 4
-        T0[-1] += 1.0  # braking at the target
+        wps, arc = _resample_polyline(path, M)
+        if times is not None:
+            # keep the previous timing along the path (arc length -> time)
+            s_path = np.concatenate(
+                [[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+            )
+            T0 = np.maximum(np.diff(np.interp(arc, s_path, times)), 0.2)
+        else:
+            seg = np.diff(arc)
+            T0 = np.maximum(seg / p.v_max_m_s, 0.3)
+            T0[0] += 2.0 * max(0.0, p.v_max_m_s - float(np.linalg.norm(sv))) / p.a_max_m_s2
+            T0[-1] += 1.0  # braking at the target
         head = np.stack([sp, sv, sa])
         tail = np.stack([target, np.zeros(3), np.zeros(3)])
         pc, pT, pt0 = self._peer_arrays(t_start_s, peers)
         if use_formation and p.w_formation > 0 and len(peers) > 0:
-            idx = np.array([self.slot] + [pt.slot for pt in peers])
-            m = np.ascontiguousarray(self.mask[np.ix_(idx, idx)])
-            sdes = normalized_adjacency(np.ascontiguousarray(self.formation[idx]), m)
+            sdes, m = self._desired((self.slot, *(pt.slot for pt in peers)))
         else:
             m = np.zeros((1, 1))
             sdes = np.zeros((1, 1))
-        prm = np.zeros(obj.N_PRM)
-        prm[obj.P_W_TIME] = p.w_time
-        prm[obj.P_W_OBS] = p.w_obstacle
-        prm[obj.P_D_OBS] = p.obstacle_clearance_m
-        prm[obj.P_W_SWARM] = p.w_swarm
-        prm[obj.P_D_SWARM] = p.swarm_clearance_m
-        prm[obj.P_Z_SCALE] = p.swarm_z_scale
-        prm[obj.P_W_FEAS] = p.w_feasibility
-        prm[obj.P_V_MAX] = p.v_max_m_s
-        prm[obj.P_A_MAX] = p.a_max_m_s2
-        prm[obj.P_J_MAX] = p.j_max_m_s3
-        prm[obj.P_W_UNIF] = p.w_uniform
-        prm[obj.P_W_FORM] = p.w_formation if use_formation else 0.0
-        prm[obj.P_FORM_CUBIC] = 1.0 if p.formation_penalty == "cubic" else 0.0
+        prm = self._prm_formation if use_formation else self._prm_no_formation
         prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m)
         fd = field.kernel_data()
         fld = (
@@ -339,7 +392,7 @@ class FormationPlanner:
             fd.boxes,
             float(fd.ground_z),
         )
-        problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld)
+        problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld, self._lb_prm)
         return problem
 
     # --- acceptance -------------------------------------------------------------------------
@@ -432,6 +485,12 @@ class FormationPlanner:
                 continue
             traj = problem.trajectory(x)
             safe, why = self.check(traj, t_start_s, field, peers)
+            if not safe:
+                x2, st2 = problem.solve(x, self._lb_prm_refine)
+                if st2 != LbfgsStatus.CANCELED and np.all(np.isfinite(x2)):
+                    x, last_status = x2, st2
+                    traj = problem.trajectory(x)
+                    safe, why = self.check(traj, t_start_s, field, peers)
             if safe:
                 return PlanResult(
                     ok_status,

@@ -7,6 +7,7 @@ at its last point with zero derivatives (a drone that finished its plan hovers).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,6 +132,13 @@ class Trajectory:
         buf = np.empty((4, 3))
         eval_piecewise(self.coeffs, self.durations_s, float(t_global) - self.t0_s, buf)
         return buf[0].copy(), buf[1].copy(), buf[2].copy()
+
+    @functools.cached_property
+    def end_position(self) -> np.ndarray:
+        """Where the trajectory ends (and stays)."""
+        c = self.coeffs[-1]
+        T = float(self.durations_s[-1])
+        return c.T @ (T ** np.arange(N_COEFFS))
 
     def waypoints(self) -> np.ndarray:
         """Positions at the piece boundaries, (M + 1, 3)."""
