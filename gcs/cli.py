@@ -247,6 +247,108 @@ def bench() -> None:
     """Benchmarks: print a table and write JSON to compare run to run."""
 
 
+@bench.command("flights")
+@_formation_opt
+@_world_opt
+@click.option("--seeds", default=10, show_default=True, help="Seeds 1..N (one world each).")
+@_vmax_opt
+@_planner_opt
+@_set_opt
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_flights(
+    formation: str,
+    world: str,
+    seeds: int,
+    v_max: float,
+    planner_file: Path | None,
+    sets: tuple[str, ...],
+    json_path: Path | None,
+    quiet: bool,
+) -> None:
+    """Fly one scenario over seeds 1..N and report success, collisions and clearances."""
+    from gcs.fastsim import run_sim
+    from gcs.metrics import summary
+
+    console = _console(quiet)
+    if seeds < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--seeds")
+    try:
+        params = _planner_params(planner_file, sets)
+        cfgs = [_sim_config(formation, world, s, v_max, params) for s in range(1, seeds + 1)]
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    rows: list[dict[str, Any]] = []
+    with Progress(
+        TextColumn("flights"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("flights", total=len(cfgs))
+        for cfg in cfgs:
+            try:
+                r = run_sim(cfg)
+            except ConfigError as e:
+                raise click.ClickException(str(e)) from e
+            d = r.to_json()
+            rows.append({"seed": cfg.seed, **{k: d[k] for k in _FLIGHT_KEYS if k in d}})
+            bar.advance(task)
+    t = Table(title=f"{formation} through {world}, v_max {v_max} m/s, seeds 1..{seeds}")
+    for col in ("seed", "success", "collisions", "min obst. m", "min drone m", "e_sim", "time s"):
+        t.add_column(col, justify="right")
+    for row in rows:
+        t.add_row(
+            str(row["seed"]),
+            "yes" if row["success"] else "NO",
+            str(row["collisions"]),
+            _fmt(row["min_obstacle_clearance_m"]),
+            _fmt(row["min_drone_distance_m"]),
+            _fmt(row["e_sim_mean"], ".4f"),
+            _fmt(row["flight_time_s"], ".1f"),
+        )
+    console.print(t)
+    n_ok = sum(1 for row in rows if row["success"])
+    n_clean = sum(1 for row in rows if row["collisions"] == 0)
+    report = {
+        "formation": formation,
+        "world": world,
+        "v_max_m_s": v_max,
+        "seeds": seeds,
+        "success_count": n_ok,
+        "collision_free_count": n_clean,
+        "min_obstacle_clearance_m": min(row["min_obstacle_clearance_m"] for row in rows),
+        "min_drone_distance_m": min(row["min_drone_distance_m"] for row in rows),
+        "e_sim_mean": summary([row["e_sim_mean"] for row in rows]),
+        "replan_ms_median": summary([row["replan_ms"]["median"] for row in rows]),
+        "flights": rows,
+    }
+    console.print(
+        f"success {n_ok}/{seeds}, collision-free {n_clean}/{seeds}, "
+        f"min obstacle clearance {report['min_obstacle_clearance_m']:.3f} m, "
+        f"min drone distance {report['min_drone_distance_m']:.3f} m"
+    )
+    if json_path is not None:
+        _write_json(json_path, report)
+        console.print(f"wrote {json_path}")
+
+
+_FLIGHT_KEYS = (
+    "success",
+    "collisions",
+    "min_obstacle_clearance_m",
+    "min_drone_distance_m",
+    "e_sim_mean",
+    "flight_time_s",
+    "replan_ms",
+    "status_counts",
+)
+
+
 @bench.command("planner")
 @_formation_opt
 @_world_opt

@@ -70,3 +70,25 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     assert data["pieces"]["median"] >= 1
     assert data["startup_s"] > 0 and data["startup"]["first_plan_status"]
     assert {"platform", "cpu", "python", "numpy", "numba"} <= set(data["machine"])
+
+
+def test_bench_flights_over_seeds(tmp_path: Path) -> None:
+    js = tmp_path / "flights.json"
+    args = ["bench", "flights", "--formation", "triangle-3", "--world", "forest-small"]
+    out = CliRunner().invoke(main, [*args, "--v-max", "1.0", "--seeds", "2", "--json", str(js)])
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert data["seeds"] == 2 and len(data["flights"]) == 2
+    assert data["collision_free_count"] == 2
+    assert [f["seed"] for f in data["flights"]] == [1, 2]
+
+
+def test_onboard_warmup_and_sitl_placeholder() -> None:
+    from onboard.cli import main as onboard_main
+    from sitl_mock.cli import main as sitl_main
+
+    out = CliRunner().invoke(onboard_main, ["warmup"])
+    assert out.exit_code == 0, out.output
+    assert "planner ready" in out.output
+    out = CliRunner().invoke(sitl_main, [])
+    assert out.exit_code != 0 and "not implemented" in out.output
