@@ -77,17 +77,7 @@ def _setup(seed: int, weights: dict[str, float], cubic: bool = True, stride: int
         boxes=np.zeros((0, 6)),
         ground_z=0.0,
     )
-    fd = world.field().kernel_data()
-    fld = (
-        int(fd.kind),
-        fd.grid,
-        fd.origin,
-        float(fd.res),
-        fd.cylinders,
-        fd.rings,
-        fd.boxes,
-        float(fd.ground_z),
-    )
+    fld = obj.field_args(world.field().kernel_data())
     return M, head, tail, q, T, prob, fld
 
 

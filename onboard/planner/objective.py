@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from onboard.planner.field import field_eval
+from onboard.planner.field import FieldData, field_eval
 from onboard.planner.formation import metric_own_rate
 from onboard.planner.lbfgs import LbfgsStatus, lbfgs_cancel, lbfgs_iterate, lbfgs_start
 from onboard.planner.minco import energy, propagate_gradient, solve_coeffs
@@ -62,6 +62,20 @@ C_E, C_T, C_O, C_F, C_R, C_D, C_U = range(7)
 N_TERMS = 7
 
 EVALUATE = int(LbfgsStatus.EVALUATE)
+
+
+def field_args(fd: FieldData) -> tuple:
+    """The ``fld`` tuple of the compiled objective from a field's kernel data."""
+    return (
+        int(fd.kind),
+        fd.grid,
+        fd.origin,
+        float(fd.res),
+        fd.cylinders,
+        fd.rings,
+        fd.boxes,
+        float(fd.ground_z),
+    )
 
 
 @njit(cache=True, nogil=True)

@@ -381,17 +381,7 @@ class FormationPlanner:
             sdes = np.zeros((1, 1))
         prm = self._prm_formation if use_formation else self._prm_no_formation
         prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m)
-        fd = field.kernel_data()
-        fld = (
-            int(fd.kind),
-            fd.grid,
-            fd.origin,
-            float(fd.res),
-            fd.cylinders,
-            fd.rings,
-            fd.boxes,
-            float(fd.ground_z),
-        )
+        fld = obj.field_args(field.kernel_data())
         problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld, self._lb_prm)
         return problem
 
