@@ -10,7 +10,7 @@ export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 export MPLBACKEND := Agg
 
-.PHONY: demo test lint typecheck pytest bench system-deps clean
+.PHONY: demo test lint typecheck pytest bench check-target system-deps clean
 
 # Debian packages: venv support for the interpreter and the shared libraries Open3D loads.
 system-deps:
@@ -47,6 +47,18 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/swarm-gcs bench planner --json out/bench_planner.json
+
+# The drone target (Jetson Xavier NX: aarch64, glibc 2.31, Python 3.10) must install every
+# dependency from wheels: resolve the pinned set for that platform without installing it.
+check-target: $(STAMP)
+	rm -rf build/target-wheels
+	$(PY) -m pip download -q --dest build/target-wheels --only-binary=:all: \
+		--platform manylinux_2_31_aarch64 --platform manylinux_2_28_aarch64 \
+		--platform manylinux_2_27_aarch64 --platform manylinux_2_24_aarch64 \
+		--platform manylinux_2_17_aarch64 --platform manylinux2014_aarch64 \
+		--python-version 3.10 --implementation cp \
+		$$($(PY) -c "import tomllib; print(' '.join(repr(d) for d in tomllib.load(open('pyproject.toml','rb'))['project']['dependencies']))" | tr -d "'")
+	ls build/target-wheels
 
 clean:
 	rm -rf $(VENV) build *.egg-info .mypy_cache .ruff_cache .pytest_cache
