@@ -27,7 +27,7 @@ def _peer(rng: np.random.Generator, offset: np.ndarray, n_pieces: int) -> Minco:
     return m
 
 
-def _setup(seed: int, weights: dict[str, float], cubic: bool = True, stride: int = 1):  # type: ignore[no-untyped-def]
+def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: int = 1):  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(seed)
     M = 4
     head = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.0], [0.0, 0.1, 0.0]])
@@ -58,7 +58,7 @@ def _setup(seed: int, weights: dict[str, float], cubic: bool = True, stride: int
     prm[obj.P_V_MAX] = 0.5
     prm[obj.P_A_MAX] = 0.3
     prm[obj.P_J_MAX] = 0.4
-    prm[obj.P_FORM_CUBIC] = 1.0 if cubic else 0.0
+    prm[obj.P_FORM_MODE] = obj.FORM_MODES[mode]
     prm[obj.P_TAU_SCALE] = 1.0
     prm[obj.P_FORM_STRIDE] = stride
     for key, idx in (
@@ -70,7 +70,7 @@ def _setup(seed: int, weights: dict[str, float], cubic: bool = True, stride: int
         ("formation", obj.P_W_FORM),
     ):
         prm[idx] = weights.get(key, 0.0)
-    prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask)
+    prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation)
     world = World(
         cylinders=np.array([[1.5, 0.6, 0.3, 0.0, 3.0], [3.2, -0.2, 0.25, 0.0, 3.0]]),
         rings=np.array([[4.2, 0.4, 1.3, 0.3, 0.7, 0.5, 0.05]]),
@@ -129,9 +129,12 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
     assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
 
 
-@pytest.mark.parametrize("stride", [1, 5])
-def test_linear_formation_variant_gradient(stride: int) -> None:
-    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, cubic=False, stride=stride)
+@pytest.mark.parametrize(
+    ("mode", "stride"),
+    [("linear", 1), ("linear", 5), ("cubic", 5), ("relative", 1), ("relative", 5)],
+)
+def test_formation_variant_gradient(mode: str, stride: int) -> None:
+    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, mode=mode, stride=stride)
     m = Minco(M)
     m.set_conditions(head, tail)
     m.set_parameters(q, T)
@@ -140,6 +143,11 @@ def test_linear_formation_variant_gradient(stride: int) -> None:
     gc = np.zeros_like(c0)
     gT = np.zeros(M)
     obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
+    assert costs[obj.C_F] > 0.0
+    num_c = _num_grad(
+        lambda cc: obj.cost_c_T(cc, T, prob, fld, np.zeros_like(c0), np.zeros(M), costs), c0, 1e-6
+    )
+    assert _rel_err(gc, num_c) <= RTOL
     num_T = _num_grad(
         lambda TT: obj.cost_c_T(c0, TT, prob, fld, np.zeros_like(c0), np.zeros(M), costs), T, 1e-6
     )
@@ -191,3 +199,19 @@ def test_whole_objective_gradient_in_q_and_tau(seed: int) -> None:
         return obj.objective(xx, prob, fld, work, np.empty_like(xx))
 
     assert _rel_err(g, _num_grad(f, x, 1e-6)) <= RTOL
+
+
+def test_unit_gradient_variant_does_not_match_its_cost() -> None:
+    """The public code's variant, kept for comparison: its gradient is not the cost's."""
+    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, mode="linear-unit")
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    c0 = m.c.copy()
+    costs = np.zeros(obj.N_TERMS)
+    gc = np.zeros_like(c0)
+    obj.cost_c_T(c0, T, prob, fld, gc, np.zeros(M), costs)
+    num_c = _num_grad(
+        lambda cc: obj.cost_c_T(cc, T, prob, fld, np.zeros_like(c0), np.zeros(M), costs), c0, 1e-6
+    )
+    assert _rel_err(gc, num_c) > 1e-2

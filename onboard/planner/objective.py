@@ -51,10 +51,22 @@ P_A_MAX = 8
 P_J_MAX = 9
 P_W_UNIF = 10
 P_W_FORM = 11
-P_FORM_CUBIC = 12  # 1.0: max(f,0)^3, 0.0: linear f
+P_FORM_MODE = 12  # one of the FORM_* modes below
 P_TAU_SCALE = 13  # x holds tau / scale: conditions the time block against the waypoints
 P_FORM_STRIDE = 14  # J_f on every stride-th constraint point (trapezoid on that coarser grid)
 N_PRM = 15
+
+# formation term variants (P_FORM_MODE)
+FORM_LINEAR = 0  # w f, exact gradient
+FORM_CUBIC = 1  # w max(f, 0)^3, the paper's form
+FORM_LINEAR_UNIT = 2  # w f with the own gradient scaled to unit length (the public code)
+FORM_RELATIVE = 3  # w sum_phi ||p - p_phi - (d_own - d_phi)||^2: fixed offsets (Turpin 2012)
+FORM_MODES = {
+    "linear": FORM_LINEAR,
+    "cubic": FORM_CUBIC,
+    "linear-unit": FORM_LINEAR_UNIT,
+    "relative": FORM_RELATIVE,
+}
 
 # indices into the per-term cost breakdown
 TERM_NAMES = ("energy", "time", "obstacle", "formation", "swarm", "feasibility", "uniformity")
@@ -106,7 +118,7 @@ def sampled_costs(
     Implements Eq. (14)-(28) of the paper (J_d after EGO-Swarm: squared-norm limits on v, a, j;
     J_u: variance of the squared distances between consecutive constraint points).
     """
-    head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask = prob
+    head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask, fpts = prob
     kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
     M = T.shape[0]
     P = peer_T.shape[0]
@@ -122,7 +134,7 @@ def sampled_costs(
     j_max = prm[P_J_MAX]
     w_un = prm[P_W_UNIF]
     w_fo = prm[P_W_FORM]
-    cubic = prm[P_FORM_CUBIC] > 0.5
+    mode = int(prm[P_FORM_MODE])
     use_form = w_fo > 0.0 and n_form > 1
     stride = max(int(prm[P_FORM_STRIDE]), 1)
 
@@ -249,19 +261,44 @@ def sampled_costs(
                         for d in range(3):
                             form_P[ph + 1, d] = peer_pos[ph, d]
                             form_V[ph + 1, d] = peer_vel[ph, d]
-                    f, fgx, fgy, fgz, frate = metric_own_rate(
-                        form_P, form_V, Sdes, fmask, form_W, form_r, form_h
-                    )
-                    if cubic:
-                        if f > 0.0:
-                            pf = w_fo * f * f * f
-                            kf = w_fo * 3.0 * f * f
-                        else:
-                            pf = 0.0
-                            kf = 0.0
-                    else:
-                        pf = w_fo * f
+                    if mode == FORM_RELATIVE:
+                        # fixed desired offsets to every peer: no rotation, no scaling
+                        pf = 0.0
+                        fgx = fgy = fgz = frate = 0.0
+                        for ph in range(n_form - 1):
+                            ex = form_P[0, 0] - form_P[ph + 1, 0] - (fpts[0, 0] - fpts[ph + 1, 0])
+                            ey = form_P[0, 1] - form_P[ph + 1, 1] - (fpts[0, 1] - fpts[ph + 1, 1])
+                            ez = form_P[0, 2] - form_P[ph + 1, 2] - (fpts[0, 2] - fpts[ph + 1, 2])
+                            pf += ex * ex + ey * ey + ez * ez
+                            fgx += 2.0 * ex
+                            fgy += 2.0 * ey
+                            fgz += 2.0 * ez
+                            frate -= 2.0 * (
+                                ex * form_V[ph + 1, 0]
+                                + ey * form_V[ph + 1, 1]
+                                + ez * form_V[ph + 1, 2]
+                            )
+                        pf *= w_fo
                         kf = w_fo
+                    else:
+                        f, fgx, fgy, fgz, frate = metric_own_rate(
+                            form_P, form_V, Sdes, fmask, form_W, form_r, form_h
+                        )
+                        if mode == FORM_CUBIC:
+                            if f > 0.0:
+                                pf = w_fo * f * f * f
+                                kf = w_fo * 3.0 * f * f
+                            else:
+                                pf = 0.0
+                                kf = 0.0
+                        elif mode == FORM_LINEAR_UNIT:
+                            # the public code: the gradient does not match the cost
+                            pf = w_fo * f
+                            gn = np.sqrt(fgx * fgx + fgy * fgy + fgz * fgz)
+                            kf = w_fo / gn if gn > 1e-12 else 0.0
+                        else:
+                            pf = w_fo * f
+                            kf = w_fo
                     # the coarser grid's trapezoid weight is stride times the fine one
                     pf *= stride
                     kf *= stride

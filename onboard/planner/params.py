@@ -8,7 +8,7 @@ import numpy as np
 
 from onboard.planner.lbfgs import LbfgsParams
 
-FORMATION_PENALTIES = ("cubic", "linear")
+FORMATION_PENALTIES = ("linear", "cubic", "linear-unit", "relative")
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,10 @@ class PlannerParams:
     """'linear': f per constraint point, as the public code (with the exact gradient here);
     'cubic': the paper's max(f, 0)^3. Linear is the default: on 10 medium-forest flights it held
     the hexagon about 2.8x closer (mean e_sim 0.0038 vs 0.0106) at equal clearance; the cube of
-    a small f has almost no pull near the desired shape (BENCHMARKS.md)."""
+    a small f has almost no pull near the desired shape (BENCHMARKS.md). For comparisons only:
+    'linear-unit', the public code's own gradient scaled to unit length (inconsistent with its
+    cost); 'relative', Turpin et al.'s fixed relative positions to every peer (no rotation or
+    scaling), w times the squared offset error."""
 
     # --- acceptance and fallbacks --------------------------------------------------------------
     check_obstacle_m: float = 0.22

@@ -198,7 +198,7 @@ class FormationPlanner:
         self._lb_prm_refine = dataclasses.replace(
             params.lbfgs, delta=min(params.lbfgs.delta, 1e-6), g_epsilon=1e-7
         ).to_array()
-        self._desired_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}
+        self._desired_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _param_vector(self, use_formation: bool) -> np.ndarray:
         """The packed weights and limits the compiled objective reads."""
@@ -216,22 +216,24 @@ class FormationPlanner:
         prm[obj.P_J_MAX] = p.j_max_m_s3
         prm[obj.P_W_UNIF] = p.w_uniform
         prm[obj.P_W_FORM] = p.w_formation if use_formation else 0.0
-        prm[obj.P_FORM_CUBIC] = 1.0 if p.formation_penalty == "cubic" else 0.0
+        prm[obj.P_FORM_MODE] = obj.FORM_MODES[p.formation_penalty]
         prm[obj.P_TAU_SCALE] = p.tau_scale
         prm[obj.P_FORM_STRIDE] = p.formation_stride
         prm.setflags(write=False)
         return prm
 
-    def _desired(self, slots: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """Desired normalised adjacency and edge mask of the sub-formation [own, peers...]."""
+    def _desired(self, slots: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Desired normalised adjacency, edge mask and points of the sub-formation
+        [own, peers...]."""
         hit = self._desired_cache.get(slots)
         if hit is None:
             idx = np.array(slots)
             m = np.ascontiguousarray(self.mask[np.ix_(idx, idx)])
-            sdes = normalized_adjacency(np.ascontiguousarray(self.formation[idx]), m)
+            pts = np.ascontiguousarray(self.formation[idx])
+            sdes = normalized_adjacency(pts, m)
             if len(self._desired_cache) > 256:
                 self._desired_cache.clear()
-            hit = (sdes, m)
+            hit = (sdes, m, pts)
             self._desired_cache[slots] = hit
         return hit
 
@@ -375,12 +377,13 @@ class FormationPlanner:
         tail = np.stack([target, np.zeros(3), np.zeros(3)])
         pc, pT, pt0 = self._peer_arrays(t_start_s, peers)
         if use_formation and p.w_formation > 0 and len(peers) > 0:
-            sdes, m = self._desired((self.slot, *(pt.slot for pt in peers)))
+            sdes, m, fpts = self._desired((self.slot, *(pt.slot for pt in peers)))
         else:
             m = np.zeros((1, 1))
             sdes = np.zeros((1, 1))
+            fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
-        prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m)
+        prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m, fpts)
         fld = obj.field_args(field.kernel_data())
         problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld, self._lb_prm)
         return problem
