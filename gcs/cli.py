@@ -349,6 +349,154 @@ _FLIGHT_KEYS = (
 )
 
 
+@bench.command("table")
+@click.option("--trials", default=20, show_default=True, help="Trials (worlds) per density.")
+@click.option("--seed", default=1, show_default=True, help="Trial k flies the world of seed+k.")
+@click.option(
+    "--density",
+    type=click.Choice(["sparse", "medium", "dense", "all"]),
+    default="all",
+    show_default=True,
+)
+@click.option(
+    "--method",
+    type=click.Choice(["ours", "turpin", "zhou", "all"]),
+    default="all",
+    show_default=True,
+)
+@click.option(
+    "--world",
+    "world_override",
+    default=None,
+    help="A world name or YAML/JSON file to use instead of the density worlds.",
+)
+@_formation_opt
+@_vmax_opt
+@_planner_opt
+@_set_opt
+@click.option("--jobs", default=1, show_default=True, help="Flights run in parallel processes.")
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option(
+    "--plots",
+    "plots_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Write PNG plots (top views, formation snapshots, e_sim over time) here.",
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_table(
+    trials: int,
+    seed: int,
+    density: str,
+    method: str,
+    world_override: str | None,
+    formation: str,
+    v_max: float,
+    planner_file: Path | None,
+    sets: tuple[str, ...],
+    jobs: int,
+    json_path: Path | None,
+    plots_dir: Path | None,
+    quiet: bool,
+) -> None:
+    """Reproduce the paper's Table I: ours vs Turpin 2012 vs Zhou 2018 on seeded worlds."""
+    from gcs.table import DENSITIES, METHOD_LABELS, METHODS, run_table
+
+    console = _console(quiet)
+    if trials < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--trials")
+    try:
+        params = _planner_params(planner_file, sets)
+        form = load_formation(formation)
+        if world_override is not None:
+            spec = load_world_spec(world_override)
+            worlds = [(spec.name, spec)]
+        else:
+            names = DENSITIES if density == "all" else (density,)
+            worlds = [(d, load_world_spec(f"forest-{d}")) for d in names]
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    methods = METHODS if method == "all" else (method,)
+    total = len(worlds) * len(methods) * trials
+    with Progress(
+        TextColumn("flights"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("flights", total=total)
+        try:
+            report, kept = run_table(
+                form,
+                worlds,
+                methods,
+                trials,
+                seed,
+                v_max,
+                params,
+                jobs,
+                progress=lambda done, _n: bar.update(task, completed=done),
+            )
+        except (ConfigError, ValueError) as e:
+            raise click.ClickException(str(e)) from e
+
+    t = Table(title=f"{form.name}, {trials} trials per cell, v_max {v_max} m/s (paper in brackets)")
+    for col in ("scenario", "method", "success %", "e_dist (m)", "e_sim", "min obst. m", "time s"):
+        t.add_column(col, justify="right" if col not in ("scenario", "method") else "left")
+
+    def pv(x: float | None, spec: str) -> str:
+        return "-" if x is None else format(x, spec)
+
+    for row in report["summary"]:
+        p = row["paper"] or {}
+        paper_s = f" ({p['success_rate'] * 100:.0f})" if p else ""
+        paper_d = f" ({pv(p.get('e_dist'), '.2f')})" if p else ""
+        paper_e = f" ({pv(p.get('e_sim'), '.4f')})" if p else ""
+        t.add_row(
+            row["density"],
+            METHOD_LABELS.get(row["method"], row["method"]),
+            f"{row['success_rate'] * 100:.0f}{paper_s}",
+            f"{pv(row['e_dist'], '.2f')}{paper_d}",
+            f"{pv(row['e_sim'], '.4f')}{paper_e}",
+            _fmt(row["min_obstacle_clearance_m"], ".2f"),
+            pv(row["flight_time_s"], ".1f"),
+        )
+    console.print(t)
+    console.print(
+        f"{total} flights in {report['wall_s'] / 60:.1f} min ({jobs} job(s)); e_dist and e_sim "
+        "over successful trials, inside the cluttered span"
+    )
+    if json_path is not None:
+        _write_json(json_path, report)
+        console.print(f"wrote {json_path}")
+    if plots_dir is not None:
+        from gcs.plots import plot_esim, plot_snapshots, plot_top_view
+
+        for label, _spec in worlds:
+            per_method = {m: kept[(label, m)] for m in methods if (label, m) in kept}
+            for m, res in per_method.items():
+                plot_top_view(
+                    res,
+                    plots_dir / f"top_{label}_{m}.png",
+                    title=f"{label}, {METHOD_LABELS[m]}, seed {res.seed}: "
+                    f"{'success' if res.success else 'FAILED'}",
+                )
+                plot_snapshots(
+                    res,
+                    plots_dir / f"snapshots_{label}_{m}.png",
+                    title=f"formation snapshots: {label}, {METHOD_LABELS[m]}",
+                )
+            plot_esim(
+                {METHOD_LABELS[m]: r for m, r in per_method.items()},
+                plots_dir / f"esim_{label}.png",
+                title=f"e_sim over time, {label}, trial 0",
+            )
+        console.print(f"wrote plots to {plots_dir}")
+
+
 @bench.command("planner")
 @_formation_opt
 @_world_opt

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -17,20 +18,14 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
 if TYPE_CHECKING:
     from gcs.fastsim import SimResult
+    from onboard.world import World
 
 
-def plot_top_view(result: SimResult, path: str | Path, title: str | None = None) -> Path:
-    """Top view (x east, y north) of a flight, saved to ``path`` (PNG, PDF, SVG by suffix).
-
-    Cylinders as disks, rings as their horizontal footprint segments, boxes as rectangles,
-    every drone's track in its own colour with start (circle) and goal (cross), the cluttered
-    x span shaded, collision events marked in red. Equal aspect.
-    """
-    world = result.world
-    fig, ax = plt.subplots(figsize=(12, 6), dpi=120)
-    lo, hi = result.cluttered_x
+def _draw_world(ax: Any, world: World, cluttered_x: tuple[float, float]) -> np.ndarray:
+    """Cylinders as disks, rings as footprint segments, boxes as rectangles, the cluttered span
+    shaded; returns the cylinders (for axis limits)."""
+    lo, hi = cluttered_x
     ax.axvspan(lo, hi, color="0.93", zorder=0, label="cluttered area")
-
     cyl = world.cylinders
     if cyl.shape[0]:
         disks = [Circle((c[0], c[1]), c[2]) for c in cyl]
@@ -51,6 +46,91 @@ def plot_top_view(result: SimResult, path: str | Path, title: str | None = None)
         ax.add_collection(
             PatchCollection(rects, facecolor="0.55", edgecolor="0.15", linewidth=0.5, zorder=2)
         )
+    return cyl
+
+
+def _save(fig: Any, path: str | Path) -> Path:
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def plot_snapshots(
+    result: SimResult, path: str | Path, count: int = 8, title: str | None = None
+) -> Path:
+    """Top view with the formation's outline (convex hull of the drones, dots at the drones)
+    at ``count`` regular times while the swarm crosses the cluttered span."""
+    from scipy.spatial import ConvexHull
+
+    fig, ax = plt.subplots(figsize=(12, 6), dpi=120)
+    _draw_world(ax, result.world, result.cluttered_x)
+    pos = result.tracks.pos
+    if pos.shape[0]:
+        cx = pos[:, :, 0].mean(axis=1)
+        lo, hi = result.cluttered_x
+        inside = np.flatnonzero((cx >= lo - 2.0) & (cx <= hi + 2.0))
+        idx = inside if inside.size else np.arange(pos.shape[0])
+        picks = np.unique(np.linspace(idx[0], idx[-1], count).round().astype(int))
+        cmap = plt.get_cmap("viridis")
+        for j, k in enumerate(picks):
+            pts = pos[k, :, :2]
+            color = cmap(j / max(len(picks) - 1, 1))
+            try:
+                hull = ConvexHull(pts)
+                ring = np.append(hull.vertices, hull.vertices[0])
+                ax.plot(pts[ring, 0], pts[ring, 1], "-", color=color, linewidth=1.5, zorder=3)
+            except Exception:  # degenerate (collinear) formation: no hull to draw
+                pass
+            ax.plot(pts[:, 0], pts[:, 1], "o", color=color, markersize=4, zorder=4)
+            ax.annotate(
+                f"{result.tracks.t[k]:.0f} s",
+                (float(pts[:, 0].mean()), float(pts[:, 1].max()) + 0.4),
+                fontsize=7,
+                ha="center",
+            )
+        all_pts = pos[:, :, :2].reshape(-1, 2)
+        ax.set_xlim(float(all_pts[:, 0].min()) - 1.5, float(all_pts[:, 0].max()) + 1.5)
+        ax.set_ylim(float(all_pts[:, 1].min()) - 1.5, float(all_pts[:, 1].max()) + 1.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+    ax.set_title(
+        title or f"formation snapshots: {result.formation_name}, seed {result.seed}", fontsize=9
+    )
+    ax.grid(True, linewidth=0.3, alpha=0.5)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_esim(results: Mapping[str, SimResult], path: str | Path, title: str = "") -> Path:
+    """e_sim over time, one line per labelled flight."""
+    fig, ax = plt.subplots(figsize=(10, 4), dpi=120)
+    for label, r in results.items():
+        tr = r.tracks
+        if tr.t.size:
+            ax.plot(tr.t, tr.e_sim, linewidth=1.2, label=label)
+    ax.set_ylim(bottom=0.0)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("e_sim (formation similarity metric)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, linewidth=0.3, alpha=0.5)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_top_view(result: SimResult, path: str | Path, title: str | None = None) -> Path:
+    """Top view (x east, y north) of a flight, saved to ``path`` (PNG, PDF, SVG by suffix).
+
+    Cylinders as disks, rings as their horizontal footprint segments, boxes as rectangles,
+    every drone's track in its own colour with start (circle) and goal (cross), the cluttered
+    x span shaded, collision events marked in red. Equal aspect.
+    """
+    world = result.world
+    fig, ax = plt.subplots(figsize=(12, 6), dpi=120)
+    cyl = _draw_world(ax, world, result.cluttered_x)
 
     pos = result.tracks.pos  # (T, N, 3)
     n = result.starts.shape[0]
@@ -89,8 +169,4 @@ def plot_top_view(result: SimResult, path: str | Path, title: str | None = None)
     ax.set_title(title, fontsize=9)
     ax.grid(True, linewidth=0.3, alpha=0.5)
     fig.tight_layout()
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return _save(fig, path)

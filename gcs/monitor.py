@@ -1,0 +1,115 @@
+"""What every simulated flight is judged by, whatever flies it: collision checks at every step
+against the full world, 10 Hz samples of the positions and formation metrics, arrival."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from gcs.metrics import e_dist
+from onboard.planner.formation import similarity
+from onboard.world import World
+
+
+@dataclass(frozen=True)
+class CollisionEvent:
+    """The start of a collision: ``kind`` 'obstacle' (ids = (drone,)) or 'drone' (ids = pair)."""
+
+    t_s: float
+    kind: str
+    ids: tuple[int, ...]
+    distance_m: float
+
+
+@dataclass(frozen=True, eq=False)
+class Tracks:
+    """Recorded at the sample period: t (T,), pos (T, N, 3), e_sim (T,), e_dist (T,)."""
+
+    t: np.ndarray
+    pos: np.ndarray
+    e_sim: np.ndarray
+    e_dist: np.ndarray
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    dt_s: float = 0.01
+    sample_period_s: float = 0.1
+    goal_tolerance_m: float = 0.5
+    arrival_speed_m_s: float = 0.1
+    collision_obstacle_m: float = 0.2
+    collision_drone_m: float = 0.4
+    max_events: int = 20
+
+
+class FlightMonitor:
+    """Feed it every step's positions; it counts collisions, samples tracks, detects arrival."""
+
+    def __init__(
+        self, world: World, goals: np.ndarray, formation: np.ndarray, cfg: MonitorConfig
+    ) -> None:
+        self.world = world
+        self.goals = goals
+        self.formation = formation
+        self.cfg = cfg
+        n = goals.shape[0]
+        self.n = n
+        self.sample_every = max(1, int(round(cfg.sample_period_s / cfg.dt_s)))
+        self._iu, self._ju = np.triu_indices(n, 1)
+        self._in_obstacle = np.zeros(n, dtype=bool)
+        self._in_contact = np.zeros(self._iu.shape[0], dtype=bool)
+        self.events: list[CollisionEvent] = []
+        self.obstacle_events = 0
+        self.drone_events = 0
+        self.min_clearance_m = math.inf
+        self.min_pair_m = math.inf
+        self._t: list[float] = []
+        self._p: list[np.ndarray] = []
+        self._e: list[float] = []
+
+    def step(self, k: int, t: float, pos: np.ndarray, vel: Callable[[], np.ndarray]) -> bool:
+        """Check step k at time t; returns True once every drone rests at its goal (checked at
+        the sample instants, where ``vel()`` is asked for the velocities)."""
+        cfg = self.cfg
+        dist, _ = self.world.distance(pos)
+        self.min_clearance_m = min(self.min_clearance_m, float(np.min(dist)))
+        hit = dist < cfg.collision_obstacle_m
+        for i in np.flatnonzero(hit & ~self._in_obstacle):
+            self.obstacle_events += 1
+            if len(self.events) < cfg.max_events:
+                self.events.append(CollisionEvent(t, "obstacle", (int(i),), float(dist[i])))
+        self._in_obstacle = hit
+        if self._iu.shape[0]:
+            pair = np.linalg.norm(pos[self._iu] - pos[self._ju], axis=1)
+            self.min_pair_m = min(self.min_pair_m, float(np.min(pair)))
+            touch = pair < cfg.collision_drone_m
+            for q in np.flatnonzero(touch & ~self._in_contact):
+                self.drone_events += 1
+                if len(self.events) < cfg.max_events:
+                    ids = (int(self._iu[q]), int(self._ju[q]))
+                    self.events.append(CollisionEvent(t, "drone", ids, float(pair[q])))
+            self._in_contact = touch
+        if k % self.sample_every != 0:
+            return False
+        self._t.append(t)
+        self._p.append(pos.copy())
+        self._e.append(similarity(pos, self.formation)[0])
+        return bool(np.all(self.arrived(pos, vel())))
+
+    def arrived(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        """(N,) bool: within the goal tolerance and slower than the arrival speed."""
+        near = np.linalg.norm(pos - self.goals, axis=1) <= self.cfg.goal_tolerance_m
+        return near & (np.linalg.norm(vel, axis=1) < self.cfg.arrival_speed_m_s)
+
+    @property
+    def collisions(self) -> int:
+        return self.obstacle_events + self.drone_events
+
+    def tracks(self) -> Tracks:
+        t = np.array(self._t)
+        p = np.array(self._p).reshape(-1, self.n, 3)
+        d = np.array([e_dist(q, self.formation) for q in p])
+        return Tracks(t, p, np.array(self._e), d)
