@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -18,6 +19,7 @@ from onboard.config import (
     ConfigError,
     load_formation,
     load_planner_params,
+    load_scenario,
     load_world_spec,
     merge_mappings,
     parse_override,
@@ -176,6 +178,12 @@ _set_opt = click.option(
 @main.command()
 @_formation_opt
 @_world_opt
+@click.option(
+    "--scenario",
+    default=None,
+    help="A named scenario (config/scenarios: tetrahedron-corridor, heart-forest) or file; it "
+    "sets the formation, world and speed unless those are given too.",
+)
 @_seed_opt
 @_vmax_opt
 @_planner_opt
@@ -190,7 +198,12 @@ _set_opt = click.option(
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
 )
-@click.option("--tracks", is_flag=True, help="Include the 10 Hz tracks in the JSON.")
+@click.option(
+    "--tracks",
+    "tracks_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write the flown positions at 10 Hz as .npz: t (T,), pos (T, N, 3), goals, formation.",
+)
 @click.option(
     "--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG."
 )
@@ -199,6 +212,7 @@ _set_opt = click.option(
 def sim(
     formation: str,
     world: str,
+    scenario: str | None,
     seed: int,
     v_max: float,
     planner_file: Path | None,
@@ -206,7 +220,7 @@ def sim(
     time_limit: float | None,
     silent: tuple[int, ...],
     json_path: Path | None,
-    tracks: bool,
+    tracks_path: Path | None,
     plot_path: Path | None,
     check: bool,
     quiet: bool,
@@ -218,6 +232,19 @@ def sim(
     try:
         params = _planner_params(planner_file, sets)
         cfg = _sim_config(formation, world, seed, v_max, params, time_limit, silent)
+        if scenario is not None:
+            sc = load_scenario(scenario)
+            ctx = click.get_current_context()
+
+            def given(name: str) -> bool:
+                return ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE
+
+            cfg = dataclasses.replace(
+                cfg,
+                formation=cfg.formation if given("formation") else sc.formation,
+                world=cfg.world if given("world") else sc.world,
+                v_max_m_s=cfg.v_max_m_s if given("v_max") else sc.v_max_m_s,
+            )
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
     try:
@@ -231,8 +258,20 @@ def sim(
             f"  collision t={ev.t_s:.2f} s {ev.kind} {list(ev.ids)} at {ev.distance_m:.3f} m"
         )
     if json_path is not None:
-        _write_json(json_path, result.to_json(include_tracks=tracks))
+        _write_json(json_path, result.to_json())
         console.print(f"wrote {json_path}")
+    if tracks_path is not None:
+        tracks_path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(
+            tracks_path,
+            t=result.tracks.t,
+            pos=result.tracks.pos,
+            goals=result.goals,
+            formation=cfg.formation.points,
+            starts=result.starts,
+            e_sim=result.tracks.e_sim,
+        )
+        console.print(f"wrote {tracks_path}")
     if plot_path is not None:
         from gcs.plots import plot_top_view
 

@@ -496,3 +496,45 @@ def merge_mappings(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[st
         else:
             out[k] = v
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Named scenarios: a formation, a world and a speed that belong together
+
+
+@dataclass(frozen=True)
+class _ScenarioFile:
+    formation: str
+    world: str
+    v_max_m_s: float = 0.5
+    description: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """A named flight: formation and world loaded, and the speed limit to fly at."""
+
+    name: str
+    formation: Formation
+    world: WorldSpec
+    v_max_m_s: float
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """``config/scenarios/NAME.yaml`` or any file ``{formation, world, v_max_m_s}``; the formation
+    and world are names or paths (relative paths: from the scenario file's folder)."""
+    name, file = _resolve_file(name_or_path, "scenarios")
+    parsed = from_mapping(_ScenarioFile, read_yaml(file), "scenario")
+    if not (math.isfinite(parsed.v_max_m_s) and parsed.v_max_m_s > 0):
+        raise ConfigError(f"scenario.v_max_m_s: must be positive, got {parsed.v_max_m_s}")
+
+    def rel(ref: str) -> str | Path:
+        p = Path(ref)
+        return file.parent / p if (p.suffix and not p.is_absolute()) else ref
+
+    return Scenario(
+        name=name,
+        formation=load_formation(rel(parsed.formation)),
+        world=load_world_spec(rel(parsed.world)),
+        v_max_m_s=parsed.v_max_m_s,
+    )

@@ -92,3 +92,59 @@ def test_onboard_warmup_and_sitl_placeholder() -> None:
     assert "planner ready" in out.output
     out = CliRunner().invoke(sitl_main, [])
     assert out.exit_code != 0 and "not implemented" in out.output
+
+
+def test_bench_table_small(tmp_path: Path) -> None:
+    js, plots = tmp_path / "table.json", tmp_path / "plots"
+    args = ["bench", "table", "--trials", "2", "--world", "forest-small"]
+    args += [
+        "--formation",
+        "triangle-3",
+        "--v-max",
+        "1.0",
+        "--json",
+        str(js),
+        "--plots",
+        str(plots),
+    ]
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert len(data["trials"]) == 2 * 3
+    assert {r["method"] for r in data["summary"]} == {"ours", "turpin", "zhou"}
+    for row in data["summary"]:
+        for key in (
+            "density",
+            "method",
+            "trials",
+            "success_rate",
+            "e_dist",
+            "e_sim",
+            "min_obstacle_clearance_m",
+            "min_drone_distance_m",
+            "flight_time_s",
+        ):
+            assert key in row
+        assert 0.0 <= row["success_rate"] <= 1.0 and row["trials"] == 2
+    for t in data["trials"]:
+        assert {"seed", "success", "e_dist_m", "e_dist_rms_m", "e_sim", "path_length_m"} <= set(t)
+    assert [t["seed"] for t in data["trials"] if t["method"] == "ours"] == [1, 2]
+    names = {p.name for p in plots.iterdir()}
+    for m in ("ours", "turpin", "zhou"):
+        assert f"top_forest-small_{m}.png" in names
+        assert f"snapshots_forest-small_{m}.png" in names
+    assert "esim_forest-small.png" in names
+
+
+def test_sim_scenario_and_tracks_file(tmp_path: Path) -> None:
+    import numpy as np
+
+    npz = tmp_path / "tracks.npz"
+    out = CliRunner().invoke(
+        main, ["sim", "--scenario", "tetrahedron-corridor", "--tracks", str(npz), "--quiet"]
+    )
+    assert out.exit_code == 0, out.output
+    data = np.load(npz)
+    T = data["t"].shape[0]
+    assert data["pos"].shape == (T, 4, 3)
+    assert data["goals"].shape == (4, 3) and data["formation"].shape == (4, 3)

@@ -45,3 +45,49 @@ def test_summary() -> None:
     s = summary([1.0, 2.0, 3.0, 4.0])
     assert s["median"] == 2.5 and s["max"] == 4.0 and s["count"] == 4
     assert np.isnan(summary([])["median"]) and summary([])["count"] == 0
+
+
+def test_umeyama_recovers_a_known_similarity_exactly() -> None:
+    from gcs.metrics import umeyama
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        current = rng.normal(size=(7, 3)) * 2.0
+        R = _rotation(rng)
+        s = float(rng.uniform(0.3, 3.0))
+        t = rng.normal(size=3) * 5.0
+        desired = s * current @ R.T + t
+        s_hat, R_hat, t_hat = umeyama(current, desired)
+        assert abs(s_hat - s) < 1e-9
+        np.testing.assert_allclose(R_hat, R, atol=1e-9)
+        np.testing.assert_allclose(t_hat, t, atol=1e-9)
+        assert e_dist(current, desired) < 1e-9
+
+
+def test_e_dist_is_the_residual_of_the_umeyama_alignment() -> None:
+    from gcs.metrics import umeyama
+
+    rng = np.random.default_rng(4)
+    desired = rng.normal(size=(7, 3))
+    current = desired + rng.normal(scale=0.3, size=(7, 3))
+    s, R, t = umeyama(current, desired)
+    residual = float(np.sum((desired - (s * current @ R.T + t)) ** 2))
+    assert abs(e_dist(current, desired) - np.sqrt(residual)) < 1e-9
+    # no other similarity does better (random perturbations of the optimum)
+    for _ in range(50):
+        s2 = s * float(rng.uniform(0.95, 1.05))
+        t2 = t + rng.normal(scale=0.05, size=3)
+        other = float(np.sum((desired - (s2 * current @ R.T + t2)) ** 2))
+        assert other >= residual - 1e-12
+
+
+def test_flight_e_sim_is_the_planner_metric() -> None:
+    from gcs.fastsim import SimConfig, run_sim
+    from onboard.config import load_formation, load_world_spec
+    from onboard.planner.formation import similarity
+
+    form = load_formation("triangle-3")
+    cfg = SimConfig(formation=form, world=load_world_spec("forest-small"), seed=2, v_max_m_s=1.0)
+    r = run_sim(cfg)
+    for k in range(0, r.tracks.pos.shape[0], 25):
+        assert r.tracks.e_sim[k] == similarity(r.tracks.pos[k], form.points)[0]
