@@ -282,6 +282,43 @@ def sim(
 
 
 @main.group()
+def world() -> None:
+    """World files: export a seeded built-in world as an explicit file."""
+
+
+@world.command("export")
+@_world_opt
+@_formation_opt
+@_seed_opt
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+def world_export(world: str, formation: str, seed: int, out: Path) -> None:
+    """Write the world of --world/--seed/--formation as an explicit YAML (or .json) world file
+    that `sim --world FILE` and `bench table --world FILE` (or any other tool) can fly."""
+    import yaml
+
+    from onboard.config import world_file
+
+    try:
+        spec = load_world_spec(world)
+        form = load_formation(formation)
+        built, starts, goals = spec.build(seed, form)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    data = world_file(
+        built, spec, starts, goals, f"{spec.name} seed {seed} for {form.name}: {spec.description}"
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".json":
+        out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    else:
+        out.write_text(yaml.safe_dump(data, sort_keys=False, width=100), encoding="utf-8")
+    click.echo(
+        f"wrote {out}: {built.cylinders.shape[0]} cylinders, {built.rings.shape[0]} rings, "
+        f"{built.boxes.shape[0]} boxes, {form.n} starts and goals"
+    )
+
+
+@main.group()
 def bench() -> None:
     """Benchmarks: print a table and write JSON to compare run to run."""
 

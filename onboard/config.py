@@ -538,3 +538,35 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         world=load_world_spec(rel(parsed.world)),
         v_max_m_s=parsed.v_max_m_s,
     )
+
+
+def world_file(
+    world: World, spec: WorldSpec, starts: np.ndarray, goals: np.ndarray, description: str = ""
+) -> dict[str, Any]:
+    """A built world as an explicit world file (the mapping ``load_world_spec`` reads): every
+    obstacle listed, starts and goals per drone, so any tool can fly exactly this world."""
+
+    def rows(a: np.ndarray) -> list[list[float]]:
+        return [[round(float(v), 6) for v in r] for r in a]
+
+    return {
+        "description": description or spec.description,
+        "cylinders": rows(world.cylinders),
+        "rings": [
+            {
+                "center": [round(float(v), 6) for v in r[:3]],
+                "yaw": round(float(r[3]), 6),
+                "radius_horizontal": round(float(r[4]), 6),
+                "radius_vertical": round(float(r[5]), 6),
+                "tube_radius": round(float(r[6]), 6),
+            }
+            for r in world.rings
+        ],
+        "boxes": rows(world.boxes),
+        "ground_z": world.ground_z,
+        "cluttered_x": [float(v) for v in spec.cluttered_x],
+        "start_center": [float(v) for v in spec.start_center],
+        "goal_center": [float(v) for v in spec.goal_center],
+        "starts": rows(starts),
+        "goals": rows(goals),
+    }

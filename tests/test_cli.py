@@ -148,3 +148,21 @@ def test_sim_scenario_and_tracks_file(tmp_path: Path) -> None:
     T = data["t"].shape[0]
     assert data["pos"].shape == (T, 4, 3)
     assert data["goals"].shape == (4, 3) and data["formation"].shape == (4, 3)
+
+
+def test_world_export_round_trip(tmp_path: Path) -> None:
+    import numpy as np
+
+    from onboard.config import load_formation, load_world_spec
+
+    for ext in ("yaml", "json"):
+        out = tmp_path / f"w.{ext}"
+        res = CliRunner().invoke(
+            main, ["world", "export", "--world", "heart-forest", "--seed", "3", str(out)]
+        )
+        assert res.exit_code == 0, res.output
+        form = load_formation("hexagon-7")
+        a, sa, ga = load_world_spec("heart-forest").build(3, form)
+        b, sb, gb = load_world_spec(out).build(0, form)
+        for x, y in ((a.cylinders, b.cylinders), (a.rings, b.rings), (sa, sb), (ga, gb)):
+            np.testing.assert_allclose(x, y, atol=1e-6)
