@@ -103,6 +103,10 @@ def _peer_repulsion(pos: np.ndarray, d0: float, k: float) -> np.ndarray:
     return np.sum((mag / dd)[:, :, None] * diff, axis=1)
 
 
+def _const(v: np.ndarray) -> Callable[[], np.ndarray]:
+    return lambda: v
+
+
 def run_virtual_structure(
     cfg: SimConfig,
     params: VirtualStructureParams | None = None,
@@ -149,7 +153,7 @@ def run_virtual_structure(
     progress_every = max(1, int(round(1.0 / dt)))
     for k in range(int(math.ceil(t_limit / dt)) + 1):
         t = k * dt
-        if mon.step(k, t, pos, lambda v=vel: v):
+        if mon.step(k, t, pos, _const(vel)):
             timed_out = False
             break
         c0 = time.perf_counter()
@@ -185,7 +189,7 @@ def run_virtual_structure(
         collisions=mon.collisions,
         obstacle_collisions=mon.obstacle_events,
         drone_collisions=mon.drone_events,
-        events=tuple(mon.events),  # type: ignore[arg-type]
+        events=tuple(mon.events),
         min_obstacle_clearance_m=mon.min_clearance_m,
         min_drone_distance_m=mon.min_pair_m,
         e_sim_mean=float(np.mean(e)) if e.size else math.nan,
@@ -201,7 +205,7 @@ def run_virtual_structure(
         status_counts={},
         sim_wall_s=time.perf_counter() - wall0,
         warmup_s=0.0,
-        tracks=tracks,  # type: ignore[arg-type]
+        tracks=tracks,
         world=world,
         starts=starts,
         goals=goals,

@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcs.metrics import e_dist, summary
+from gcs.metrics import summary
+from gcs.monitor import CollisionEvent, FlightMonitor, MonitorConfig, Tracks
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.config import Formation, WorldSpec, load_planner_params
-from onboard.planner.formation import similarity
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -97,26 +97,6 @@ class PlanCall:
     peers: tuple[PeerTrajectory, ...]
     world: World
     previous: Trajectory | None
-
-
-@dataclass(frozen=True)
-class CollisionEvent:
-    """The start of a collision: ``kind`` 'obstacle' (ids = (drone,)) or 'drone' (ids = pair)."""
-
-    t_s: float
-    kind: str
-    ids: tuple[int, ...]
-    distance_m: float
-
-
-@dataclass(frozen=True, eq=False)
-class Tracks:
-    """Recorded at ``sample_period_s``: t (T,), pos (T, N, 3), e_sim (T,), e_dist (T,)."""
-
-    t: np.ndarray
-    pos: np.ndarray
-    e_sim: np.ndarray
-    e_dist: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -366,22 +346,30 @@ def run_sim(
         d.schedule(new)
 
     dt = cfg.dt_s
-    sample_every = max(1, int(round(cfg.sample_period_s / dt)))
+    mon = FlightMonitor(
+        world,
+        goals,
+        cfg.formation.points,
+        MonitorConfig(
+            dt_s=dt,
+            sample_period_s=cfg.sample_period_s,
+            goal_tolerance_m=cfg.goal_tolerance_m,
+            arrival_speed_m_s=cfg.arrival_speed_m_s,
+            collision_obstacle_m=cfg.collision_obstacle_m,
+            collision_drone_m=cfg.collision_drone_m,
+            max_events=cfg.max_events,
+        ),
+    )
     progress_every = max(1, int(round(1.0 / dt)))
     n_steps_max = int(math.ceil(t_limit / dt))
-    iu, ju = np.triu_indices(n, 1)
-    in_obstacle = np.zeros(n, dtype=bool)
-    in_contact = np.zeros(iu.shape[0], dtype=bool)
-    events: list[CollisionEvent] = []
-    n_obst_events = 0
-    n_drone_events = 0
-    min_clear = math.inf
-    min_pair = math.inf
-    samples_t: list[float] = []
-    samples_p: list[np.ndarray] = []
-    samples_e: list[float] = []
     pos = np.empty((n, 3))
     vel = np.empty((n, 3))
+
+    def velocities() -> np.ndarray:
+        for d in drones:
+            vel[d.i] = d.current.sample(t, order=1)
+        return vel
+
     timed_out = True
     t = 0.0
     for k in range(n_steps_max + 1):
@@ -395,66 +383,31 @@ def run_sim(
                 d.next_replan_s += cfg.replan_period_s
                 d.advance(t)
                 pos[d.i] = d.current.sample(t)
-
-        # Collisions, against the full world.
-        dist, _ = world.distance(pos)
-        min_clear = min(min_clear, float(np.min(dist)))
-        hit = dist < cfg.collision_obstacle_m
-        for i in np.flatnonzero(hit & ~in_obstacle):
-            n_obst_events += 1
-            if len(events) < cfg.max_events:
-                events.append(CollisionEvent(t, "obstacle", (int(i),), float(dist[i])))
-        in_obstacle = hit
-        if iu.shape[0]:
-            pair = np.linalg.norm(pos[iu] - pos[ju], axis=1)
-            min_pair = min(min_pair, float(np.min(pair)))
-            touch = pair < cfg.collision_drone_m
-            for q in np.flatnonzero(touch & ~in_contact):
-                n_drone_events += 1
-                if len(events) < cfg.max_events:
-                    ids = (int(iu[q]), int(ju[q]))
-                    events.append(CollisionEvent(t, "drone", ids, float(pair[q])))
-            in_contact = touch
-
-        if k % sample_every == 0:
-            samples_t.append(t)
-            samples_p.append(pos.copy())
-            samples_e.append(similarity(pos, cfg.formation.points)[0])
-            for d in drones:
-                vel[d.i] = d.current.sample(t, order=1)
-            near = np.linalg.norm(pos - goals, axis=1) <= cfg.goal_tolerance_m
-            slow = np.linalg.norm(vel, axis=1) < cfg.arrival_speed_m_s
-            if np.all(near & slow):
-                timed_out = False
-                break
+        if mon.step(k, t, pos, velocities):
+            timed_out = False
+            break
         if progress is not None and k % progress_every == 0:
             progress(t, t_limit)
 
     if progress is not None:
         progress(t, t_limit)
-    for d in drones:
-        vel[d.i] = d.current.sample(t, order=1)
-    arrived = (np.linalg.norm(pos - goals, axis=1) <= cfg.goal_tolerance_m) & (
-        np.linalg.norm(vel, axis=1) < cfg.arrival_speed_m_s
-    )
-    tr_t = np.array(samples_t)
-    tr_p = np.array(samples_p).reshape(-1, n, 3)
-    tr_e = np.array(samples_e)
-    template = cfg.formation.points
-    tr_d = np.array([e_dist(p, template) for p in tr_p])
-    cx = tr_p[:, :, 0].mean(axis=1) if tr_p.shape[0] else np.zeros(0)
+    arrived = mon.arrived(pos, velocities())
+    tracks = mon.tracks()
+    tr_e = tracks.e_sim
+    tr_d = tracks.e_dist
+    cx = tracks.pos[:, :, 0].mean(axis=1) if tracks.pos.shape[0] else np.zeros(0)
     lo, hi = cfg.world.cluttered_x
     inside = (cx >= lo) & (cx <= hi)
-    collisions = n_obst_events + n_drone_events
+    collisions = mon.collisions
     return SimResult(
         success=bool(np.all(arrived) and collisions == 0),
         arrived=arrived,
         collisions=collisions,
-        obstacle_collisions=n_obst_events,
-        drone_collisions=n_drone_events,
-        events=tuple(events),
-        min_obstacle_clearance_m=min_clear,
-        min_drone_distance_m=min_pair,
+        obstacle_collisions=mon.obstacle_events,
+        drone_collisions=mon.drone_events,
+        events=tuple(mon.events),
+        min_obstacle_clearance_m=mon.min_clearance_m,
+        min_drone_distance_m=mon.min_pair_m,
         e_sim_mean=float(np.mean(tr_e)) if tr_e.size else math.nan,
         e_sim_max=float(np.max(tr_e)) if tr_e.size else math.nan,
         e_sim_mean_cluttered=float(np.mean(tr_e[inside])) if np.any(inside) else math.nan,
@@ -468,7 +421,7 @@ def run_sim(
         status_counts=status_counts,
         sim_wall_s=time.perf_counter() - wall0,
         warmup_s=warmup_s,
-        tracks=Tracks(tr_t, tr_p, tr_e, tr_d),
+        tracks=tracks,
         world=world,
         starts=starts,
         goals=goals,
