@@ -714,5 +714,14 @@ def bench_planner(
         console.print(f"wrote {json_path}")
 
 
+def _register_bench_plugins() -> None:
+    """Benchmarks that live in their own modules (their dependencies load only when run)."""
+    from gcs.bench_sitl import sitl
+
+    bench.add_command(sitl)
+
+
+_register_bench_plugins()
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -65,7 +65,7 @@ def test_bench_planner_small(tmp_path: Path) -> None:
         "solver_overhead_ms_median",
         "check_and_rest_ms_median",
     }
-    assert data["solve_ms"]["median"] <= data["replan_ms"]["max"]
+    assert data["solve_ms"]["median"] > 0.0
     assert sum(data["solver_status_counts"].values()) == data["problems"]
     assert data["pieces"]["median"] >= 1
     assert data["startup_s"] > 0 and data["startup"]["first_plan_status"]
@@ -83,15 +83,37 @@ def test_bench_flights_over_seeds(tmp_path: Path) -> None:
     assert [f["seed"] for f in data["flights"]] == [1, 2]
 
 
-def test_onboard_warmup_and_sitl_placeholder() -> None:
+def test_onboard_warmup_and_sitl(tmp_path: Path) -> None:
     from onboard.cli import main as onboard_main
     from sitl_mock.cli import main as sitl_main
+    from sitl_mock.client import MavClient, bind_consecutive_udp
 
     out = CliRunner().invoke(onboard_main, ["warmup"])
     assert out.exit_code == 0, out.output
     assert "planner ready" in out.output
-    out = CliRunner().invoke(sitl_main, [])
-    assert out.exit_code != 0 and "not implemented" in out.output
+    out = CliRunner().invoke(sitl_main, ["--help"])
+    assert out.exit_code == 0 and "--count" in out.output and "--speedup" in out.output
+    # two vehicles in a world for half a second; their telemetry reaches the clients' ports
+    socks = bind_consecutive_udp(2)
+    clients = [MavClient(sock=s) for s in socks]
+    js = tmp_path / "sitl.json"
+    args = ["--count", "2", "--world", "forest-small", "--base-port", str(clients[0].port),
+            "--local-port-offset", "-1", "--duration", "0.5", "--stats-json", str(js)]  # fmt: skip
+    try:
+        out = CliRunner().invoke(sitl_main, args)
+        assert out.exit_code == 0, out.output
+        assert "sysid 2" in out.output and "0 collision(s)" in out.output
+        for i, c in enumerate(clients):
+            assert c.wait("HEARTBEAT", timeout_s=2.0).get_srcSystem() == i + 1
+    finally:
+        for c in clients:
+            c.close()
+    data = json.loads(js.read_text())
+    assert data["vehicles"] == 2 and data["ticks"] > 0 and data["collisions"] == []
+    assert all(link["tx_messages"] > 0 for link in data["links"])
+    out = CliRunner().invoke(sitl_main, ["--set", "autopilot.boot_time_s=x", "--duration", "0"])
+    assert out.exit_code != 0
+    assert "sitl.autopilot.boot_time_s: expected a number, got 'x'" in out.output
 
 
 def test_bench_table_small(tmp_path: Path) -> None:

@@ -1,0 +1,65 @@
+"""``swarm-sitl`` as a process (clean stop on SIGTERM) and the ``bench sitl`` command."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from sitl_mock.client import MavClient, bind_consecutive_udp
+
+
+def test_sigterm_stops_the_fleet_cleanly(tmp_path: Path) -> None:
+    (sock,) = bind_consecutive_udp(1)
+    client = MavClient(sock=sock)
+    js = tmp_path / "stats.json"
+    cmd = [
+        sys.executable,
+        "-m",
+        "sitl_mock.cli",
+        "--base-port",
+        str(client.port),
+        "--local-port-offset",
+        "-1",
+        "--stats-json",
+        str(js),
+        "--quiet",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        hb = client.connect(timeout_s=30.0)
+        assert hb.get_srcSystem() == 1
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        client.close()
+    assert proc.returncode == 0, err.decode()
+    data = json.loads(js.read_text())
+    assert data["vehicles"] == 1 and data["links"][0]["tx_messages"] > 0
+
+
+def test_bench_sitl_small(tmp_path: Path) -> None:
+    from gcs.bench_sitl import sitl
+
+    js = tmp_path / "bench.json"
+    args = ["--vehicles", "2", "--seconds", "1", "--speedup", "2", "--step-m", "1"]
+    args += ["--step-seconds", "3", "--json", str(js)]
+    out = CliRunner().invoke(sitl, args)
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert data["vehicles"] == 2
+    assert data["fleet_cpu_percent"] > 0
+    assert data["setpoints_accepted_fraction"] > 0.99
+    assert data["fleet"]["setpoints_malformed"] == 0 and data["fleet"]["collisions"] == 0
+    for name in ("LOCAL_POSITION_NED", "HEARTBEAT", "SYS_STATUS"):
+        assert data["telemetry_hz_sim"][name]["min_hz"] > 0
+    step = data["step"]
+    assert step["samples"] > 10 and step["rise_time_s"] > 0
+    assert data["step_model"]["rise_time_s"] > 0
