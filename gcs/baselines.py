@@ -192,6 +192,7 @@ def run_virtual_structure(
         events=tuple(mon.events),
         min_obstacle_clearance_m=mon.min_clearance_m,
         min_drone_distance_m=mon.min_pair_m,
+        max_speed_m_s=mon.max_speed_m_s,
         e_sim_mean=float(np.mean(e)) if e.size else math.nan,
         e_sim_max=float(np.max(e)) if e.size else math.nan,
         e_sim_mean_cluttered=float(np.mean(e[inside])) if np.any(inside) else math.nan,

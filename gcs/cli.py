@@ -88,6 +88,7 @@ def _sim_table(r: SimResult) -> Table:
     )
     t.add_row("min obstacle clearance", f"{_fmt(r.min_obstacle_clearance_m)} m")
     t.add_row("min drone distance", f"{_fmt(r.min_drone_distance_m)} m")
+    t.add_row("max speed", f"{_fmt(r.max_speed_m_s, '.2f')} m/s")
     t.add_row(
         "e_sim mean / max",
         f"{_fmt(r.e_sim_mean, '.4f')} / {_fmt(r.e_sim_max, '.4f')}"
@@ -399,6 +400,7 @@ def bench_flights(
         "collision_free_count": n_clean,
         "min_obstacle_clearance_m": min(row["min_obstacle_clearance_m"] for row in rows),
         "min_drone_distance_m": min(row["min_drone_distance_m"] for row in rows),
+        "max_speed_m_s": max(row["max_speed_m_s"] for row in rows),
         "e_sim_mean": summary([row["e_sim_mean"] for row in rows]),
         "replan_ms_median": summary([row["replan_ms"]["median"] for row in rows]),
         "flights": rows,
@@ -406,7 +408,8 @@ def bench_flights(
     console.print(
         f"success {n_ok}/{seeds}, collision-free {n_clean}/{seeds}, "
         f"min obstacle clearance {report['min_obstacle_clearance_m']:.3f} m, "
-        f"min drone distance {report['min_drone_distance_m']:.3f} m"
+        f"min drone distance {report['min_drone_distance_m']:.3f} m, "
+        f"max speed {report['max_speed_m_s']:.2f} m/s"
     )
     if json_path is not None:
         _write_json(json_path, report)
@@ -418,6 +421,7 @@ _FLIGHT_KEYS = (
     "collisions",
     "min_obstacle_clearance_m",
     "min_drone_distance_m",
+    "max_speed_m_s",
     "e_sim_mean",
     "flight_time_s",
     "replan_ms",

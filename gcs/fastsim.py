@@ -114,6 +114,8 @@ class SimResult:
     min_obstacle_clearance_m: float
     """Minimum over time and drones of the drone-centre-to-obstacle-surface distance."""
     min_drone_distance_m: float
+    max_speed_m_s: float
+    """Highest drone speed at the 10 Hz sample instants."""
     e_sim_mean: float
     e_sim_max: float
     e_sim_mean_cluttered: float
@@ -151,6 +153,7 @@ class SimResult:
             "events": [dataclasses.asdict(e) for e in self.events],
             "min_obstacle_clearance_m": _num(self.min_obstacle_clearance_m),
             "min_drone_distance_m": _num(self.min_drone_distance_m),
+            "max_speed_m_s": _num(self.max_speed_m_s),
             "e_sim_mean": _num(self.e_sim_mean),
             "e_sim_max": _num(self.e_sim_max),
             "e_sim_mean_cluttered": _num(self.e_sim_mean_cluttered),
@@ -408,6 +411,7 @@ def run_sim(
         events=tuple(mon.events),
         min_obstacle_clearance_m=mon.min_clearance_m,
         min_drone_distance_m=mon.min_pair_m,
+        max_speed_m_s=mon.max_speed_m_s,
         e_sim_mean=float(np.mean(tr_e)) if tr_e.size else math.nan,
         e_sim_max=float(np.max(tr_e)) if tr_e.size else math.nan,
         e_sim_mean_cluttered=float(np.mean(tr_e[inside])) if np.any(inside) else math.nan,

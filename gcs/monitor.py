@@ -66,6 +66,8 @@ class FlightMonitor:
         self.drone_events = 0
         self.min_clearance_m = math.inf
         self.min_pair_m = math.inf
+        self.max_speed_m_s = 0.0
+        """Highest drone speed seen at the sample instants."""
         self._t: list[float] = []
         self._p: list[np.ndarray] = []
         self._e: list[float] = []
@@ -97,7 +99,9 @@ class FlightMonitor:
         self._t.append(t)
         self._p.append(pos.copy())
         self._e.append(similarity(pos, self.formation)[0])
-        return bool(np.all(self.arrived(pos, vel())))
+        v = vel()
+        self.max_speed_m_s = max(self.max_speed_m_s, float(np.max(np.linalg.norm(v, axis=1))))
+        return bool(np.all(self.arrived(pos, v)))
 
     def arrived(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
         """(N,) bool: within the goal tolerance and slower than the arrival speed."""

@@ -68,6 +68,7 @@ class TrialResult:
     collisions: int
     min_obstacle_clearance_m: float
     min_drone_distance_m: float
+    max_speed_m_s: float
     e_dist_m: float
     e_dist_rms_m: float
     e_sim: float
@@ -151,6 +152,7 @@ def run_trial(
         collisions=res.collisions,
         min_obstacle_clearance_m=res.min_obstacle_clearance_m,
         min_drone_distance_m=res.min_drone_distance_m,
+        max_speed_m_s=res.max_speed_m_s,
         e_dist_m=s["e_dist_m"],
         e_dist_rms_m=s["e_dist_rms_m"],
         e_sim=s["e_sim"],
@@ -192,6 +194,7 @@ def summarize(rows: Sequence[TrialResult]) -> list[dict[str, Any]]:
                 "e_sim_all": _mean([r.e_sim for r in rs]),
                 "min_obstacle_clearance_m": min(r.min_obstacle_clearance_m for r in rs),
                 "min_drone_distance_m": min(r.min_drone_distance_m for r in rs),
+                "max_speed_m_s": max(r.max_speed_m_s for r in rs),
                 "collisions": sum(r.collisions for r in rs),
                 "flight_time_s": _mean([r.flight_time_s for r in ok]),
                 "path_length_m": _mean([r.path_length_m for r in ok]),

@@ -44,8 +44,12 @@ class PlannerParams:
     """D_r of J_r, centre to centre."""
     swarm_z_scale: float = 0.5
     """Vertical separations count this much in J_r's distance (downwash: z counts half)."""
-    w_feasibility: float = 1.0e5
+    w_feasibility: float = 1.0e8
     """J_d: weight of the velocity, acceleration and jerk limit penalties."""
+    limit_margin: float = 1.0
+    """J_d penalises speed, acceleration and jerk above this fraction of their limits: a soft
+    penalty balances the other terms slightly past where it starts, so a margin below 1 keeps
+    the flown values within the limits without a stiff weight."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
     w_formation: float = 3.0e4
@@ -98,6 +102,8 @@ class PlannerParams:
             "swarm_z_scale",
             "check_step_s",
             "astar_resolution_m",
+            "tau_scale",
+            "limit_margin",
         )
         for name in positive:
             value = getattr(self, name)

@@ -211,9 +211,9 @@ class FormationPlanner:
         prm[obj.P_D_SWARM] = p.swarm_clearance_m
         prm[obj.P_Z_SCALE] = p.swarm_z_scale
         prm[obj.P_W_FEAS] = p.w_feasibility
-        prm[obj.P_V_MAX] = p.v_max_m_s
-        prm[obj.P_A_MAX] = p.a_max_m_s2
-        prm[obj.P_J_MAX] = p.j_max_m_s3
+        prm[obj.P_V_MAX] = p.v_max_m_s * p.limit_margin
+        prm[obj.P_A_MAX] = p.a_max_m_s2 * p.limit_margin
+        prm[obj.P_J_MAX] = p.j_max_m_s3 * p.limit_margin
         prm[obj.P_W_UNIF] = p.w_uniform
         prm[obj.P_W_FORM] = p.w_formation if use_formation else 0.0
         prm[obj.P_FORM_MODE] = obj.FORM_MODES[p.formation_penalty]
