@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from gcs.bench_mapping import perception_options, perception_overrides
 from onboard.config import (
     ConfigError,
     load_formation,
@@ -209,6 +210,7 @@ _set_opt = click.option(
     "--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a PNG."
 )
 @click.option("--check", is_flag=True, help="Exit with status 1 unless the flight succeeded.")
+@perception_options
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def sim(
     formation: str,
@@ -224,6 +226,9 @@ def sim(
     tracks_path: Path | None,
     plot_path: Path | None,
     check: bool,
+    perception: str,
+    camera_rate_hz: float,
+    camera_skip_pixel: int,
     quiet: bool,
 ) -> None:
     """Fly a formation through a world in fast simulated time and score the flight."""
@@ -246,6 +251,9 @@ def sim(
                 world=cfg.world if given("world") else sc.world,
                 v_max_m_s=cfg.v_max_m_s if given("v_max") else sc.v_max_m_s,
             )
+        cfg = dataclasses.replace(
+            cfg, **perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
+        )
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
     try:
@@ -334,6 +342,7 @@ def bench() -> None:
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
 )
+@perception_options
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def bench_flights(
     formation: str,
@@ -343,6 +352,9 @@ def bench_flights(
     planner_file: Path | None,
     sets: tuple[str, ...],
     json_path: Path | None,
+    perception: str,
+    camera_rate_hz: float,
+    camera_skip_pixel: int,
     quiet: bool,
 ) -> None:
     """Fly one scenario over seeds 1..N and report success, collisions and clearances."""
@@ -354,7 +366,11 @@ def bench_flights(
         raise click.BadParameter("must be >= 1", param_hint="--seeds")
     try:
         params = _planner_params(planner_file, sets)
-        cfgs = [_sim_config(formation, world, s, v_max, params) for s in range(1, seeds + 1)]
+        extra = perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
+        cfgs = [
+            dataclasses.replace(_sim_config(formation, world, s, v_max, params), **extra)
+            for s in range(1, seeds + 1)
+        ]
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
     rows: list[dict[str, Any]] = []
@@ -720,9 +736,11 @@ def bench_planner(
 
 def _register_bench_plugins() -> None:
     """Benchmarks that live in their own modules (their dependencies load only when run)."""
+    from gcs.bench_mapping import bench_mapping
     from gcs.bench_sitl import sitl
 
     bench.add_command(sitl)
+    bench.add_command(bench_mapping)
 
 
 _register_bench_plugins()

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from onboard.planner.planner import PeerTrajectory
 
 _EPS_T = 1e-9
+PERCEPTIONS = ("ground-truth", "mapped")
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,14 @@ class SimConfig:
     warmup: bool = True
     """Plan one small problem before the flight, untimed, so that replan_ms measures steady
     state rather than numba's compilation or cache loading (reported as ``warmup_s``)."""
+    perception: str = "ground-truth"
+    """'ground-truth': a drone's map is the exact distance to the obstacles it has come within
+    sensing_radius_m of. 'mapped': each drone plans on the ESDF of its own occupancy map, built
+    from simulated D435 depth frames taken along its flight (``onboard.sensors.simulated``)."""
+    camera_rate_hz: float = 30.0
+    """Depth frames per second per drone ('mapped')."""
+    camera_skip_pixel: int = 2
+    """Every n-th pixel row and column of a frame is rendered and ray cast ('mapped')."""
 
     def __post_init__(self) -> None:
         positive = ("v_max_m_s", "replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
@@ -81,6 +90,10 @@ class SimConfig:
             raise ValueError("plan_ahead_s, bus_delay_s and sensing_radius_m must be >= 0")
         if self.time_limit_s is not None and not self.time_limit_s > 0.0:
             raise ValueError("time_limit_s must be > 0")
+        if self.perception not in PERCEPTIONS:
+            raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
+        if not self.camera_rate_hz > 0.0 or self.camera_skip_pixel < 1:
+            raise ValueError("camera_rate_hz must be > 0 and camera_skip_pixel >= 1")
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,6 +332,8 @@ def run_sim(
     for d in drones:
         d.next_replan_s = d.i * cfg.replan_period_s / n
         bus.publish(TrajectoryMsg(d.i, d.traj_id, d.i, d.current), 0.0)
+    eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
+    next_frame_s = 0.0
 
     replan_ms: list[float] = []
     iterations: list[float] = []
@@ -327,6 +342,8 @@ def run_sim(
 
     def replan(d: _Drone, t: float, p_now: np.ndarray) -> None:
         d.sense(world, p_now, cfg.sensing_radius_m)
+        if eyes is not None:
+            d.field = eyes[d.i].field()
         t_start = t + cfg.plan_ahead_s
         flying = d.flying(t_start)
         sp, sv, sa = flying.state(t_start)
@@ -380,6 +397,10 @@ def run_sim(
         for d in drones:
             d.advance(t)
             pos[d.i] = d.current.sample(t)
+        if eyes is not None and t >= next_frame_s - _EPS_T:
+            for d in drones:
+                eyes[d.i].observe(t, pos[d.i], d.current.sample(t, order=1), d.goal)
+            next_frame_s += 1.0 / cfg.camera_rate_hz
         for d in sorted(drones, key=lambda q: q.next_replan_s):
             if t >= d.next_replan_s - _EPS_T:
                 replan(d, t, pos[d.i].copy())
@@ -435,6 +456,27 @@ def run_sim(
         cluttered_x=(float(lo), float(hi)),
         config=_config_summary(cfg, params),
     )
+
+
+def _mapped_perception(
+    cfg: SimConfig, world: World, starts: np.ndarray, goals: np.ndarray
+) -> list[Any]:
+    """One simulated depth camera and local map per drone, facing its goal at the start."""
+    from onboard.sensors.simulated import SimulatedPerception
+
+    eyes = [
+        SimulatedPerception(
+            world,
+            skip_pixel=cfg.camera_skip_pixel,
+            seed=cfg.seed * 1000 + i,
+            initial_yaw=math.atan2(goals[i, 1] - starts[i, 1], goals[i, 0] - starts[i, 0]),
+        )
+        for i in range(starts.shape[0])
+    ]
+    for k in range(3, 0, -1):  # hovering at the start before t = 0: obstacles in view are mapped
+        for i, e in enumerate(eyes):
+            e.observe(-k / cfg.camera_rate_hz, starts[i], np.zeros(3), goals[i])
+    return eyes
 
 
 def replay_inputs(call: PlanCall) -> tuple[Any, ...]:

@@ -1,0 +1,438 @@
+"""Mapping benchmark (``swarm-gcs bench mapping``) and the perception options of the simulator.
+
+The benchmark flies one simulated D435 through a world (medium forest by default) along a path
+that keeps 0.6 m from the trunks (A* on the exact field, at 1 m height, 0.5 m/s, 30 frames/s,
+yaw along the path), feeds every frame to a ``LocalMapper`` and measures:
+
+- ``render_ms``: one 640 x 480 simulated frame (all pixels), noise and holes included;
+- ``ingest_ms``: validating and ray casting one frame into the occupancy window (skip 2);
+- ``esdf_ms``: one ESDF refresh of the whole window (every ``--esdf-every`` frames);
+- ``esdf_error_m``: ESDF value minus exact distance at the cell centres of observed space (see
+  ``onboard.mapping.evaluate``), at snapshots every ``--error-every-s`` seconds.
+
+Timings use ``time.perf_counter`` around single calls after one untimed warm-up frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from onboard.config import ConfigError, load_formation, load_world_spec
+from onboard.mapping.simcam import D435_TYPICAL
+
+TARGETS = {"ingest_ms.median": 15.0, "esdf_ms.median": 25.0, "esdf_error_m.p95": 0.1}
+
+
+# --------------------------------------------------------------------------------------------
+# Perception options for `swarm-gcs sim` and `swarm-gcs bench flights`
+# --------------------------------------------------------------------------------------------
+
+perception_option = click.option(
+    "--perception",
+    type=click.Choice(["ground-truth", "mapped"]),
+    default="ground-truth",
+    show_default=True,
+    help="Distance field the drones plan on: exact obstacles within the sensing radius, or "
+    "each drone's own map built from simulated D435 depth frames.",
+)
+camera_rate_option = click.option(
+    "--camera-rate",
+    "camera_rate_hz",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=30.0,
+    show_default=True,
+    help="Depth frames per second per drone (--perception mapped).",
+)
+skip_pixel_option = click.option(
+    "--skip-pixel",
+    "camera_skip_pixel",
+    type=click.IntRange(min=1),
+    default=2,
+    show_default=True,
+    help="Use every n-th pixel row and column of a depth frame (--perception mapped).",
+)
+
+
+def perception_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """Decorator adding --perception, --camera-rate and --skip-pixel to a click command; the
+    command receives ``perception``, ``camera_rate_hz`` and ``camera_skip_pixel``."""
+    return perception_option(camera_rate_option(skip_pixel_option(f)))
+
+
+def perception_overrides(
+    perception: str, camera_rate_hz: float, camera_skip_pixel: int
+) -> dict[str, Any]:
+    """Keyword arguments for ``dataclasses.replace(sim_config, **...)``."""
+    return {
+        "perception": perception,
+        "camera_rate_hz": float(camera_rate_hz),
+        "camera_skip_pixel": int(camera_skip_pixel),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# The benchmark
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class MappingBenchConfig:
+    """One benchmark run. Lengths in metres, times in seconds."""
+
+    world: str = "forest-medium"
+    seed: int = 1
+    speed_m_s: float = 0.5
+    rate_hz: float = 30.0
+    height_m: float = 1.0
+    skip_pixel: int = 2
+    noise_std_1m_m: float = D435_TYPICAL.noise_std_1m_m
+    """Depth noise at 1 m (grows with depth squared), see ``D435_TYPICAL``."""
+    dropout: float = D435_TYPICAL.dropout
+    holes: int = D435_TYPICAL.hole_count
+    esdf_every: int = 3
+    error_every_s: float = 2.0
+    error_band_m: float = 2.0
+    max_frames: int = 0
+    """0: the whole path."""
+
+
+def flight_path(
+    world: Any, start: np.ndarray, goal: np.ndarray, speed_m_s: float, rate_hz: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera positions (K, 3) and yaws (K,) at ``rate_hz`` along an A* path that keeps 0.6 m
+    from the obstacles (near the start's height); yaw follows the path, smoothed over 1 s."""
+    from onboard.planner.astar import astar_path
+
+    z = float(start[2])
+    path = astar_path(world.field(), start, goal, clearance_m=0.6, z_limits=(z - 0.1, z + 0.1))
+    if path is None:
+        raise ConfigError("no obstacle-free path from start to goal in this world")
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    ss = np.arange(0.0, s[-1], speed_m_s / rate_hz)
+    pos = np.stack([np.interp(ss, s, path[:, a]) for a in range(3)], axis=1)
+    heading = np.gradient(pos, axis=0)
+    yaw = np.unwrap(np.arctan2(heading[:, 1], heading[:, 0]))
+    k = max(1, int(round(rate_hz / 2)))
+    yaw = np.convolve(np.pad(yaw, (k, k), mode="edge"), np.ones(2 * k + 1) / (2 * k + 1), "valid")
+    return pos, yaw
+
+
+def _stats(values: list[float] | np.ndarray) -> dict[str, float | None]:
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return {"median": None, "p90": None, "max": None, "mean": None, "n": 0}
+    return {
+        "median": float(np.median(a)),
+        "p90": float(np.percentile(a, 90)),
+        "max": float(np.max(a)),
+        "mean": float(np.mean(a)),
+        "n": int(a.size),
+    }
+
+
+def _error_stats(err: np.ndarray) -> dict[str, float | None]:
+    if err.size == 0:
+        return {"p50": None, "p95": None, "p99": None, "max": None, "mean_signed": None, "n": 0}
+    a = np.abs(err)
+    return {
+        "p50": float(np.percentile(a, 50)),
+        "p95": float(np.percentile(a, 95)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(np.max(a)),
+        "mean_signed": float(np.mean(err)),
+        "n": int(err.size),
+    }
+
+
+def run_mapping_bench(
+    cfg: MappingBenchConfig,
+    progress: Callable[[int, int], None] | None = None,
+    ply_path: Path | None = None,
+) -> dict[str, Any]:
+    """Run the benchmark; returns the JSON-able report."""
+    from onboard.mapping import LocalMapper, OccupancyParams, SimCameraParams, look_rotation
+    from onboard.mapping.evaluate import esdf_errors
+    from onboard.mapping.simcam import SimulatedDepthCamera
+
+    spec = load_world_spec(cfg.world)
+    world, _, _ = spec.build(cfg.seed, load_formation("triangle-3"))
+    start = np.array([*spec.start_center[:2], cfg.height_m])
+    goal = np.array([*spec.goal_center[:2], cfg.height_m])
+    pos, yaw = flight_path(world, start, goal, cfg.speed_m_s, cfg.rate_hz)
+    if cfg.max_frames > 0:
+        pos, yaw = pos[: cfg.max_frames], yaw[: cfg.max_frames]
+    cam = SimulatedDepthCamera(
+        world,
+        params=SimCameraParams(
+            noise_std_1m_m=cfg.noise_std_1m_m, dropout=cfg.dropout, hole_count=cfg.holes
+        ),
+        seed=cfg.seed,
+    )
+    occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
+    mapper = LocalMapper(occ)
+    # warm-up: compile / load the kernels outside the timings
+    LocalMapper(occ).ingest(cam.capture(pos[0], look_rotation(yaw[0]), -1.0))
+    LocalMapper(occ).field()
+
+    render_ms: list[float] = []
+    ingest_ms: list[float] = []
+    esdf_ms: list[float] = []
+    rejected = 0
+    errors_free: list[np.ndarray] = []
+    errors_occ: list[np.ndarray] = []
+    recent: list[Any] = []
+    keep = int(round(5.0 * cfg.rate_hz))  # frames of the last 5 s define "observed"
+    error_every = max(1, int(round(cfg.error_every_s * cfg.rate_hz)))
+    n = pos.shape[0]
+    for k in range(n):
+        t_s = k / cfg.rate_hz
+        t0 = time.perf_counter()
+        frame = cam.capture(pos[k], look_rotation(float(yaw[k])), t_s)
+        t1 = time.perf_counter()
+        res = mapper.ingest(frame)
+        t2 = time.perf_counter()
+        render_ms.append((t1 - t0) * 1e3)
+        ingest_ms.append((t2 - t1) * 1e3)
+        rejected += 0 if res.accepted else 1
+        recent.append(frame)
+        if len(recent) > keep:
+            recent.pop(0)
+        if (k + 1) % cfg.esdf_every == 0:
+            t3 = time.perf_counter()
+            field = mapper.field()
+            esdf_ms.append((time.perf_counter() - t3) * 1e3)
+            if (k + 1) % error_every == 0:
+                e = esdf_errors(
+                    field,
+                    world,
+                    recent[::3],
+                    cfg.skip_pixel,
+                    band_m=cfg.error_band_m,
+                    max_range_m=occ.max_ray_m,
+                )
+                errors_free.append(e.free)
+                errors_occ.append(e.occupied)
+        if progress is not None:
+            progress(k + 1, n)
+    from gcs.bench import machine_info
+
+    err_f = np.concatenate(errors_free) if errors_free else np.zeros(0)
+    err_o = np.concatenate(errors_occ) if errors_occ else np.zeros(0)
+    report: dict[str, Any] = {
+        "scenario": {
+            **dataclasses.asdict(cfg),
+            "world_name": world.name,
+            "path_length_m": float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1))),
+            "frames": int(n),
+            "window_cells": list(occ.shape),
+            "resolution_m": occ.resolution_m,
+        },
+        "render_ms": _stats(render_ms),
+        "ingest_ms": _stats(ingest_ms),
+        "esdf_ms": _stats(esdf_ms),
+        "esdf_error_m": _error_stats(np.concatenate([err_f, err_o])),
+        "esdf_error_free_m": _error_stats(err_f),
+        "esdf_error_occupied_m": _error_stats(err_o),
+        "rejected_frames": rejected,
+        "occupied_cells_final": int(np.count_nonzero(mapper.map.occupied())),
+        "machine": machine_info(),
+    }
+    report["targets"] = {
+        key: {
+            "target": limit,
+            "value": _lookup(report, key),
+            "met": _lookup(report, key) is not None and _lookup(report, key) <= limit,
+        }
+        for key, limit in TARGETS.items()
+    }
+    if ply_path is not None:
+        from onboard.sensors.cloud import save_map_ply
+
+        report["ply_points"] = save_map_ply(ply_path, mapper.map)
+        report["ply_path"] = str(ply_path)
+    return report
+
+
+def _lookup(report: dict[str, Any], dotted: str) -> Any:
+    out: Any = report
+    for part in dotted.split("."):
+        out = out[part]
+    return out
+
+
+def _fmt(x: float | None, spec: str = ".2f") -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, spec)
+
+
+@click.command("mapping")
+@click.option("--world", default="forest-medium", show_default=True, help="World name or file.")
+@click.option("--seed", default=1, show_default=True, help="Seed of the world.")
+@click.option(
+    "--skip-pixel",
+    default=2,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="Ray cast every n-th pixel row and column.",
+)
+@click.option(
+    "--noise-1m",
+    "noise_1m",
+    default=D435_TYPICAL.noise_std_1m_m,
+    show_default=True,
+    type=click.FloatRange(min=0.0),
+    help="Depth noise std at 1 m [m] (grows with depth squared).",
+)
+@click.option(
+    "--dropout",
+    default=D435_TYPICAL.dropout,
+    show_default=True,
+    type=click.FloatRange(0.0, 1.0),
+    help="Fraction of pixels without a measurement.",
+)
+@click.option(
+    "--holes",
+    default=D435_TYPICAL.hole_count,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Rectangular holes per frame.",
+)
+@click.option(
+    "--esdf-every",
+    default=3,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="Refresh the ESDF every n-th frame (3: 10 Hz at 30 frames/s).",
+)
+@click.option(
+    "--max-frames",
+    default=0,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Stop after this many frames (0: the whole crossing).",
+)
+@click.option(
+    "--ply",
+    "ply_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Save the final map as a .ply point cloud.",
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_mapping(
+    world: str,
+    seed: int,
+    skip_pixel: int,
+    noise_1m: float,
+    dropout: float,
+    holes: int,
+    esdf_every: int,
+    max_frames: int,
+    ply_path: Path | None,
+    json_path: Path | None,
+    quiet: bool,
+) -> None:
+    """Fly a simulated D435 through a world; time frame ingest and ESDF refresh, and measure
+    the ESDF against the exact distance in observed space."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    console = Console(quiet=quiet, highlight=False)
+    cfg = MappingBenchConfig(
+        world=world,
+        seed=seed,
+        skip_pixel=skip_pixel,
+        noise_std_1m_m=noise_1m,
+        dropout=dropout,
+        holes=holes,
+        esdf_every=esdf_every,
+        max_frames=max_frames,
+    )
+    with Progress(
+        TextColumn("frames"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+        disable=quiet,
+    ) as bar:
+        task = bar.add_task("frames", total=None)
+
+        def cb(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        try:
+            report = run_mapping_bench(cfg, progress=cb, ply_path=ply_path)
+        except ConfigError as e:
+            raise click.ClickException(str(e)) from e
+
+    sc = report["scenario"]
+    t = Table(
+        title=f"mapping: {sc['frames']} frames through {sc['world_name']}, "
+        f"window {'x'.join(str(c) for c in sc['window_cells'])} cells of {sc['resolution_m']} m"
+    )
+    t.add_column("quantity")
+    for col in ("median", "p90", "max", "target", "met"):
+        t.add_column(col, justify="right")
+    for name, key in (
+        ("render one 640x480 frame [ms]", "render_ms"),
+        (f"ingest one frame, skip {skip_pixel} [ms]", "ingest_ms"),
+        ("ESDF refresh of the window [ms]", "esdf_ms"),
+    ):
+        s = report[key]
+        tgt = report["targets"].get(f"{key}.median")
+        t.add_row(
+            name,
+            _fmt(s["median"]),
+            _fmt(s["p90"]),
+            _fmt(s["max"]),
+            _fmt(tgt["target"], ".0f") if tgt else "",
+            ("yes" if tgt["met"] else "NO") if tgt else "",
+        )
+    console.print(t)
+    etab = Table(title="ESDF error in observed space [m] (|estimate - exact|, cells within 2 m)")
+    etab.add_column("cells")
+    for col in ("n", "p50", "p95", "p99", "max", "mean signed"):
+        etab.add_column(col, justify="right")
+    for name, key in (
+        ("all observed", "esdf_error_m"),
+        ("free", "esdf_error_free_m"),
+        ("occupied", "esdf_error_occupied_m"),
+    ):
+        s = report[key]
+        etab.add_row(
+            name,
+            str(s["n"]),
+            _fmt(s["p50"], ".3f"),
+            _fmt(s["p95"], ".3f"),
+            _fmt(s["p99"], ".3f"),
+            _fmt(s["max"], ".3f"),
+            _fmt(s["mean_signed"], "+.3f"),
+        )
+    console.print(etab)
+    tg = report["targets"]["esdf_error_m.p95"]
+    console.print(
+        f"ESDF error p95 {_fmt(tg['value'], '.3f')} m (target <= {tg['target']} m: "
+        f"{'met' if tg['met'] else 'NOT met'}); rejected frames {report['rejected_frames']}"
+    )
+    m = report["machine"]
+    console.print(f"{m['cpu']} x{m['cpu_count']}, Python {m['python']}, numba {m['numba']}")
+    if ply_path is not None:
+        console.print(f"wrote {ply_path} ({report['ply_points']} points)")
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        console.print(f"wrote {json_path}")

@@ -1,0 +1,428 @@
+"""Signed Euclidean distance field (ESDF) of an occupancy window, as the planner's ``GridField``.
+
+Exact Euclidean distance transform, separable (the lower envelope of parabolas of Felzenszwalb
+and Huttenlocher, "Distance Transforms of Sampled Functions"): a linear scan along z, then the
+envelope along y and along x. Two transforms per refresh: from every cell to the nearest occupied
+cell (outside, carrying the index of that cell along: a feature transform) and from every
+occupied cell to the nearest non-occupied cell (inside); signed distance = outside - inside.
+Unknown cells count as free here, so the optimiser sees the distance to the nearest *known*
+obstacle everywhere (unknown space is free for it); the field's ``known`` mask tells the
+collision check which cells were observed.
+
+Values sit at cell centres and are refined below the cell size (``sub_cell``, the default):
+every occupied cell remembers the mean of the measured surface points that fell into it, so a
+free cell's value is its distance to the surface point of its nearest occupied cell, and a
+surface cell's value is the signed offset of its centre from its own surface point along the
+direction of its observed free neighbours (it may be positive: a cell can be occupied while its
+centre lies just outside the surface). Deeper occupied cells, and every cell without
+``sub_cell``, read occupied cells as solid cubes: centre distance minus ``surface_offset_m``
+(half a cell by default). Values are capped at +-``UNKNOWN_DISTANCE``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from onboard.mapping.occupancy import OccupancyMap
+from onboard.planner.field import UNKNOWN_DISTANCE, GridField
+
+_BIG = np.float32(1e30)
+_UNKNOWN_BELOW = -50.0
+
+
+@njit(cache=True, nogil=True)
+def _column_pass(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    lo: np.ndarray,
+    l_occ: float,
+    res: float,
+    f_out: np.ndarray,
+    feat: np.ndarray,
+    f_in: np.ndarray,
+    occ: np.ndarray,
+    known: np.ndarray,
+    spt: np.ndarray,
+) -> int:
+    """Read the ring buffer in window order; per z column, the squared 1-D distance (cells) to
+    the nearest occupied cell (f_out, whose window-linear index goes to feat) and to the nearest
+    non-occupied cell (f_in). Occupied cells get their surface point (mean of their hits, the
+    centre when none), relative to the window origin, in spt (nx, ny, nz, 3). Returns the
+    number of occupied cells."""
+    nx = logodds.shape[0]
+    ny = logodds.shape[1]
+    nz = logodds.shape[2]
+    big = 1e30
+    n_occ = 0
+    sz_of = np.empty(nz, dtype=np.int64)
+    for wk in range(nz):
+        s = (lo[2] + wk) % nz
+        sz_of[wk] = s + nz if s < 0 else s
+    for wi in range(nx):
+        si = (lo[0] + wi) % nx
+        if si < 0:
+            si += nx
+        for wj in range(ny):
+            sj = (lo[1] + wj) % ny
+            if sj < 0:
+                sj += ny
+            last_occ = -1
+            last_free = -1
+            for wk in range(nz):
+                v = logodds[si, sj, sz_of[wk]]
+                o = v >= l_occ
+                occ[wi, wj, wk] = o
+                known[wi, wj, wk] = v > _UNKNOWN_BELOW
+                if o:
+                    n_occ += 1
+                    last_occ = wk
+                    e = (si * ny + sj) * nz + sz_of[wk]
+                    c = surf[e, 3]
+                    spt[wi, wj, wk, 0] = (wi + 0.5) * res
+                    spt[wi, wj, wk, 1] = (wj + 0.5) * res
+                    spt[wi, wj, wk, 2] = (wk + 0.5) * res
+                    if c > 0.0:
+                        spt[wi, wj, wk, 0] += surf[e, 0] / c
+                        spt[wi, wj, wk, 1] += surf[e, 1] / c
+                        spt[wi, wj, wk, 2] += surf[e, 2] / c
+                else:
+                    last_free = wk
+                f_out[wi, wj, wk] = (wk - last_occ) if last_occ >= 0 else big
+                f_in[wi, wj, wk] = (wk - last_free) if last_free >= 0 else big
+                feat[wi, wj, wk] = (wi * ny + wj) * nz + last_occ
+            last_occ = -1
+            last_free = -1
+            for wk in range(nz - 1, -1, -1):
+                if occ[wi, wj, wk]:
+                    last_occ = wk
+                else:
+                    last_free = wk
+                if last_occ >= 0 and last_occ - wk < f_out[wi, wj, wk]:
+                    f_out[wi, wj, wk] = last_occ - wk
+                if last_free >= 0:
+                    f_in[wi, wj, wk] = min(f_in[wi, wj, wk], last_free - wk)
+                if last_occ >= 0 and last_occ - wk <= f_out[wi, wj, wk]:
+                    feat[wi, wj, wk] = (wi * ny + wj) * nz + last_occ
+                a = f_out[wi, wj, wk]
+                b = f_in[wi, wj, wk]
+                f_out[wi, wj, wk] = a * a if a < big else big
+                f_in[wi, wj, wk] = b * b if b < big else big
+    return n_occ
+
+
+@njit(cache=True, nogil=True)
+def _envelope_line(
+    f: np.ndarray,
+    n: int,
+    out: np.ndarray,
+    v: np.ndarray,
+    z: np.ndarray,
+    big: float,
+    feat: np.ndarray,
+    feat_out: np.ndarray,
+    with_feat: bool,
+) -> None:
+    """1-D squared distance transform of the samples f[0:n] (unit spacing) into out[0:n]; with
+    with_feat, feat_out[q] = feat[p] of the sample p that gives out[q]."""
+    k = -1
+    for q in range(n):
+        fq = f[q]
+        if fq >= big:
+            continue
+        s = -math.inf
+        while k >= 0:
+            p = v[k]
+            s = ((fq + q * q) - (f[p] + p * p)) / (2.0 * (q - p))
+            if s <= z[k]:
+                k -= 1
+                s = -math.inf
+            else:
+                break
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = math.inf
+    if k < 0:
+        for q in range(n):
+            out[q] = big
+        return
+    j = 0
+    for q in range(n):
+        while z[j + 1] < q:
+            j += 1
+        p = v[j]
+        out[q] = (q - p) * (q - p) + f[p]
+        if with_feat:
+            feat_out[q] = feat[p]
+
+
+@njit(cache=True, nogil=True)
+def _envelope_pass(
+    f: np.ndarray, axis: int, skip_value: float, feat: np.ndarray, with_feat: bool
+) -> None:
+    """Squared distance transform of f (nx, ny, nz) along axis 0 or 1, in place, carrying the
+    feature indices feat along when with_feat. Lines whose values all equal ``skip_value`` are
+    left as they are (nothing to propagate)."""
+    nx = f.shape[0]
+    ny = f.shape[1]
+    nz = f.shape[2]
+    n = nx if axis == 0 else ny
+    line = np.empty(n)
+    out = np.empty(n)
+    v = np.empty(n, dtype=np.int64)
+    z = np.empty(n + 1)
+    fl = np.empty(n, dtype=np.int32)
+    fo = np.empty(n, dtype=np.int32)
+    big = 1e30
+    if axis == 1:
+        for i in range(nx):
+            for k in range(nz):
+                same = True
+                for j in range(ny):
+                    x = f[i, j, k]
+                    line[j] = x
+                    if x != skip_value:
+                        same = False
+                if same:
+                    continue
+                if with_feat:
+                    for j in range(ny):
+                        fl[j] = feat[i, j, k]
+                _envelope_line(line, ny, out, v, z, big, fl, fo, with_feat)
+                for j in range(ny):
+                    f[i, j, k] = out[j]
+                if with_feat:
+                    for j in range(ny):
+                        feat[i, j, k] = fo[j]
+    else:
+        for j in range(ny):
+            for k in range(nz):
+                same = True
+                for i in range(nx):
+                    x = f[i, j, k]
+                    line[i] = x
+                    if x != skip_value:
+                        same = False
+                if same:
+                    continue
+                if with_feat:
+                    for i in range(nx):
+                        fl[i] = feat[i, j, k]
+                _envelope_line(line, nx, out, v, z, big, fl, fo, with_feat)
+                for i in range(nx):
+                    f[i, j, k] = out[i]
+                if with_feat:
+                    for i in range(nx):
+                        feat[i, j, k] = fo[i]
+
+
+@njit(cache=True, nogil=True)
+def _combine(
+    f_out: np.ndarray,
+    feat: np.ndarray,
+    f_in: np.ndarray,
+    occ: np.ndarray,
+    known: np.ndarray,
+    spt: np.ndarray,
+    res: float,
+    offset: float,
+    sub_cell: bool,
+    cap: float,
+    values: np.ndarray,
+) -> None:
+    """Signed distance per cell from the two squared transforms (see the module docstring)."""
+    nx = f_out.shape[0]
+    ny = f_out.shape[1]
+    nz = f_out.shape[2]
+    big = 1e29
+    sp = spt.reshape(-1)
+    for i in range(nx):
+        x = (i + 0.5) * res
+        for j in range(ny):
+            y = (j + 0.5) * res
+            for k in range(nz):
+                z = (k + 0.5) * res
+                if not occ[i, j, k]:
+                    a = f_out[i, j, k]
+                    if a >= big:
+                        values[i, j, k] = cap
+                        continue
+                    if sub_cell:
+                        w = 3 * feat[i, j, k]
+                        dx = x - sp[w]
+                        dy = y - sp[w + 1]
+                        dz = z - sp[w + 2]
+                        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                    else:
+                        d = math.sqrt(a) * res - offset
+                    values[i, j, k] = min(max(d, 0.0), cap)
+                    continue
+                a = f_in[i, j, k]
+                if a >= big:
+                    values[i, j, k] = -cap
+                    continue
+                d = -(math.sqrt(a) * res - offset)
+                if sub_cell and a <= 1.0:
+                    # a surface cell: signed distance of its centre to its own surface point
+                    # along the mean direction towards its observed free neighbours
+                    gx = 0.0
+                    gy = 0.0
+                    gz = 0.0
+                    if i > 0 and known[i - 1, j, k] and not occ[i - 1, j, k]:
+                        gx -= 1.0
+                    if i < nx - 1 and known[i + 1, j, k] and not occ[i + 1, j, k]:
+                        gx += 1.0
+                    if j > 0 and known[i, j - 1, k] and not occ[i, j - 1, k]:
+                        gy -= 1.0
+                    if j < ny - 1 and known[i, j + 1, k] and not occ[i, j + 1, k]:
+                        gy += 1.0
+                    if k > 0 and known[i, j, k - 1] and not occ[i, j, k - 1]:
+                        gz -= 1.0
+                    if k < nz - 1 and known[i, j, k + 1] and not occ[i, j, k + 1]:
+                        gz += 1.0
+                    gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+                    if gn > 0.0:
+                        d = (
+                            (x - spt[i, j, k, 0]) * gx
+                            + (y - spt[i, j, k, 1]) * gy
+                            + (z - spt[i, j, k, 2]) * gz
+                        ) / gn
+                values[i, j, k] = max(d, -cap)
+
+
+@njit(cache=True, nogil=True)
+def esdf_kernel(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    lo: np.ndarray,
+    l_occ: float,
+    res: float,
+    offset: float,
+    sub_cell: bool,
+    cap: float,
+    f_out: np.ndarray,
+    feat: np.ndarray,
+    f_in: np.ndarray,
+    occ: np.ndarray,
+    known: np.ndarray,
+    spt: np.ndarray,
+    values: np.ndarray,
+) -> int:
+    """Signed distance of the ring-buffered window (see the module docstring) into values,
+    occ and known (window order); returns the number of occupied cells. f_out, feat, f_in and
+    spt (nx, ny, nz, 3) float32 are work buffers."""
+    n_occ = _column_pass(logodds, surf, lo, l_occ, res, f_out, feat, f_in, occ, known, spt)
+    big = 1e30
+    _envelope_pass(f_out, 1, big, feat, sub_cell)
+    _envelope_pass(f_out, 0, big, feat, sub_cell)
+    if n_occ > 0:
+        _envelope_pass(f_in, 1, 0.0, feat, False)
+        _envelope_pass(f_in, 0, 0.0, feat, False)
+    _combine(f_out, feat, f_in, occ, known, spt, res, offset, sub_cell, cap, values)
+    return n_occ
+
+
+class EsdfField(GridField):
+    """The planner's ``GridField`` of a mapped window, plus the occupancy it came from.
+
+    values: signed distance at cell centres (unknown cells: distance to the nearest known
+    obstacle, so the optimiser treats them as free); ``known``: observed cells;
+    ``occupied``: occupied cells; ``inflation_m``: the drone radius the map's own collision
+    check inflates obstacles by. ``collision_free`` refuses unknown space.
+    """
+
+    def __init__(
+        self,
+        values: np.ndarray,
+        origin: np.ndarray,
+        res: float,
+        known: np.ndarray,
+        occupied: np.ndarray,
+        inflation_m: float,
+        stamp_s: float = math.nan,
+    ) -> None:
+        super().__init__(values, origin, res, known)
+        occ = np.array(occupied, dtype=bool, copy=True)
+        occ.setflags(write=False)
+        self.occupied = occ
+        self.inflation_m = float(inflation_m)
+        self.stamp_s = float(stamp_s)
+
+    def collision_free(self, points: np.ndarray, clearance_m: float = 0.0) -> np.ndarray:
+        """Bool (K,): the point lies in observed space, at least ``inflation_m + clearance_m``
+        from every mapped obstacle. Unknown space and points outside the window are never
+        free."""
+        d, _ = self.distance(points)
+        return self.is_known(points) & (d >= self.inflation_m + clearance_m)
+
+    def inflated(self, margin_m: float) -> EsdfField:
+        """The field of the obstacles grown by ``margin_m``: every value minus the margin
+        (within +-``UNKNOWN_DISTANCE``); its own collision check adds the rest of
+        ``inflation_m``, if any."""
+        v = np.clip(self.values - margin_m, -UNKNOWN_DISTANCE, UNKNOWN_DISTANCE)
+        v.setflags(write=False)
+        known = self.known if self.known is not None else np.ones(self.shape, dtype=bool)
+        return EsdfField(
+            v,
+            self.origin,
+            self.res,
+            known,
+            self.occupied,
+            max(self.inflation_m - margin_m, 0.0),
+            self.stamp_s,
+        )
+
+    def inflated_occupied(self) -> np.ndarray:
+        """Bool grid: cells whose centre lies closer than ``inflation_m`` to an obstacle (the
+        occupied cells dilated by the drone radius)."""
+        return self.values < self.inflation_m
+
+
+class EsdfBuilder:
+    """Reusable buffers for ESDF refreshes of one ``OccupancyMap``."""
+
+    def __init__(self, surface_offset_m: float | None = None, sub_cell: bool = True) -> None:
+        self.surface_offset_m = surface_offset_m
+        self.sub_cell = sub_cell
+        self._shape: tuple[int, int, int] | None = None
+        self._bufs: tuple[np.ndarray, ...] = ()
+
+    def build(self, omap: OccupancyMap, stamp_s: float = math.nan) -> EsdfField:
+        """The signed distance field of the map's current window."""
+        shape = omap.shape
+        if self._shape != shape:
+            self._bufs = (
+                np.empty(shape, dtype=np.float32),
+                np.empty(shape, dtype=np.int32),
+                np.empty(shape, dtype=np.float32),
+                np.empty(shape, dtype=np.bool_),
+                np.empty(shape, dtype=np.bool_),
+                np.empty((*shape, 3), dtype=np.float32),
+            )
+            self._shape = shape
+        f_out, feat, f_in, occ, known, spt = self._bufs
+        values = np.empty(shape, dtype=np.float64)
+        res = omap.res
+        offset = 0.5 * res if self.surface_offset_m is None else self.surface_offset_m
+        esdf_kernel(
+            omap.logodds,
+            omap.surf,
+            omap.lo,
+            omap.params.l_occ,
+            res,
+            offset,
+            self.sub_cell,
+            UNKNOWN_DISTANCE,
+            f_out,
+            feat,
+            f_in,
+            occ,
+            known,
+            spt,
+            values,
+        )
+        values.setflags(write=False)
+        return EsdfField(values, omap.origin, res, known, occ, omap.params.inflation_m, stamp_s)

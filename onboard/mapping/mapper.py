@@ -1,0 +1,90 @@
+"""The on-board mapping pipeline of one drone: depth frames in, a signed distance field out.
+
+``LocalMapper`` validates each frame (bad frames are refused or masked, never crash the map,
+never mark unseen space free), moves the rolling occupancy window with the camera, ray casts the
+frame, and on request refreshes the ESDF (``EsdfField``, a ``GridField``): ``field()`` the
+distance to the mapped surfaces, ``planning_field()`` the same with the obstacles inflated by
+the drone's radius, which is what a planner should read.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from onboard.mapping.camera import DepthFrame, FrameRejected, check_frame
+from onboard.mapping.esdf import EsdfBuilder, EsdfField
+from onboard.mapping.occupancy import IngestResult, OccupancyMap, OccupancyParams
+
+
+class LocalMapper:
+    """Occupancy window + ESDF of one drone."""
+
+    def __init__(
+        self,
+        params: OccupancyParams | None = None,
+        center: np.ndarray | None = None,
+        surface_offset_m: float | None = None,
+    ) -> None:
+        self.params = params if params is not None else OccupancyParams()
+        self.map = OccupancyMap(self.params, center)
+        self._builder = EsdfBuilder(surface_offset_m)
+        self._field: EsdfField | None = None
+        self._planning: EsdfField | None = None
+        self._dirty = True
+        self.last_stamp_s = -math.inf
+        self.rejected = 0
+
+    def recenter(self, center: np.ndarray) -> None:
+        """Move the window to ``center`` (usually the drone's position)."""
+        c = np.asarray(center, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(c)):
+            return
+        if self.map.recenter(c):
+            self._dirty = True
+
+    def ingest(
+        self, frame: DepthFrame, step: int | None = None, recenter: bool = True
+    ) -> IngestResult:
+        """Validate a frame, centre the window on its camera (unless ``recenter`` is False;
+        the camera must then lie inside the window) and ray cast it, every ``step``-th pixel
+        (default ``params.skip_pixel``).
+
+        Refused (``accepted`` False, map unchanged): wrong shape or dtype, non-finite time or
+        pose, a time older than the last accepted frame. Masked (pixels ignored): 0, NaN, inf,
+        negative or below-minimum depths."""
+        try:
+            depth = check_frame(frame)
+        except FrameRejected as e:
+            self.rejected += 1
+            return IngestResult(False, str(e))
+        if frame.stamp_s < self.last_stamp_s:
+            self.rejected += 1
+            return IngestResult(False, "frame older than the last accepted one")
+        if recenter:
+            self.recenter(frame.position)
+        res = self.map.ingest_depth(depth, frame.intrinsics, frame.position, frame.rotation, step)
+        if res.accepted:
+            self.last_stamp_s = float(frame.stamp_s)
+            self._dirty = True
+        else:
+            self.rejected += 1
+        return res
+
+    def field(self) -> EsdfField:
+        """The ESDF of the current window (recomputed only if the map changed since)."""
+        if self._dirty or self._field is None:
+            self._field = self._builder.build(self.map, self.last_stamp_s)
+            self._planning = None
+            self._dirty = False
+        return self._field
+
+    def planning_field(self) -> EsdfField:
+        """The field to plan on: the ESDF of the obstacles inflated by ``params.inflation_m``
+        (the drone's radius; it also covers the map's error, about 0.09 m at the 95th
+        percentile), so a planner tuned on exact distances keeps its margins."""
+        f = self.field()
+        if self._planning is None:
+            self._planning = f.inflated(self.params.inflation_m)
+        return self._planning

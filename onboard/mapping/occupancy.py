@@ -1,0 +1,691 @@
+"""Probabilistic occupancy over a local window that rolls with the drone (a ring buffer).
+
+Cells are cubes of ``resolution_m``; global cell (i, j, k) spans ``[i, i + 1) * res`` etc. The
+window holds the cells ``lo + [0, n)`` per axis; cell g lives in storage slot ``g mod n``, so
+moving the window only forgets the slabs that leave it (they become unknown) and keeps the rest
+where it is.
+
+Each depth frame is ray cast from the camera centre (every ``skip_pixel``-th row and column):
+the cell of a measured surface point gets a hit, the cells the ray crossed before it a miss.
+Every cell touched by a frame gets exactly one log-odds update for that frame (a hit wins over
+misses), clamped to [l_min, l_max]; a cell is occupied at l >= l_occ. One ray is cast per end
+cell and frame (rays that end in the same cell converge on the camera through the same cells):
+on medium-forest frames this ran 4x faster than casting all 76 800 rays of a 640 x 480 frame at
+skip 2 and left 0.7 % of their free cells unknown. (Also stopping a ray at the first cell
+another ray crossed, as some implementations do, saved a further 20 % of the time but left
+about 10 % unknown, so it is not done.)
+
+A hit also adds the measured point (relative to its cell's centre) to the cell's surface
+accumulator; the ESDF uses the mean as the sub-cell position of the surface. The accumulator is
+halved when its count reaches 64 (it follows a moving surface) and cleared when the cell turns
+more likely free than occupied.
+
+What is never ray cast stays unknown: pixels without a measurement (0, NaN, inf, below the
+minimum depth) mark nothing, so a bad or partial frame can only leave space unknown.
+
+Parameters (``OccupancyParams``) default to the public reference implementation's: 0.1 m cells,
+p_hit 0.65, p_miss 0.35, p_min 0.12, p_max 0.90, p_occ 0.80 (log-odds 0.619, -0.619, -1.992,
+2.197, 1.386), skip 2 pixels, inflation 0.1 m, depth 0.2-5 m; its rays were cut at 4.5 m, ours
+at 5 m (the sensing horizon), and its local update range was 5.5, 5.5, 4.5 m where ours is a
+window of 11 x 11 x 4 m, as the issue asks, centred on the drone in x and y and in z held from
+0.5 m below the ground up while the drone flies below 2.5 m (``floor_z_m``). A cell
+starts unknown; its first update starts from probability 0.5 (log-odds 0), so a surface is
+occupied after 3 hits (three frames, 0.1 s at 30 Hz).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from onboard.mapping.camera import CameraIntrinsics
+
+UNKNOWN_LOGODDS = np.float32(-100.0)
+"""Log-odds value that marks a never-observed cell (below any clamped value)."""
+_UNKNOWN_BELOW = -50.0
+_MAX_MARK = (2**31 - 1) // 8 - 1
+_BIT_FREE = 1
+_BIT_HIT = 2
+_BIT_END = 4
+_SURF_MAX_COUNT = 64.0
+
+
+def logit(p: float) -> float:
+    """log(p / (1 - p))."""
+    return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True)
+class OccupancyParams:
+    """Occupancy grid parameters (defaults: the reference's, see the module docstring)."""
+
+    resolution_m: float = 0.1
+    size_m: tuple[float, float, float] = (11.0, 11.0, 4.0)
+    """Window extent (x, y, z): centred on the drone in x and y; in z see ``floor_z_m``."""
+    floor_z_m: float | None = -0.5
+    """Lowest z the window keeps while the drone flies low: the window's bottom is
+    ``max(floor_z_m, z + headroom_m - size_z)``, so it holds the ground and everything on it
+    until the drone climbs within ``headroom_m`` of its top, then rises with the drone (a drone
+    that climbs and comes down again does not forget the trunks below it). None: centred on the
+    drone in z too."""
+    headroom_m: float = 1.0
+    """Space kept above the drone (with ``floor_z_m``)."""
+    p_hit: float = 0.65
+    p_miss: float = 0.35
+    p_min: float = 0.12
+    p_max: float = 0.90
+    p_occ: float = 0.80
+    skip_pixel: int = 2
+    """Use every skip_pixel-th row and column of a depth image."""
+    max_ray_m: float = 5.0
+    """Rays are cut at this length; a cut ray marks only free space (no hit)."""
+    inflation_m: float = 0.1
+    """Obstacles are inflated by this (the drone's radius) for the map's own collision check."""
+
+    def __post_init__(self) -> None:
+        if not self.resolution_m > 0.0:
+            raise ValueError("resolution_m must be > 0")
+        if len(self.size_m) != 3 or min(self.size_m) < 2 * self.resolution_m:
+            raise ValueError("size_m must be 3 extents of at least two cells")
+        if not 0.0 < self.p_min < self.p_miss < 0.5 < self.p_hit < 1.0:
+            raise ValueError("need 0 < p_min < p_miss < 0.5 < p_hit < 1")
+        if not self.p_min < self.p_occ < self.p_max < 1.0:
+            raise ValueError("need p_min < p_occ < p_max < 1")
+        if self.skip_pixel < 1:
+            raise ValueError("skip_pixel must be >= 1")
+        if not self.max_ray_m > 0.0 or self.inflation_m < 0.0:
+            raise ValueError("max_ray_m must be > 0 and inflation_m >= 0")
+        if self.floor_z_m is not None and not 0.0 < self.headroom_m < self.size_m[2]:
+            raise ValueError("headroom_m must lie in (0, size_z)")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Cells per axis."""
+        n = [max(2, int(round(s / self.resolution_m))) for s in self.size_m]
+        return n[0], n[1], n[2]
+
+    @property
+    def l_hit(self) -> float:
+        return logit(self.p_hit)
+
+    @property
+    def l_miss(self) -> float:
+        return logit(self.p_miss)
+
+    @property
+    def l_min(self) -> float:
+        return logit(self.p_min)
+
+    @property
+    def l_max(self) -> float:
+        return logit(self.p_max)
+
+    @property
+    def l_occ(self) -> float:
+        return logit(self.p_occ)
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """What one frame did to the map. ``accepted`` False: nothing was changed (``reason``)."""
+
+    accepted: bool
+    reason: str = ""
+    rays: int = 0
+    """Pixels ray cast (valid measurements, after skipping)."""
+    masked: int = 0
+    """Pixels on the skip grid without a valid measurement."""
+    cells_updated: int = 0
+
+
+@njit(cache=True, nogil=True)
+def _wrap(g: int, n: int) -> int:
+    s = g % n
+    return s + n if s < 0 else s
+
+
+@njit(cache=True, nogil=True)
+def _touch(
+    touch: np.ndarray, touched: np.ndarray, n_touched: int, idx: int, mark: int, bits: int
+) -> tuple[int, int]:
+    """Add bits to cell idx's mark of this frame; returns (its previous bits, n_touched)."""
+    m = touch[idx]
+    if (m >> 3) != mark:
+        touched[n_touched] = idx
+        n_touched += 1
+        touch[idx] = (mark << 3) | bits
+        return 0, n_touched
+    touch[idx] = m | bits
+    return m & 7, n_touched
+
+
+@njit(cache=True, nogil=True)
+def _cast_ray(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    touch: np.ndarray,
+    touched: np.ndarray,
+    n_touched: int,
+    lo: np.ndarray,
+    res: float,
+    o: np.ndarray,
+    px: float,
+    py: float,
+    pz: float,
+    hit: bool,
+    mark: int,
+) -> int:
+    """One ray from camera centre o to end point p (both inside the window); returns
+    n_touched. The end cell gets a hit (or a miss when ``hit`` is False), the cells between it
+    and the camera a miss; nothing more when a ray of this frame already ended in the same
+    cell. A hit adds the end point, relative to its cell's
+    centre, to the cell's surface accumulator surf (N, 4): sum of offsets and count."""
+    nx = logodds.shape[0]
+    ny = logodds.shape[1]
+    nz = logodds.shape[2]
+    gx = int(math.floor(px / res))
+    gy = int(math.floor(py / res))
+    gz = int(math.floor(pz / res))
+    gx = min(max(gx, lo[0]), lo[0] + nx - 1)
+    gy = min(max(gy, lo[1]), lo[1] + ny - 1)
+    gz = min(max(gz, lo[2]), lo[2] + nz - 1)
+    sx = _wrap(gx, nx)
+    sy = _wrap(gy, ny)
+    sz = _wrap(gz, nz)
+    idx = (sx * ny + sy) * nz + sz
+    if hit:
+        if surf[idx, 3] >= _SURF_MAX_COUNT:  # forget slowly: keep following the surface
+            for a in range(4):
+                surf[idx, a] *= 0.5
+        surf[idx, 0] += px - (gx + 0.5) * res
+        surf[idx, 1] += py - (gy + 0.5) * res
+        surf[idx, 2] += pz - (gz + 0.5) * res
+        surf[idx, 3] += 1.0
+    bits = _BIT_END | (_BIT_HIT if hit else _BIT_FREE)
+    prev, n_touched = _touch(touch, touched, n_touched, idx, mark, bits)
+    if prev & _BIT_END:
+        # a ray of this frame already ended in this cell: from here to the camera it crosses
+        # the same cells (up to the neighbours of this one, which other rays end in)
+        return n_touched
+    ox_g = int(math.floor(o[0] / res))
+    oy_g = int(math.floor(o[1] / res))
+    oz_g = int(math.floor(o[2] / res))
+    ex = o[0] - px
+    ey = o[1] - py
+    ez = o[2] - pz
+    # Amanatides-Woo traversal in the ray parameter s in [0, 1] (p at 0, o at 1)
+    inf = math.inf
+    if ex > 0.0:
+        stx = 1
+        tmx = ((gx + 1) * res - px) / ex
+        tdx = res / ex
+    elif ex < 0.0:
+        stx = -1
+        tmx = (gx * res - px) / ex
+        tdx = -res / ex
+    else:
+        stx = 0
+        tmx = inf
+        tdx = inf
+    if ey > 0.0:
+        sty = 1
+        tmy = ((gy + 1) * res - py) / ey
+        tdy = res / ey
+    elif ey < 0.0:
+        sty = -1
+        tmy = (gy * res - py) / ey
+        tdy = -res / ey
+    else:
+        sty = 0
+        tmy = inf
+        tdy = inf
+    if ez > 0.0:
+        stz = 1
+        tmz = ((gz + 1) * res - pz) / ez
+        tdz = res / ez
+    elif ez < 0.0:
+        stz = -1
+        tmz = (gz * res - pz) / ez
+        tdz = -res / ez
+    else:
+        stz = 0
+        tmz = inf
+        tdz = inf
+    max_steps = nx + ny + nz + 3
+    for _ in range(max_steps):
+        if gx == ox_g and gy == oy_g and gz == oz_g:
+            break
+        if tmx <= tmy and tmx <= tmz:
+            if tmx > 1.0:
+                break
+            gx += stx
+            sx += stx
+            if sx == nx:
+                sx = 0
+            elif sx < 0:
+                sx = nx - 1
+            tmx += tdx
+        elif tmy <= tmz:
+            if tmy > 1.0:
+                break
+            gy += sty
+            sy += sty
+            if sy == ny:
+                sy = 0
+            elif sy < 0:
+                sy = ny - 1
+            tmy += tdy
+        else:
+            if tmz > 1.0:
+                break
+            gz += stz
+            sz += stz
+            if sz == nz:
+                sz = 0
+            elif sz < 0:
+                sz = nz - 1
+            tmz += tdz
+        if not (lo[0] <= gx < lo[0] + nx and lo[1] <= gy < lo[1] + ny and lo[2] <= gz < lo[2] + nz):
+            break
+        idx = (sx * ny + sy) * nz + sz
+        prev, n_touched = _touch(touch, touched, n_touched, idx, mark, _BIT_FREE)
+    return n_touched
+
+
+@njit(cache=True, nogil=True)
+def _clip_to_window(
+    o: np.ndarray, dx: float, dy: float, dz: float, box_lo: np.ndarray, box_hi: np.ndarray
+) -> float:
+    """Largest s in [0, 1] with o + s d inside the box (o is inside)."""
+    s = 1.0
+    d3 = (dx, dy, dz)
+    for a in range(3):
+        if d3[a] > 0.0:
+            s = min(s, (box_hi[a] - o[a]) / d3[a])
+        elif d3[a] < 0.0:
+            s = min(s, (box_lo[a] - o[a]) / d3[a])
+    return max(s, 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _apply_updates(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    touch: np.ndarray,
+    touched: np.ndarray,
+    n_touched: int,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+) -> None:
+    flat = logodds.reshape(-1)
+    for i in range(n_touched):
+        idx = touched[i]
+        m = touch[idx]
+        v = flat[idx]
+        if v < _UNKNOWN_BELOW:
+            v = 0.0
+        v += l_hit if (m & _BIT_HIT) else l_miss
+        v = min(max(v, l_min), l_max)
+        flat[idx] = v
+        if v < 0.0:  # more likely free than not: drop the surface estimate
+            for a in range(4):
+                surf[idx, a] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def ingest_depth_kernel(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    touch: np.ndarray,
+    touched: np.ndarray,
+    lo: np.ndarray,
+    res: float,
+    depth: np.ndarray,
+    step: int,
+    xn: np.ndarray,
+    yn: np.ndarray,
+    R: np.ndarray,
+    o: np.ndarray,
+    min_depth: float,
+    max_depth: float,
+    max_ray: float,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+    mark: int,
+) -> tuple[int, int, int]:
+    """Ray cast one depth image (height, width) float32 into the window; returns (rays,
+    masked pixels, cells updated). Pixels with depth not in [min_depth, inf) are skipped;
+    depths above max_depth and rays longer than max_ray mark free space only."""
+    nx = logodds.shape[0]
+    ny = logodds.shape[1]
+    nz = logodds.shape[2]
+    box_lo = np.empty(3)
+    box_hi = np.empty(3)
+    box_lo[0] = lo[0] * res
+    box_lo[1] = lo[1] * res
+    box_lo[2] = lo[2] * res
+    box_hi[0] = (lo[0] + nx) * res
+    box_hi[1] = (lo[1] + ny) * res
+    box_hi[2] = (lo[2] + nz) * res
+    eps = 1e-6 * res
+    n_touched = 0
+    rays = 0
+    masked = 0
+    for v in range(0, depth.shape[0], step):
+        for u in range(0, depth.shape[1], step):
+            z = depth[v, u]
+            if not (z >= min_depth) or z > 1e30:
+                masked += 1
+                continue
+            rays += 1
+            xc = xn[u] * z
+            yc = yn[v] * z
+            dx = R[0, 0] * xc + R[0, 1] * yc + R[0, 2] * z
+            dy = R[1, 0] * xc + R[1, 1] * yc + R[1, 2] * z
+            dz = R[2, 0] * xc + R[2, 1] * yc + R[2, 2] * z
+            length = math.sqrt(dx * dx + dy * dy + dz * dz)
+            hit = z <= max_depth
+            s = 1.0
+            if length > max_ray:
+                s = max_ray / length
+                hit = False
+            s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
+            if s_box < s:
+                s = max(s_box - eps / length, 0.0)
+                hit = False
+            n_touched = _cast_ray(
+                logodds,
+                surf,
+                touch,
+                touched,
+                n_touched,
+                lo,
+                res,
+                o,
+                o[0] + s * dx,
+                o[1] + s * dy,
+                o[2] + s * dz,
+                hit,
+                mark,
+            )
+    _apply_updates(logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max)
+    return rays, masked, n_touched
+
+
+@njit(cache=True, nogil=True)
+def ingest_points_kernel(
+    logodds: np.ndarray,
+    surf: np.ndarray,
+    touch: np.ndarray,
+    touched: np.ndarray,
+    lo: np.ndarray,
+    res: float,
+    o: np.ndarray,
+    points: np.ndarray,
+    max_ray: float,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+    mark: int,
+) -> tuple[int, int, int]:
+    """Ray cast measured surface points (K, 3) seen from o; returns (rays, skipped, cells)."""
+    nx = logodds.shape[0]
+    ny = logodds.shape[1]
+    nz = logodds.shape[2]
+    box_lo = np.empty(3)
+    box_hi = np.empty(3)
+    box_lo[0] = lo[0] * res
+    box_lo[1] = lo[1] * res
+    box_lo[2] = lo[2] * res
+    box_hi[0] = (lo[0] + nx) * res
+    box_hi[1] = (lo[1] + ny) * res
+    box_hi[2] = (lo[2] + nz) * res
+    eps = 1e-6 * res
+    n_touched = 0
+    rays = 0
+    skipped = 0
+    for i in range(points.shape[0]):
+        dx = points[i, 0] - o[0]
+        dy = points[i, 1] - o[1]
+        dz = points[i, 2] - o[2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not (length > 0.0 and length < 1e30):
+            skipped += 1
+            continue
+        rays += 1
+        hit = True
+        s = 1.0
+        if length > max_ray:
+            s = max_ray / length
+            hit = False
+        s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
+        if s_box < s:
+            s = max(s_box - eps / length, 0.0)
+            hit = False
+        n_touched = _cast_ray(
+            logodds,
+            surf,
+            touch,
+            touched,
+            n_touched,
+            lo,
+            res,
+            o,
+            o[0] + s * dx,
+            o[1] + s * dy,
+            o[2] + s * dz,
+            hit,
+            mark,
+        )
+    _apply_updates(logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max)
+    return rays, skipped, n_touched
+
+
+class OccupancyMap:
+    """Log-odds occupancy over a rolling window (see the module docstring)."""
+
+    def __init__(
+        self, params: OccupancyParams | None = None, center: np.ndarray | None = None
+    ) -> None:
+        self.params = params if params is not None else OccupancyParams()
+        self.shape = self.params.shape
+        self.res = self.params.resolution_m
+        self.logodds = np.full(self.shape, UNKNOWN_LOGODDS, dtype=np.float32)
+        # per cell (flat storage order): sum of hit offsets from the cell centre (3) and count
+        self.surf = np.zeros((int(np.prod(self.shape)), 4), dtype=np.float32)
+        self._touch = np.zeros(int(np.prod(self.shape)), dtype=np.int32)  # flat
+        self._touched = np.empty(int(np.prod(self.shape)), dtype=np.int64)
+        self._mark = 0
+        self.frames = 0
+        c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
+        self.lo = self._lo_for(c)
+        p = self.params
+        self._l = (p.l_hit, p.l_miss, p.l_min, p.l_max)
+
+    # --- geometry ---------------------------------------------------------------------------
+
+    def _lo_for(self, center: np.ndarray) -> np.ndarray:
+        c = np.asarray(center, dtype=np.float64)
+        g = np.floor(c / self.res).astype(np.int64)
+        lo = g - np.array(self.shape, dtype=np.int64) // 2
+        p = self.params
+        if p.floor_z_m is not None:
+            bottom = max(p.floor_z_m, float(c[2]) + p.headroom_m - self.shape[2] * self.res)
+            lo[2] = int(math.floor(bottom / self.res + 1e-9))
+        return lo
+
+    @property
+    def origin(self) -> np.ndarray:
+        """Lower corner of the window (metres)."""
+        return self.lo.astype(np.float64) * self.res
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper corner of the window (metres)."""
+        return (self.lo + np.array(self.shape)).astype(np.float64) * self.res
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Bool (K,): inside the window box."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return np.all((p >= self.origin) & (p < self.upper), axis=1)
+
+    def storage_index(self, g: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Storage slots of global cells g (K, 3) (they must be inside the window)."""
+        g = np.asarray(g, dtype=np.int64).reshape(-1, 3)
+        n = np.array(self.shape, dtype=np.int64)
+        s = np.mod(g, n)
+        return s[:, 0], s[:, 1], s[:, 2]
+
+    def recenter(self, center: np.ndarray) -> int:
+        """Move the window to be centred on ``center``; cells that leave it are forgotten.
+        Returns the number of planes (x, y and z slabs one cell thick) cleared."""
+        new = self._lo_for(center)
+        cleared = 0
+        for a in range(3):
+            n = self.shape[a]
+            shift = int(new[a] - self.lo[a])
+            if shift == 0:
+                continue
+            if abs(shift) >= n:
+                gone = np.arange(n)
+            elif shift > 0:
+                gone = np.mod(np.arange(self.lo[a], self.lo[a] + shift), n)
+            else:
+                gone = np.mod(np.arange(new[a] + n, self.lo[a] + n), n)
+            idx: list[slice | np.ndarray] = [slice(None)] * 3
+            idx[a] = gone
+            self.logodds[tuple(idx)] = UNKNOWN_LOGODDS
+            self.surf.reshape(*self.shape, 4)[tuple(idx)] = 0.0
+            cleared += int(gone.shape[0])
+        self.lo = new
+        return cleared
+
+    # --- updates ----------------------------------------------------------------------------
+
+    def _next_mark(self) -> int:
+        self._mark += 1
+        if self._mark > _MAX_MARK:
+            self._touch[...] = 0
+            self._mark = 1
+        return self._mark
+
+    def ingest_depth(
+        self,
+        depth: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        position: np.ndarray,
+        rotation: np.ndarray,
+        step: int | None = None,
+    ) -> IngestResult:
+        """Ray cast a clean depth image (float32, invalid pixels 0) taken from the pose.
+
+        The camera centre must be inside the window (``recenter`` first); otherwise the frame
+        is refused. See ``LocalMapper.ingest`` for frame validation."""
+        o = np.ascontiguousarray(position, dtype=np.float64)
+        if not bool(self.contains(o[None, :])[0]):
+            return IngestResult(False, "camera outside the map window")
+        d = np.ascontiguousarray(depth, dtype=np.float32)
+        xn, yn = intrinsics.normalized_coords()
+        k = self.params.skip_pixel if step is None else int(step)
+        rays, masked, cells = ingest_depth_kernel(
+            self.logodds,
+            self.surf,
+            self._touch,
+            self._touched,
+            self.lo,
+            self.res,
+            d,
+            k,
+            xn,
+            yn,
+            np.ascontiguousarray(rotation, dtype=np.float64),
+            o,
+            intrinsics.min_depth_m,
+            intrinsics.max_depth_m,
+            self.params.max_ray_m,
+            *self._l,
+            self._next_mark(),
+        )
+        self.frames += 1
+        return IngestResult(True, "", int(rays), int(masked), int(cells))
+
+    def ingest_points(self, origin: np.ndarray, points: np.ndarray) -> IngestResult:
+        """Ray cast measured surface points (K, 3) (world frame) seen from ``origin``: e.g. a
+        back-projected, downsampled cloud. Non-finite points are skipped."""
+        o = np.ascontiguousarray(origin, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(o)):
+            return IngestResult(False, "sensor origin is not finite")
+        if not bool(self.contains(o[None, :])[0]):
+            return IngestResult(False, "sensor origin outside the map window")
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            return IngestResult(False, f"points must have shape (K, 3), got {pts.shape}")
+        rays, skipped, cells = ingest_points_kernel(
+            self.logodds,
+            self.surf,
+            self._touch,
+            self._touched,
+            self.lo,
+            self.res,
+            o,
+            pts,
+            self.params.max_ray_m,
+            *self._l,
+            self._next_mark(),
+        )
+        self.frames += 1
+        return IngestResult(True, "", int(rays), int(skipped), int(cells))
+
+    # --- reading ----------------------------------------------------------------------------
+
+    def window_logodds(self) -> np.ndarray:
+        """Log-odds in window order (index 0 = cell ``lo``), a copy."""
+        out = self.logodds
+        for a in range(3):
+            out = np.roll(out, -int(self.lo[a] % self.shape[a]), axis=a)
+        return np.array(out, copy=True)
+
+    def known(self) -> np.ndarray:
+        """Bool grid in window order: observed at least once."""
+        return self.window_logodds() > _UNKNOWN_BELOW
+
+    def occupied(self) -> np.ndarray:
+        """Bool grid in window order: log-odds >= l_occ."""
+        return self.window_logodds() >= self.params.l_occ
+
+    def cell_centres(self) -> np.ndarray:
+        """Centres (nx, ny, nz, 3) of the window's cells in window order."""
+        axes = [(self.lo[a] + np.arange(self.shape[a]) + 0.5) * self.res for a in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    def surface_points(self) -> np.ndarray:
+        """Occupied cells as points (K, 3): the mean measured surface point of each (its centre
+        when it has none)."""
+        n = np.array(self.shape, dtype=np.int64)
+        s = np.argwhere(self.logodds >= self.params.l_occ)
+        g = self.lo + np.mod(s - self.lo, n)  # global index of each storage slot in the window
+        flat = np.ravel_multi_index((s[:, 0], s[:, 1], s[:, 2]), self.shape)
+        acc = self.surf[flat].astype(np.float64)
+        cnt = acc[:, 3:4]
+        off = np.divide(acc[:, :3], cnt, out=np.zeros_like(acc[:, :3]), where=cnt > 0)
+        return (g + 0.5) * self.res + off
+
+    def state_at(self, points: np.ndarray) -> np.ndarray:
+        """Per point (K,): -1 unknown or outside the window, 0 free, 1 occupied."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.full(p.shape[0], -1, dtype=np.int8)
+        inside = self.contains(p)
+        g = np.floor(p[inside] / self.res).astype(np.int64)
+        v = self.logodds[self.storage_index(g)]
+        st = np.where(v >= self.params.l_occ, 1, 0).astype(np.int8)
+        st[v < _UNKNOWN_BELOW] = -1
+        out[inside] = st
+        return out

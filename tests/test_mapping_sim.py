@@ -1,0 +1,103 @@
+"""Perception in the fast-time simulation, the mapping benchmark command and its CLI options."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gcs.bench_mapping import bench_mapping, perception_options, perception_overrides
+from gcs.fastsim import SimConfig, run_sim
+from onboard.config import load_formation, load_world_spec
+from onboard.sensors.simulated import SimulatedPerception, heading_yaw
+from onboard.world import World
+
+
+def test_default_perception_is_ground_truth() -> None:
+    cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
+    assert cfg.perception == "ground-truth"
+    for bad in ({"perception": "lidar"}, {"camera_rate_hz": 0.0}, {"camera_skip_pixel": 0}):
+        try:
+            dataclasses.replace(cfg, **bad)
+        except ValueError:
+            continue
+        raise AssertionError(f"{bad} accepted")
+
+
+def test_small_flight_on_mapped_fields() -> None:
+    cfg = SimConfig(
+        load_formation("triangle-3"),
+        load_world_spec("forest-small"),
+        seed=1,
+        v_max_m_s=1.0,
+        perception="mapped",
+        camera_rate_hz=10.0,
+        camera_skip_pixel=4,
+    )
+    r = run_sim(cfg)
+    assert r.success and r.collisions == 0
+    assert r.min_obstacle_clearance_m > 0.2
+    assert r.to_json()["config"]["perception"] == "mapped"
+
+
+def test_drone_camera_faces_where_it_flies() -> None:
+    p = np.zeros(3)
+    assert heading_yaw(np.array([0.0, 0.5, 0.0]), p, None, 0.0) == np.pi / 2
+    assert heading_yaw(np.zeros(3), p, np.array([-3.0, 0.0, 0.0]), 0.0) == np.pi
+    assert heading_yaw(np.zeros(3), p, np.array([0.1, 0.0, 0.0]), 0.7) == 0.7
+    w = World(np.array([[3.0, 0.0, 0.3, 0.0, 2.5]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    eyes = SimulatedPerception(w, skip_pixel=4)
+    for k in range(3):
+        eyes.observe(k / 30, np.array([0.0, 0.0, 1.0]), np.array([0.5, 0.0, 0.0]), None)
+    probe = np.array([[3.0 - 0.3 - 0.5, 0.0, 1.0]])
+    d, _ = eyes.mapper.field().distance(probe)
+    assert abs(d[0] - 0.5) < 0.1 and eyes.frames == 3
+    # the planner reads the obstacles grown by the drone's radius (0.1 m)
+    d_plan, _ = eyes.field().distance(probe)
+    assert d_plan[0] == pytest.approx(d[0] - 0.1)
+
+
+def test_bench_mapping_command_writes_the_json_keys(tmp_path: Path) -> None:
+    out = tmp_path / "m.json"
+    ply = tmp_path / "m.ply"
+    res = CliRunner().invoke(
+        bench_mapping,
+        ["--world", "forest-small", "--max-frames", "60", "--json", str(out), "--ply", str(ply)],
+    )
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    for key in ("ingest_ms", "esdf_ms", "render_ms"):
+        assert data[key]["median"] > 0.0
+    assert 0.0 <= data["esdf_error_m"]["p95"] < 1.0 and data["esdf_error_m"]["n"] > 1000
+    assert set(data["targets"]) == {"ingest_ms.median", "esdf_ms.median", "esdf_error_m.p95"}
+    assert data["scenario"]["frames"] == 60 and ply.stat().st_size > 0
+    assert "ESDF error" in res.output
+
+
+def test_perception_cli_options() -> None:
+    seen: dict[str, object] = {}
+
+    @click.command()
+    @perception_options
+    def cmd(perception: str, camera_rate_hz: float, camera_skip_pixel: int) -> None:
+        seen.update(perception_overrides(perception, camera_rate_hz, camera_skip_pixel))
+
+    r = CliRunner().invoke(cmd, [])
+    assert r.exit_code == 0 and seen == {
+        "perception": "ground-truth",
+        "camera_rate_hz": 30.0,
+        "camera_skip_pixel": 2,
+    }
+    r = CliRunner().invoke(
+        cmd, ["--perception", "mapped", "--camera-rate", "10", "--skip-pixel", "4"]
+    )
+    assert r.exit_code == 0 and seen["perception"] == "mapped" and seen["camera_skip_pixel"] == 4
+    cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
+    assert dataclasses.replace(cfg, **seen).camera_rate_hz == 10.0
+    assert CliRunner().invoke(cmd, ["--perception", "sonar"]).exit_code != 0
+    assert CliRunner().invoke(cmd, ["--skip-pixel", "0"]).exit_code != 0
