@@ -25,8 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gcs.fastsim import SimConfig, SimResult, default_time_limit_s
-from gcs.metrics import summary
+from gcs.fastsim import SimConfig, SimResult, default_time_limit_s, result_from_monitor
 from gcs.monitor import FlightMonitor, MonitorConfig
 from onboard.world import World
 
@@ -177,42 +176,20 @@ def run_virtual_structure(
         step_ms.append((time.perf_counter() - c0) * 1e3)
         if progress is not None and k % progress_every == 0:
             progress(t, t_limit)
-    arrived = mon.arrived(pos, vel)
-    tracks = mon.tracks()
-    cx = tracks.pos[:, :, 0].mean(axis=1) if tracks.pos.shape[0] else np.zeros(0)
-    lo, hi = cfg.world.cluttered_x
-    inside = (cx >= lo) & (cx <= hi)
-    e = tracks.e_sim
-    return SimResult(
-        success=bool(np.all(arrived) and mon.collisions == 0),
-        arrived=arrived,
-        collisions=mon.collisions,
-        obstacle_collisions=mon.obstacle_events,
-        drone_collisions=mon.drone_events,
-        events=tuple(mon.events),
-        min_obstacle_clearance_m=mon.min_clearance_m,
-        min_drone_distance_m=mon.min_pair_m,
-        max_speed_m_s=mon.max_speed_m_s,
-        e_sim_mean=float(np.mean(e)) if e.size else math.nan,
-        e_sim_max=float(np.max(e)) if e.size else math.nan,
-        e_sim_mean_cluttered=float(np.mean(e[inside])) if np.any(inside) else math.nan,
-        e_dist_mean=float(np.mean(tracks.e_dist)) if tracks.e_dist.size else math.nan,
-        e_dist_max=float(np.max(tracks.e_dist)) if tracks.e_dist.size else math.nan,
-        flight_time_s=t,
-        timed_out=timed_out,
-        replan_ms=summary(step_ms),
-        iterations=summary([]),
-        evaluations=summary([]),
+    return result_from_monitor(
+        cfg,
+        mon,
+        mon.arrived(pos, vel),
+        world,
+        starts,
+        goals,
+        t,
+        timed_out,
+        replan_ms=step_ms,
+        iterations=[],
+        evaluations=[],
         status_counts={},
-        sim_wall_s=time.perf_counter() - wall0,
+        wall_s=time.perf_counter() - wall0,
         warmup_s=0.0,
-        tracks=tracks,
-        world=world,
-        starts=starts,
-        goals=goals,
-        formation_name=cfg.formation.name,
-        world_name=cfg.world.name,
-        seed=cfg.seed,
-        cluttered_x=(float(lo), float(hi)),
         config={"method": "virtual-structure", "params": dataclasses.asdict(vp)},
     )

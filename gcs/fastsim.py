@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -415,36 +415,72 @@ def run_sim(
 
     if progress is not None:
         progress(t, t_limit)
-    arrived = mon.arrived(pos, velocities())
+    return result_from_monitor(
+        cfg,
+        mon,
+        mon.arrived(pos, velocities()),
+        world,
+        starts,
+        goals,
+        t,
+        timed_out,
+        replan_ms=replan_ms,
+        iterations=iterations,
+        evaluations=evaluations,
+        status_counts=status_counts,
+        wall_s=time.perf_counter() - wall0,
+        warmup_s=warmup_s,
+        config=_config_summary(cfg, params),
+    )
+
+
+def result_from_monitor(
+    cfg: SimConfig,
+    mon: FlightMonitor,
+    arrived: np.ndarray,
+    world: World,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    t: float,
+    timed_out: bool,
+    *,
+    replan_ms: Sequence[float],
+    iterations: Sequence[float],
+    evaluations: Sequence[float],
+    status_counts: dict[str, int],
+    wall_s: float,
+    warmup_s: float,
+    config: dict[str, Any],
+) -> SimResult:
+    """The result of a flight from what its monitor saw (shared by every way of flying)."""
     tracks = mon.tracks()
-    tr_e = tracks.e_sim
-    tr_d = tracks.e_dist
+    e = tracks.e_sim
+    ed = tracks.e_dist
     cx = tracks.pos[:, :, 0].mean(axis=1) if tracks.pos.shape[0] else np.zeros(0)
     lo, hi = cfg.world.cluttered_x
     inside = (cx >= lo) & (cx <= hi)
-    collisions = mon.collisions
     return SimResult(
-        success=bool(np.all(arrived) and collisions == 0),
+        success=bool(np.all(arrived) and mon.collisions == 0),
         arrived=arrived,
-        collisions=collisions,
+        collisions=mon.collisions,
         obstacle_collisions=mon.obstacle_events,
         drone_collisions=mon.drone_events,
         events=tuple(mon.events),
         min_obstacle_clearance_m=mon.min_clearance_m,
         min_drone_distance_m=mon.min_pair_m,
         max_speed_m_s=mon.max_speed_m_s,
-        e_sim_mean=float(np.mean(tr_e)) if tr_e.size else math.nan,
-        e_sim_max=float(np.max(tr_e)) if tr_e.size else math.nan,
-        e_sim_mean_cluttered=float(np.mean(tr_e[inside])) if np.any(inside) else math.nan,
-        e_dist_mean=float(np.mean(tr_d)) if tr_d.size else math.nan,
-        e_dist_max=float(np.max(tr_d)) if tr_d.size else math.nan,
+        e_sim_mean=float(np.mean(e)) if e.size else math.nan,
+        e_sim_max=float(np.max(e)) if e.size else math.nan,
+        e_sim_mean_cluttered=float(np.mean(e[inside])) if np.any(inside) else math.nan,
+        e_dist_mean=float(np.mean(ed)) if ed.size else math.nan,
+        e_dist_max=float(np.max(ed)) if ed.size else math.nan,
         flight_time_s=t,
         timed_out=timed_out,
         replan_ms=summary(replan_ms),
         iterations=summary(iterations),
         evaluations=summary(evaluations),
         status_counts=status_counts,
-        sim_wall_s=time.perf_counter() - wall0,
+        sim_wall_s=wall_s,
         warmup_s=warmup_s,
         tracks=tracks,
         world=world,
@@ -454,7 +490,7 @@ def run_sim(
         world_name=cfg.world.name,
         seed=cfg.seed,
         cluttered_x=(float(lo), float(hi)),
-        config=_config_summary(cfg, params),
+        config=config,
     )
 
 
