@@ -35,7 +35,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 typecheck: $(STAMP)
-	$(VENV)/bin/mypy onboard/planner
+	$(VENV)/bin/mypy onboard/planner onboard/mapping onboard/sensors
 
 pytest: $(STAMP)
 	$(VENV)/bin/pytest -q
