@@ -69,6 +69,18 @@ def _sim_progress(console: Console, label: str) -> Iterator[Any]:
         yield update
 
 
+def _flight_counter(console: Console) -> Progress:
+    """A progress bar that counts finished flights (N / total, elapsed time)."""
+    return Progress(
+        TextColumn("flights"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
+
+
 def _fmt(x: float | None, spec: str = ".3f") -> str:
     if x is None or not np.isfinite(x):
         return "-"
@@ -374,14 +386,7 @@ def bench_flights(
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
     rows: list[dict[str, Any]] = []
-    with Progress(
-        TextColumn("flights"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with _flight_counter(console) as bar:
         task = bar.add_task("flights", total=len(cfgs))
         for cfg in cfgs:
             try:
@@ -515,14 +520,7 @@ def bench_table(
         raise click.ClickException(str(e)) from e
     methods = METHODS if method == "all" else (method,)
     total = len(worlds) * len(methods) * trials
-    with Progress(
-        TextColumn("flights"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with _flight_counter(console) as bar:
         task = bar.add_task("flights", total=total)
         try:
             report, kept = run_table(

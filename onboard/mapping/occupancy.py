@@ -311,6 +311,32 @@ def _clip_to_window(
 
 
 @njit(cache=True, nogil=True)
+def _clip_ray(
+    o: np.ndarray,
+    dx: float,
+    dy: float,
+    dz: float,
+    length: float,
+    max_ray: float,
+    box_lo: np.ndarray,
+    box_hi: np.ndarray,
+    eps: float,
+    hit: bool,
+) -> tuple[float, bool]:
+    """Fraction s of the ray o + t (dx, dy, dz) to cast: cut at ``max_ray`` metres and just inside
+    the window box; a cut ray ends in free space (no hit)."""
+    s = 1.0
+    if length > max_ray:
+        s = max_ray / length
+        hit = False
+    s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
+    if s_box < s:
+        s = max(s_box - eps / length, 0.0)
+        hit = False
+    return s, hit
+
+
+@njit(cache=True, nogil=True)
 def _apply_updates(
     logodds: np.ndarray,
     surf: np.ndarray,
@@ -392,14 +418,7 @@ def ingest_depth_kernel(
             dz = R[2, 0] * xc + R[2, 1] * yc + R[2, 2] * z
             length = math.sqrt(dx * dx + dy * dy + dz * dz)
             hit = z <= max_depth
-            s = 1.0
-            if length > max_ray:
-                s = max_ray / length
-                hit = False
-            s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
-            if s_box < s:
-                s = max(s_box - eps / length, 0.0)
-                hit = False
+            s, hit = _clip_ray(o, dx, dy, dz, length, max_ray, box_lo, box_hi, eps, hit)
             n_touched = _cast_ray(
                 logodds,
                 surf,
@@ -462,14 +481,7 @@ def ingest_points_kernel(
             continue
         rays += 1
         hit = True
-        s = 1.0
-        if length > max_ray:
-            s = max_ray / length
-            hit = False
-        s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
-        if s_box < s:
-            s = max(s_box - eps / length, 0.0)
-            hit = False
+        s, hit = _clip_ray(o, dx, dy, dz, length, max_ray, box_lo, box_hi, eps, hit)
         n_touched = _cast_ray(
             logodds,
             surf,
