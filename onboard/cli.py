@@ -1,14 +1,17 @@
 """``swarm-onboard``: the companion-computer side.
 
-The flight service (MAVLink, Zenoh, perception) is not built yet; what exists is the planner, and
-``warmup`` compiles its kernels into numba's on-disk cache, so that a freshly started service on
-the drone is ready to plan in about a second (run it once after installing or upgrading).
+- ``run --id I [--config FILE]``: the flight service of drone I (``onboard.service``);
+- ``check-config FILE``: validate a service config, print OK or the error (exit 1);
+- ``warmup``: compile the planner kernels into numba's on-disk cache, so that a freshly started
+  service on the drone is ready to plan in about a second (run it once after installing or
+  upgrading).
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import click
 
@@ -49,3 +52,23 @@ def warmup() -> None:
     )
     if res.trajectory is None:  # pragma: no cover - plan always returns a trajectory
         sys.exit(1)
+
+
+@main.command("check-config")
+@click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--id", "drone_id", type=int, default=None, help="Check as drone I.")
+def check_config(file: Path, drone_id: int | None) -> None:
+    """Validate a flight-service config FILE: prints OK, or the error and exits with 1."""
+    from onboard.config import ConfigError
+    from onboard.service.config import load_onboard_config
+
+    try:
+        cfg = load_onboard_config(file, drone_id)
+    except ConfigError as e:
+        click.echo(f"{file}: {e}", err=True)
+        sys.exit(1)
+    click.echo(
+        f"OK: drone {cfg.drone.id} of swarm {cfg.drone.swarm!r}, autopilot "
+        f"{cfg.autopilot.implementation} at {cfg.autopilot.endpoint(cfg.drone.id)}, depth "
+        f"{cfg.depth.source}"
+    )

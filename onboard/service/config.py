@@ -1,0 +1,392 @@
+"""The flight service's configuration (``config/onboard.yaml``): frozen, typed, checked at load.
+
+Loaded once at the edge with ``onboard.config.from_mapping``: an unknown key or a bad value is a
+``ConfigError`` that names the key path and what was expected, e.g.
+``autopilot: setpoint_rate_hz: expected a number in [10, 200], got 5.0``. Nothing reads the file
+after start-up; every thread gets the frozen objects.
+
+Drone ids are 0-based (the formation slot order of the ground station); the autopilot of drone
+``i`` is MAVLink system ``i + 1`` on UDP port ``14540 + i`` (PX4's multi-vehicle convention).
+Coordinates are ENU metres in the autopilot's local frame.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from onboard.config import (
+    ConfigError,
+    config_dir,
+    from_mapping,
+    load_planner_params,
+    merge_mappings,
+    read_yaml,
+)
+from onboard.mapping.occupancy import OccupancyParams
+from onboard.planner.params import PlannerParams
+
+Vec3 = tuple[float, float, float]
+
+_SWARM_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def _in_range(name: str, value: float, lo: float, hi: float) -> None:
+    if not (lo <= value <= hi):
+        raise ValueError(f"{name}: expected a number in [{lo:g}, {hi:g}], got {value!r}")
+
+
+def _positive(name: str, value: float) -> None:
+    if not (value > 0.0 and math.isfinite(value)):
+        raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class DroneSection:
+    """Who this process flies for. ``id`` is usually given on the command line (``--id``)."""
+
+    id: int = 0
+    swarm: str = "swarm"
+    """The swarm name: the first part of every key expression on the bus."""
+
+    def __post_init__(self) -> None:
+        _in_range("id", self.id, 0, 253)
+        if not _SWARM_NAME.match(self.swarm):
+            raise ValueError(f"swarm: expected letters, digits, '_' or '-', got {self.swarm!r}")
+
+
+@dataclass(frozen=True)
+class AutopilotSection:
+    """The MAVLink link to PX4.
+
+    url: ``udp://HOST:PORT`` (the service binds HOST:PORT and answers whoever talks to it, like
+    MAVSDK's ``udpin://``) or ``serial:///dev/ttyTHS0`` (with ``baud``). With
+    ``port_plus_id`` the port is ``PORT + drone id`` (PX4 multi-vehicle: 14540 + i).
+    system_id: the autopilot's MAVLink system id; None means drone id + 1.
+    """
+
+    implementation: Literal["pymavlink", "mavsdk"] = "pymavlink"
+    url: str = "udp://127.0.0.1:14540"
+    port_plus_id: bool = True
+    baud: int = 921600
+    system_id: int | None = None
+    setpoint_rate_hz: float = 50.0
+    heartbeat_timeout_s: float = 1.0
+    """No autopilot HEARTBEAT for this long: the link is lost and the service stops commanding."""
+    command_timeout_s: float = 1.5
+    command_retries: int = 3
+
+    def __post_init__(self) -> None:
+        if not re.match(r"^(udp://[^:/]*:\d{1,5}|serial://.+)$", self.url):
+            raise ValueError(
+                f"url: expected 'udp://HOST:PORT' or 'serial:///dev/DEVICE', got {self.url!r}"
+            )
+        _in_range("baud", self.baud, 9600, 4_000_000)
+        if self.system_id is not None:
+            _in_range("system_id", self.system_id, 1, 254)
+        _in_range("setpoint_rate_hz", self.setpoint_rate_hz, 10.0, 200.0)
+        _in_range("heartbeat_timeout_s", self.heartbeat_timeout_s, 0.2, 10.0)
+        _in_range("command_timeout_s", self.command_timeout_s, 0.1, 30.0)
+        _in_range("command_retries", self.command_retries, 0, 20)
+
+    @property
+    def is_serial(self) -> bool:
+        return self.url.startswith("serial://")
+
+    def endpoint(self, drone_id: int) -> str:
+        """The url with the drone's port (``udp://127.0.0.1:14542`` for drone 2)."""
+        if self.is_serial or not self.port_plus_id:
+            return self.url
+        host, port = self.url[len("udp://") :].rsplit(":", 1)
+        p = int(port) + drone_id
+        if not 0 < p < 65536:
+            raise ConfigError(f"autopilot.url: port {p} for drone {drone_id} is out of range")
+        return f"udp://{host}:{p}"
+
+    def target_system(self, drone_id: int) -> int:
+        return self.system_id if self.system_id is not None else drone_id + 1
+
+
+@dataclass(frozen=True)
+class ZenohSection:
+    """How the swarm bus joins Zenoh (``onboard.comm.zenoh_session.ZenohEndpoints``)."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("listen", "connect"):
+            for ep in getattr(self, name):
+                if "/" not in ep:
+                    raise ValueError(f"{name}: endpoint {ep!r} is not like 'tcp/HOST:PORT'")
+
+    def endpoints(self) -> Any:
+        from onboard.comm.zenoh_session import ZenohEndpoints
+
+        return ZenohEndpoints(
+            listen=self.listen,
+            connect=self.connect,
+            mode=self.mode,
+            multicast_scouting=self.multicast_scouting,
+        )
+
+
+@dataclass(frozen=True)
+class DepthSection:
+    """Where depth frames come from.
+
+    'zenoh-sim': frames the SITL mock renders and publishes under ``sim_prefix`` (its Zenoh
+    session: ``sim_connect``); 'realsense': a D435 through Open3D (or ``realsense_bag`` replayed);
+    'none': no camera (the planner sees only the ground; depth loss never fires).
+    """
+
+    source: Literal["zenoh-sim", "realsense", "none"] = "zenoh-sim"
+    rate_hz: float = 30.0
+    sim_prefix: str = "swarm/sim"
+    sim_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    realsense_bag: str | None = None
+    step: int = 2
+    """Ray cast every step-th pixel row and column."""
+
+    def __post_init__(self) -> None:
+        _in_range("rate_hz", self.rate_hz, 1.0, 90.0)
+        _in_range("step", self.step, 1, 16)
+
+
+@dataclass(frozen=True)
+class MappingSection:
+    """The rolling occupancy window and its ESDF."""
+
+    esdf_rate_hz: float = 10.0
+    """The planner's field is rebuilt at least this often while frames arrive."""
+    occupancy: OccupancyParams = field(default_factory=OccupancyParams)
+
+    def __post_init__(self) -> None:
+        _in_range("esdf_rate_hz", self.esdf_rate_hz, 10.0, 100.0)
+
+
+@dataclass(frozen=True)
+class PlanningSection:
+    """The replan cycle and the safety monitor."""
+
+    replan_period_s: float = 1.0
+    plan_ahead_s: float = 0.1
+    """A replan starts from the current trajectory's state this far ahead (its computing time)."""
+    monitor_rate_hz: float = 100.0
+    monitor_horizon_s: float = 2.0
+    """The monitor checks the trajectory in flight this far ahead."""
+    retry_after_s: float = 1.0
+    """After a 'kept-previous' or 'emergency' plan the drone hovers, then retries this late."""
+    max_failed_s: float = 15.0
+    """Planning failing for this long in a row: EMERGENCY (braking stop, hover, land)."""
+    goal_tolerance_m: float = 0.3
+    arrival_speed_m_s: float = 0.15
+    warm_up: bool = True
+    """Plan one small problem before READY, so the first real replan is at full speed."""
+
+    def __post_init__(self) -> None:
+        _in_range("replan_period_s", self.replan_period_s, 0.1, 10.0)
+        _in_range("plan_ahead_s", self.plan_ahead_s, 0.0, 1.0)
+        _in_range("monitor_rate_hz", self.monitor_rate_hz, 10.0, 500.0)
+        _in_range("monitor_horizon_s", self.monitor_horizon_s, 0.1, 10.0)
+        _in_range("retry_after_s", self.retry_after_s, 0.05, 30.0)
+        _in_range("max_failed_s", self.max_failed_s, 1.0, 300.0)
+        _in_range("goal_tolerance_m", self.goal_tolerance_m, 0.05, 5.0)
+        _in_range("arrival_speed_m_s", self.arrival_speed_m_s, 0.01, 2.0)
+
+
+@dataclass(frozen=True)
+class GeofenceSection:
+    """A box in the local ENU frame: goals outside are refused; plans never leave it."""
+
+    min_enu_m: Vec3 = (-50.0, -50.0, 0.0)
+    max_enu_m: Vec3 = (50.0, 50.0, 5.0)
+
+    def __post_init__(self) -> None:
+        for k in range(3):
+            if not self.min_enu_m[k] < self.max_enu_m[k]:
+                raise ValueError(
+                    f"min_enu_m/max_enu_m: min must be below max on every axis, got "
+                    f"{list(self.min_enu_m)} / {list(self.max_enu_m)}"
+                )
+
+    def contains(self, p: Any, margin_m: float = 0.0) -> bool:
+        return all(
+            self.min_enu_m[k] + margin_m <= float(p[k]) <= self.max_enu_m[k] - margin_m
+            for k in range(3)
+        )
+
+
+@dataclass(frozen=True)
+class FlightSection:
+    """Take-off, landing and emergencies."""
+
+    takeoff_altitude_m: float = 1.0
+    """Height above the take-off point the drone climbs to (ENU z up)."""
+    takeoff_speed_m_s: float = 0.5
+    emergency_hover_s: float = 5.0
+    """EMERGENCY: braking stop, hover this long, then land."""
+
+    def __post_init__(self) -> None:
+        _in_range("takeoff_altitude_m", self.takeoff_altitude_m, 0.3, 20.0)
+        _in_range("takeoff_speed_m_s", self.takeoff_speed_m_s, 0.1, 3.0)
+        _in_range("emergency_hover_s", self.emergency_hover_s, 0.0, 120.0)
+
+
+@dataclass(frozen=True)
+class DepthLostReaction:
+    """No depth frame for ``timeout_s``: stop and hover until frames return."""
+
+    timeout_s: float = 0.5
+    action: Literal["hover"] = "hover"
+
+    def __post_init__(self) -> None:
+        _in_range("timeout_s", self.timeout_s, 0.05, 10.0)
+
+
+@dataclass(frozen=True)
+class PeerLostReaction:
+    """A peer silent past its trajectory's validity (its end, at most ``validity_s`` after it
+    was sent): dropped from the formation; still avoided through its last trajectory for
+    ``avoid_for_s`` more."""
+
+    validity_s: float = 3.0
+    action: Literal["drop-from-formation"] = "drop-from-formation"
+    avoid_for_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        _in_range("validity_s", self.validity_s, 0.1, 60.0)
+        _in_range("avoid_for_s", self.avoid_for_s, 0.0, 600.0)
+
+
+@dataclass(frozen=True)
+class AutopilotLostReaction:
+    """No autopilot heartbeat for ``autopilot.heartbeat_timeout_s``: stop commanding; after the
+    link returns, stream nothing until a ground-station command says so."""
+
+    action: Literal["stop-commanding"] = "stop-commanding"
+
+
+@dataclass(frozen=True)
+class GcsLostReaction:
+    """Nothing from the ground station for ``timeout_s``: finish the current goal and hover
+    ('hover'), or land there ('land')."""
+
+    timeout_s: float = 5.0
+    action: Literal["hover", "land"] = "hover"
+
+    def __post_init__(self) -> None:
+        _in_range("timeout_s", self.timeout_s, 0.5, 600.0)
+
+
+@dataclass(frozen=True)
+class PilotReaction:
+    """The vehicle left OFFBOARD by someone else's decision: yield at once, never fight."""
+
+    action: Literal["yield"] = "yield"
+
+
+@dataclass(frozen=True)
+class ReactionsSection:
+    depth_lost: DepthLostReaction = field(default_factory=DepthLostReaction)
+    peer_lost: PeerLostReaction = field(default_factory=PeerLostReaction)
+    autopilot_lost: AutopilotLostReaction = field(default_factory=AutopilotLostReaction)
+    gcs_lost: GcsLostReaction = field(default_factory=GcsLostReaction)
+    pilot_took_over: PilotReaction = field(default_factory=PilotReaction)
+
+
+@dataclass(frozen=True)
+class BusSection:
+    state_rate_hz: float = 10.0
+    status_rate_hz: float = 1.0
+    clock_offset_bound_s: float = 0.05
+    """A peer whose clock seems further off than this is reported with a warning."""
+
+    def __post_init__(self) -> None:
+        _in_range("state_rate_hz", self.state_rate_hz, 1.0, 50.0)
+        _in_range("status_rate_hz", self.status_rate_hz, 0.1, 10.0)
+        _in_range("clock_offset_bound_s", self.clock_offset_bound_s, 0.001, 10.0)
+
+
+@dataclass(frozen=True)
+class LoggingSection:
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    format: Literal["kv", "json"] = "kv"
+    """One line per record: ``key=value`` pairs or a JSON object (both journald-friendly)."""
+
+
+@dataclass(frozen=True)
+class RecordSection:
+    enabled: bool = True
+    directory: str = "/var/lib/swarm-onboard/records"
+    """One MCAP file per flight (take-off to landed) here; relative paths from the cwd."""
+
+
+@dataclass(frozen=True)
+class WatchdogSection:
+    main_loop_hz: float = 20.0
+    stall_s: float = 2.0
+    """A thread (setpoints, planner, monitor, depth) that has not reported for this long marks
+    the service unhealthy: the systemd watchdog is no longer fed."""
+
+    def __post_init__(self) -> None:
+        _in_range("main_loop_hz", self.main_loop_hz, 1.0, 200.0)
+        _in_range("stall_s", self.stall_s, 0.2, 60.0)
+
+
+@dataclass(frozen=True)
+class OnboardConfig:
+    """Everything ``swarm-onboard run`` reads (``config/onboard.yaml``)."""
+
+    drone: DroneSection = field(default_factory=DroneSection)
+    autopilot: AutopilotSection = field(default_factory=AutopilotSection)
+    zenoh: ZenohSection = field(default_factory=ZenohSection)
+    depth: DepthSection = field(default_factory=DepthSection)
+    mapping: MappingSection = field(default_factory=MappingSection)
+    planner: PlannerParams = field(default_factory=load_planner_params)
+    """Planner parameters: ``config/planner.yaml`` with the keys given here overriding it."""
+    planning: PlanningSection = field(default_factory=PlanningSection)
+    geofence: GeofenceSection = field(default_factory=GeofenceSection)
+    flight: FlightSection = field(default_factory=FlightSection)
+    reactions: ReactionsSection = field(default_factory=ReactionsSection)
+    bus: BusSection = field(default_factory=BusSection)
+    logging: LoggingSection = field(default_factory=LoggingSection)
+    record: RecordSection = field(default_factory=RecordSection)
+    watchdog: WatchdogSection = field(default_factory=WatchdogSection)
+
+    def __post_init__(self) -> None:
+        g = self.geofence
+        if not g.min_enu_m[2] + self.flight.takeoff_altitude_m <= g.max_enu_m[2]:
+            raise ValueError(
+                "flight.takeoff_altitude_m: the take-off altitude must lie inside the geofence "
+                f"(max z {g.max_enu_m[2]:g})"
+            )
+
+
+def default_config_path() -> Path:
+    return config_dir() / "onboard.yaml"
+
+
+def load_onboard_config(
+    path: str | Path | None = None,
+    drone_id: int | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> OnboardConfig:
+    """Read and validate ``path`` (default ``config/onboard.yaml``); ``drone_id`` (the
+    ``--id`` option) and ``overrides`` (nested mappings) win over the file."""
+    p = Path(path) if path is not None else default_config_path()
+    data = read_yaml(p)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"<root>: expected a mapping, got {type(data).__name__}")
+    if overrides:
+        data = merge_mappings(data, overrides)
+    if drone_id is not None:
+        data = merge_mappings(data, {"drone": {"id": drone_id}})
+    return from_mapping(OnboardConfig, data)

@@ -1,0 +1,96 @@
+"""The flight service's config: the shipped file loads, bad keys and values name their path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from onboard.cli import main
+from onboard.config import ConfigError
+from onboard.service.config import OnboardConfig, default_config_path, load_onboard_config
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "onboard.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_shipped_config_loads_with_the_documented_values() -> None:
+    cfg = load_onboard_config(default_config_path(), drone_id=3)
+    assert cfg.drone.id == 3
+    assert cfg.autopilot.setpoint_rate_hz == 50.0
+    assert cfg.autopilot.heartbeat_timeout_s == 1.0
+    assert cfg.autopilot.endpoint(3) == "udp://127.0.0.1:14543"
+    assert cfg.autopilot.target_system(3) == 4
+    assert cfg.planning.replan_period_s == 1.0
+    assert cfg.planning.monitor_rate_hz == 100.0
+    assert cfg.reactions.depth_lost.timeout_s == 0.5
+    assert cfg.mapping.esdf_rate_hz >= 10.0
+
+
+def test_config_is_frozen() -> None:
+    cfg = load_onboard_config(default_config_path())
+    with pytest.raises(AttributeError):
+        cfg.drone.id = 5  # type: ignore[misc]
+
+
+def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> None:
+    from onboard.config import load_planner_params
+
+    base = load_planner_params()
+    cfg = load_onboard_config(_write(tmp_path, "planner:\n  v_max_m_s: 1.5\n"))
+    assert cfg.planner.v_max_m_s == 1.5
+    assert cfg.planner.w_formation == base.w_formation  # the rest comes from planner.yaml
+
+
+@pytest.mark.parametrize(
+    ("text", "path", "expected"),
+    [
+        ("autopilot:\n  setpoint_rate_hz: 5\n", "setpoint_rate_hz", "[10, 200]"),
+        ("autopilot:\n  setpont_rate_hz: 50\n", "autopilot.setpont_rate_hz", "unknown key"),
+        ("autopilot:\n  implementation: dronekit\n", "autopilot.implementation", "pymavlink"),
+        ("autopilot:\n  url: tcp://x:1\n", "url", "udp://HOST:PORT"),
+        ("depth:\n  source: kinect\n", "depth.source", "zenoh-sim"),
+        ("planning:\n  replan_period_s: 0\n", "replan_period_s", "[0.1, 10]"),
+        ("reactions:\n  gcs_lost: {action: rtl}\n", "reactions.gcs_lost.action", "land"),
+        ("reactions:\n  depth_lost: {timeout_s: -1}\n", "timeout_s", "[0.05, 10]"),
+        ("geofence:\n  min_enu_m: [0, 0, 0]\n  max_enu_m: [1, -1, 3]\n", "geofence", "min"),
+        ("planner:\n  v_max_m_s: fast\n", "planner.v_max_m_s", "expected a number"),
+        ("mapping:\n  occupancy: {resolution_m: -1}\n", "mapping.occupancy", "resolution_m"),
+        ("drone:\n  swarm: 'a b'\n", "swarm", "letters"),
+        ("flight:\n  takeoff_altitude_m: 9\n", "takeoff_altitude_m", "geofence"),
+    ],
+)
+def test_bad_values_name_the_key_and_the_expected_range(
+    tmp_path: Path, text: str, path: str, expected: str
+) -> None:
+    with pytest.raises(ConfigError) as e:
+        load_onboard_config(_write(tmp_path, text))
+    msg = str(e.value)
+    assert path in msg
+    assert expected in msg
+
+
+def test_drone_id_out_of_range_is_an_error() -> None:
+    with pytest.raises(ConfigError, match="id"):
+        load_onboard_config(default_config_path(), drone_id=300)
+
+
+def test_empty_file_gives_the_defaults(tmp_path: Path) -> None:
+    cfg = load_onboard_config(_write(tmp_path, ""))
+    assert cfg == OnboardConfig(planner=cfg.planner)
+
+
+def test_check_config_cli(tmp_path: Path) -> None:
+    runner = CliRunner()
+    ok = runner.invoke(main, ["check-config", str(default_config_path())])
+    assert ok.exit_code == 0, ok.output
+    assert ok.output.startswith("OK")
+    bad = runner.invoke(main, ["check-config", str(_write(tmp_path, "bus: {state_rate_hz: 0}\n"))])
+    assert bad.exit_code == 1
+    assert "bus: state_rate_hz" in bad.output
+    missing = runner.invoke(main, ["check-config", str(tmp_path / "nope.yaml")])
+    assert missing.exit_code == 2
