@@ -1,16 +1,31 @@
 # The two entry points of the project: `make demo` and `make test`.
 # Each creates the project virtual environment (.venv) when missing and installs what it needs,
 # Debian packages included where a dependency needs them.
+# `make test` also runs the suite on Python 3.10 (the drone's Python) in a second environment,
+# .venv310, whenever a 3.10 interpreter is found (PYTHON310=/path/to/python3.10 to choose one).
 
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+
+# The first working Python 3.10: python3.10 on PATH (a pyenv shim only works when pyenv has 3.10
+# selected, so it is run to be sure), else the newest 3.10 that pyenv has built.
+ifeq ($(origin PYTHON310), undefined)
+PYTHON310 := $(shell for c in python3.10 \
+	$$(ls -d "$$(pyenv root 2>/dev/null || echo $$HOME/.pyenv)"/versions/3.10.* 2>/dev/null \
+	  | sort -t. -k3 -n -r | sed 's|$$|/bin/python3.10|'); do \
+	"$$c" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 10))' >/dev/null 2>&1 \
+	  && { command -v "$$c"; break; }; done)
+endif
+VENV310 := .venv310
+PY310 := $(VENV310)/bin/python
+STAMP310 := $(VENV310)/.installed
 export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 export MPLBACKEND := Agg
 
-.PHONY: demo test lint typecheck pytest bench check-target system-deps clean
+.PHONY: demo test lint typecheck pytest pytest310 bench check-target system-deps clean
 
 # Debian packages: venv support for the interpreter and the shared libraries Open3D loads.
 system-deps:
@@ -40,7 +55,29 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(VENV)/bin/pytest -q
 
-test: lint typecheck pytest
+# The same environment and suite on Python 3.10. numba names its cache files after the Python
+# version (*.py310.nbi next to *.py311.nbi), so the two runs do not overwrite each other's kernels.
+$(STAMP310): pyproject.toml
+	@test -n "$(PYTHON310)" || { echo "no Python 3.10 interpreter (set PYTHON310=...)"; exit 1; }
+	@$(PYTHON310) -c "import venv, ensurepip" 2>/dev/null || { \
+		echo "installing Debian package python3.10-venv"; \
+		if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq python3.10-venv; }
+	test -x $(PY310) || $(PYTHON310) -m venv $(VENV310)
+	$(PY310) -m pip install -q --upgrade pip
+	$(PY310) -m pip install -q -e ".[dev]"
+	touch $(STAMP310)
+
+ifeq ($(strip $(PYTHON310)),)
+pytest310:
+	@echo "pytest310: no Python 3.10 interpreter found (see README); suite ran on $$($(PY) -V) only"
+else
+pytest310: $(STAMP310) | system-deps
+	$(VENV310)/bin/pytest -q -p no:cacheprovider
+endif
+
+test: lint typecheck pytest pytest310
 
 demo: $(STAMP)
 	$(VENV)/bin/swarm-gcs sim --formation hexagon-7 --world forest-medium --seed 1
@@ -50,6 +87,8 @@ bench: $(STAMP)
 
 # The drone target (Jetson Xavier NX: aarch64, glibc 2.31, Python 3.10) must install every
 # dependency from wheels: resolve the pinned set for that platform without installing it.
+# The requirements are read from the installed project's metadata (the stamp keeps it in step
+# with pyproject.toml), which works on Python 3.10 too (no tomllib).
 check-target: $(STAMP)
 	rm -rf build/target-wheels
 	$(PY) -m pip download -q --dest build/target-wheels --only-binary=:all: \
@@ -57,8 +96,9 @@ check-target: $(STAMP)
 		--platform manylinux_2_27_aarch64 --platform manylinux_2_24_aarch64 \
 		--platform manylinux_2_17_aarch64 --platform manylinux2014_aarch64 \
 		--python-version 3.10 --implementation cp \
-		$$($(PY) -c "import tomllib; print(' '.join(repr(d) for d in tomllib.load(open('pyproject.toml','rb'))['project']['dependencies']))" | tr -d "'")
+		$$($(PY) -c "from importlib.metadata import requires; \
+			print(*(r.replace(' ', '') for r in requires('swarm-formation') if 'extra' not in r))")
 	ls build/target-wheels
 
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(VENV310) build *.egg-info .mypy_cache .ruff_cache .pytest_cache

@@ -11,8 +11,12 @@ Named files live under ``config_dir()``: ``formations/NAME.yaml``, ``worlds/NAME
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
+import datetime
 import enum
+import functools
+import json
 import math
 import os
 import re
@@ -24,7 +28,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, Union
 
 import numpy as np
+import pydantic
 import yaml
+from pydantic import ConfigDict
 
 if TYPE_CHECKING:  # imported lazily at run time: config loading must not need numba
     from onboard.planner.params import PlannerParams
@@ -103,7 +109,18 @@ def _resolve_file(name_or_path: str | Path, subdir: str) -> tuple[str, Path]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Generic mapping -> frozen dataclass
+# Generic mapping -> frozen dataclass, validated by pydantic
+#
+# The config dataclasses stay plain frozen stdlib dataclasses (the numerical core does not import
+# pydantic); pydantic validates them from their type hints. The mapping is handed to pydantic as
+# JSON text in strict mode, which gives exactly the rules a config file should follow on every
+# Python version: integers are accepted for floats but booleans and strings are not numbers,
+# lists become tuples, objects become dataclasses or dicts, nothing is coerced from a string.
+# pydantic's errors (a location and a type code) are then worded here, with the dotted key path.
+
+_PYDANTIC_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False)
+_WRAPPER_FIELD = "value"
+_MAX_ENUM_PASSES = 64
 
 
 def _where(path: str) -> str:
@@ -115,89 +132,289 @@ def _describe(value: Any) -> str:
     return r if len(r) <= 60 else r[:57] + "..."
 
 
-def _convert(tp: Any, value: Any, path: str, base: Any = None) -> Any:
-    """Check ``value`` against the type ``tp`` and convert it (lists become tuples).
+@functools.cache
+def _validator(cls: type) -> type[pydantic.BaseModel]:
+    """A pydantic model with the single field ``value: cls`` (the wrapper carries the config that
+    stdlib dataclasses cannot carry themselves: unknown keys are errors, floats are finite)."""
+    return pydantic.create_model(
+        f"_{cls.__name__}Validator",
+        __config__=_PYDANTIC_CONFIG,
+        value=(cls, ...),
+    )
 
-    ``base``: for a nested dataclass, the instance whose values fill the keys not given.
-    """
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
 
-    if tp is Any:
+def _plain(value: Any, path: str) -> Any:
+    """``value`` as JSON-compatible data: mappings -> dicts with string keys, sequences -> lists,
+    numpy scalars and arrays -> Python numbers and lists, enum members -> their values, dataclass
+    instances -> dicts of their fields."""
+    if value is None or isinstance(value, (bool, int, float, str)):
         return value
-    if origin is Union or (hasattr(types, "UnionType") and isinstance(tp, types.UnionType)):
-        if value is None and type(None) in args:
-            return None
-        options = [a for a in args if a is not type(None)]
-        errors = []
-        for a in options:
-            try:
-                nested = base if isinstance(a, type) and isinstance(base, a) else None
-                return _convert(a, value, path, nested)
-            except ConfigError as e:
-                errors.append(str(e))
-        if len(options) == 1:
-            raise ConfigError(errors[0])
-        raise ConfigError(f"{_where(path)}: no accepted type matches {_describe(value)}")
-    if origin is Literal:
-        if value in args and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"{_where(path)}: expected one of {list(args)}, got {_describe(value)}")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"{_where(path)}: expected true or false, got {_describe(value)}")
-    if tp is int:
-        if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-            return int(value)
-        raise ConfigError(f"{_where(path)}: expected an integer, got {_describe(value)}")
-    if tp is float:
-        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
-            v = float(value)
-            if not math.isfinite(v):
-                raise ConfigError(f"{_where(path)}: expected a finite number, got {value!r}")
-            return v
-        raise ConfigError(f"{_where(path)}: expected a number, got {_describe(value)}")
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise ConfigError(f"{_where(path)}: expected a string, got {_describe(value)}")
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        for member in tp:
-            if value == member.value or value == member.name:
-                return member
-        choices = [m.value for m in tp]
-        raise ConfigError(f"{_where(path)}: expected one of {choices}, got {_describe(value)}")
-    if origin is tuple or tp is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{_where(path)}: expected a list, got {_describe(value)}")
-        if not args:
-            return tuple(value)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(
-                f"{_where(path)}: expected a list of {len(args)} items, got {len(value)}"
-            )
-        return tuple(
-            _convert(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True))
-        )
-    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
-        if isinstance(value, tp):
-            return value
-        return from_mapping(tp, value, path, base=base)
-    raise ConfigError(f"{_where(path)}: unsupported field type {tp!r}")  # pragma: no cover
+    if isinstance(value, enum.Enum):
+        return _plain(value.value, path)
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v, f"{path}.{k}" if path else str(k)) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist(), path)
+    if isinstance(value, np.generic):
+        return _plain(value.item(), path)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {
+            f.name: _plain(getattr(value, f.name), f"{path}.{f.name}" if path else f.name)
+            for f in dataclasses.fields(value)
+            if f.init
+        }
+    if isinstance(value, (datetime.date, datetime.time)):  # YAML reads unquoted timestamps
+        return value.isoformat()
+    raise ConfigError(f"{_where(path)}: unsupported value {_describe(value)}")
+
+
+def _field_default(f: dataclasses.Field, base: Any) -> Any:
+    if base is not None:
+        return getattr(base, f.name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
+def _fill(cls: type, data: dict[str, Any], base: Any, path: str) -> dict[str, Any]:
+    """``data`` completed from ``base`` (keys not given keep its values) and, for a nested
+    dataclass given as a mapping, from that field's current value (partial override)."""
+    out = dict(data)
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        if f.name in data:
+            value = data[f.name]
+            if isinstance(value, dict):
+                default = _field_default(f, base)
+                if dataclasses.is_dataclass(default) and not isinstance(default, type):
+                    sub = f"{path}.{f.name}" if path else f.name
+                    out[f.name] = _fill(type(default), value, default, sub)
+        elif base is not None:
+            out[f.name] = _plain(getattr(base, f.name), path)
+    return out
+
+
+def _is_union(tp: Any) -> bool:
+    return typing.get_origin(tp) is Union or isinstance(tp, types.UnionType)
+
+
+def _members(tp: Any) -> list[Any]:
+    """The types a union accepts besides None (``[tp]`` for anything else)."""
+    if _is_union(tp):
+        return [a for a in typing.get_args(tp) if a is not type(None)]
+    return [tp]
+
+
+@dataclass(frozen=True)
+class _Located:
+    """What a pydantic error location points at: ``tp`` the type there (None if unknown), ``keys``
+    the location without union tags (it indexes the data), ``union_at`` where the first union
+    with several accepted types starts in ``keys`` (None if none), ``member`` its tag."""
+
+    tp: Any
+    keys: tuple[str | int, ...]
+    union_at: int | None = None
+    member: str = ""
+
+
+def _locate(cls: type, loc: tuple[str | int, ...]) -> _Located:
+    """Follow a pydantic error location through the type hints of ``cls``."""
+    tp: Any = cls
+    keys: list[str | int] = []
+    union_at: int | None = None
+    member = ""
+    for key in loc:
+        options = _members(tp)
+        if len(options) > 1:  # a union: pydantic names the member it tried
+            if union_at is None:
+                union_at, member = len(keys), str(key)
+            match = [m for m in options if str(key) in (getattr(m, "__name__", None), repr(m))]
+            tp = match[0] if len(match) == 1 else None
+            if tp is None:
+                return _Located(None, tuple(keys), union_at, member)
+            continue
+        tp = options[0]
+        keys.append(key)
+        origin, args = typing.get_origin(tp), typing.get_args(tp)
+        if dataclasses.is_dataclass(tp) and isinstance(tp, type) and isinstance(key, str):
+            tp = typing.get_type_hints(tp).get(key)
+        elif origin is tuple and isinstance(key, int) and args:
+            if len(args) == 2 and args[1] is Ellipsis:
+                tp = args[0]
+            else:
+                tp = args[key] if key < len(args) else None
+        elif origin in (list, collections.abc.Sequence) and isinstance(key, int) and args:
+            tp = args[0]
+        elif origin in (dict, collections.abc.Mapping) and len(args) == 2:
+            tp = args[1]
+        else:
+            tp = None
+        if tp is None:
+            return _Located(None, tuple(keys), union_at, member)
+    options = _members(tp)
+    return _Located(options[0] if len(options) == 1 else tp, tuple(keys), union_at, member)
+
+
+def _dotted(path: str, keys: tuple[str | int, ...]) -> str:
+    out = path
+    for k in keys:
+        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else str(k))
+    return out
+
+
+def _expected(kind: str, tp: Any, error: Any) -> str | None:
+    """``expected ...`` for one pydantic error type (None: not a type error)."""
+    ctx = error.get("ctx") or {}
+    if kind in ("float_type", "float_parsing"):
+        return "a number"
+    if kind == "finite_number":
+        return "a finite number"
+    if kind in ("int_type", "int_parsing", "int_from_float"):
+        return "an integer"
+    if kind in ("bool_type", "bool_parsing"):
+        return "true or false"
+    if kind in ("string_type", "string_unicode"):
+        return "a string"
+    if kind in ("tuple_type", "list_type", "set_type", "frozen_set_type"):
+        return "a list"
+    if kind in ("dict_type", "dataclass_type", "dataclass_args_type", "model_type"):
+        return "a mapping"
+    if kind == "none_required":
+        return "null"
+    if kind == "enum":
+        if isinstance(tp, type) and issubclass(tp, enum.Enum):
+            return f"one of {[m.value for m in tp]}"
+        return f"one of {ctx.get('expected', '?')}"
+    if kind == "literal_error":
+        if typing.get_origin(tp) is Literal:
+            return f"one of {list(typing.get_args(tp))}"
+        return f"one of {ctx.get('expected', '?')}"
+    return None
+
+
+def _tuple_length(tp: Any) -> int | None:
+    """The fixed length of ``tuple[A, B, ...]`` (None for ``tuple[A, ...]`` or another type)."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) is not tuple or not args or (len(args) == 2 and args[1] is Ellipsis):
+        return None
+    return len(args)
+
+
+def _error_message(cls: type, error: Any, path: str) -> tuple[str, str]:
+    """(dotted key path, what is wrong) for one pydantic error."""
+    loc = tuple(error["loc"][1:])  # without the wrapper's field
+    kind = error["type"]
+    value = error.get("input")
+    at = _locate(cls, loc)
+    where = _dotted(path, at.keys)
+    if kind == "missing" and at.keys and isinstance(at.keys[-1], int):
+        # an item missing from a fixed-length tuple: say so at the list's key
+        parent = _locate(cls, loc[:-1])
+        n = _tuple_length(parent.tp)
+        have = len(value) if isinstance(value, list) else "fewer"
+        want = f"a list of {n} items" if n is not None else "more items"
+        return _dotted(path, parent.keys), f"expected {want}, got {have}"
+    if kind == "missing":
+        return where, "required key is missing"
+    if kind in ("unexpected_keyword_argument", "extra_forbidden"):
+        parent = _locate(cls, loc[:-1]).tp
+        if dataclasses.is_dataclass(parent) and isinstance(parent, type):
+            known = sorted(f.name for f in dataclasses.fields(parent) if f.init)
+            return where, f"unknown key (known: {known})"
+        return where, "unknown key"
+    if kind in ("too_long", "too_short"):
+        n = _tuple_length(at.tp)
+        got = (error.get("ctx") or {}).get("actual_length")
+        if n is not None:
+            return where, f"expected a list of {n} items, got {got}"
+    if kind in ("value_error", "assertion_error"):
+        cause = (error.get("ctx") or {}).get("error")
+        return _where(where), str(cause) if cause is not None else error["msg"]
+    expected = _expected(kind, at.tp, error)
+    if expected is not None:
+        return where, f"expected {expected}, got {_describe(value)}"
+    msg = str(error["msg"])
+    return where, f"{msg[:1].lower()}{msg[1:]}, got {_describe(value)}"
+
+
+def _config_error(cls: type, errors: list[Any], path: str) -> ConfigError:
+    """One ``ConfigError`` for all of pydantic's errors, one line each, in pydantic's order.
+
+    The errors of the members of a union are folded into one line: ``expected an integer or
+    a string, got 1.5``.
+    """
+    lines: dict[Any, str | list[tuple[str, str, str]]] = {}
+    for error in errors:
+        at = _locate(cls, tuple(error["loc"][1:]))
+        where, what = _error_message(cls, error, path)
+        if at.union_at is None:
+            lines.setdefault(("line", where, what), f"{_where(where)}: {what}")
+        else:
+            tried = lines.setdefault(("union", at.keys[: at.union_at]), [])
+            assert isinstance(tried, list)
+            tried.append((at.member, where, what))
+    out = []
+    for key, line in lines.items():
+        if isinstance(line, list):
+            out.append(_union_line(_dotted(path, key[1]), line))
+        else:
+            out.append(line)
+    return ConfigError("\n".join(out))
+
+
+def _union_line(where: str, tried: list[tuple[str, str, str]]) -> str:
+    """``where: expected A or B, got V`` from the errors of each member of a union."""
+    alternatives: list[str] = []
+    got = ""
+    for member, sub_where, what in tried:
+        if sub_where == where and what.startswith("expected ") and ", got " in what:
+            text, got = what[len("expected ") :].rsplit(", got ", 1)
+        else:
+            inner = sub_where[len(where) :].lstrip(".")
+            text = f"{member} ({inner}: {what})" if inner else f"{member} ({what})"
+        if text not in alternatives:
+            alternatives.append(text)
+    tail = f", got {got}" if got else ""
+    return f"{_where(where)}: expected {' or '.join(alternatives)}{tail}"
+
+
+def _enum_names_to_values(cls: type, errors: list[Any], data: Any) -> bool:
+    """Where pydantic refused an enum member's name, put its value in ``data``; True if any."""
+    changed = False
+    for error in errors:
+        if error["type"] != "enum" or not isinstance(error.get("input"), str):
+            continue
+        at = _locate(cls, tuple(error["loc"][1:]))
+        if not (isinstance(at.tp, type) and issubclass(at.tp, enum.Enum)):
+            continue
+        member = at.tp.__members__.get(error["input"])
+        if member is None or not at.keys:
+            continue
+        node = data
+        for k in at.keys[:-1]:
+            node = node[k]
+        node[at.keys[-1]] = _plain(member.value, "")
+        changed = True
+    return changed
 
 
 def from_mapping(cls: type[T], data: Any, path: str = "", base: T | None = None) -> T:
     """Build the frozen dataclass ``cls`` from a mapping, validating every key and value.
 
     Unknown keys, missing required keys and wrongly typed values raise ``ConfigError`` whose
-    message starts with the dotted key path (``path`` is the prefix, e.g. ``"planner"``).
-    Integers are accepted for float fields, lists for tuple fields; nested dataclasses recurse.
-    A ``ValueError`` from the dataclass's own ``__post_init__`` becomes a ``ConfigError`` too.
-    Keys not given keep the values of ``base`` if one is passed, else the field defaults; a
-    nested dataclass field with a default is filled in over that default (partial override).
+    message starts with the dotted key path (``path`` is the prefix, e.g. ``"planner"``), one
+    line per error. Integers are accepted for float fields (never booleans or strings), lists for
+    tuple fields, an enum member's value or name for an enum field; floats must be finite.
+    Nested dataclasses, ``X | None``, unions, ``Literal``, tuples and ``dict[str, X]`` are
+    validated (by pydantic, from the type hints). A ``ValueError`` from a dataclass's own
+    ``__post_init__`` becomes a ``ConfigError`` at that dataclass's path. Keys not given keep the
+    values of ``base`` if one is passed, else the field defaults; a nested dataclass given as a
+    mapping is filled in over the field's value (partial override).
     """
     if not (dataclasses.is_dataclass(cls) and isinstance(cls, type)):
         raise TypeError(f"{cls!r} is not a dataclass type")
@@ -205,35 +422,18 @@ def from_mapping(cls: type[T], data: Any, path: str = "", base: T | None = None)
         data = {}
     if not isinstance(data, Mapping):
         raise ConfigError(f"{_where(path)}: expected a mapping, got {_describe(data)}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    prefix = f"{path}." if path else ""
-    for key in data:
-        if not isinstance(key, str) or key not in fields:
-            raise ConfigError(f"{prefix}{key}: unknown key (known: {sorted(fields)})")
-    kwargs: dict[str, Any] = {}
-    for name, f in fields.items():
-        if base is not None:
-            default: Any = getattr(base, name)
-        elif f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
-        else:
-            default = dataclasses.MISSING
-        if name in data:
-            nested_base = default if dataclasses.is_dataclass(default) else None
-            kwargs[name] = _convert(hints[name], data[name], f"{prefix}{name}", nested_base)
-        elif default is dataclasses.MISSING:
-            raise ConfigError(f"{prefix}{name}: required key is missing")
-        elif base is not None:
-            kwargs[name] = default
-    try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except (ValueError, TypeError) as e:
-        raise ConfigError(f"{_where(path)}: {e}") from e
+    plain = _fill(cls, _plain(data, path), base, path)
+    model = _validator(cls)
+    for _ in range(_MAX_ENUM_PASSES):
+        try:
+            checked = model.model_validate_json(json.dumps({_WRAPPER_FIELD: plain}), strict=True)
+        except pydantic.ValidationError as e:
+            errors = e.errors()
+            if _enum_names_to_values(cls, errors, plain):
+                continue
+            raise _config_error(cls, errors, path) from None
+        return typing.cast(T, getattr(checked, _WRAPPER_FIELD))
+    raise ConfigError(f"{_where(path)}: too many enum names")  # pragma: no cover
 
 
 # ---------------------------------------------------------------------------------------------
