@@ -403,6 +403,27 @@ def _enum_names_to_values(cls: type, errors: list[Any], data: Any) -> bool:
     return changed
 
 
+def _bools_taken_as_numbers(
+    plain: Any, obj: Any, keys: tuple[str | int, ...] = ()
+) -> list[tuple[tuple[str | int, ...], bool]]:
+    """Where a boolean of the input became a number or an enum member in the result (pydantic
+    matches ``true`` against ``IntEnum`` and ``Literal[1]``, since ``True == 1`` in Python)."""
+    if isinstance(plain, bool):
+        return [] if isinstance(obj, bool) else [(keys, plain)]
+    out: list[tuple[tuple[str | int, ...], bool]] = []
+    if isinstance(plain, dict):
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            for k, v in plain.items():
+                out += _bools_taken_as_numbers(v, getattr(obj, k, None), (*keys, k))
+        elif isinstance(obj, Mapping):
+            for k, v in plain.items():
+                out += _bools_taken_as_numbers(v, obj.get(k), (*keys, k))
+    elif isinstance(plain, list) and isinstance(obj, (list, tuple)) and len(obj) == len(plain):
+        for i, (v, o) in enumerate(zip(plain, obj, strict=True)):
+            out += _bools_taken_as_numbers(v, o, (*keys, i))
+    return out
+
+
 def from_mapping(cls: type[T], data: Any, path: str = "", base: T | None = None) -> T:
     """Build the frozen dataclass ``cls`` from a mapping, validating every key and value.
 
@@ -432,7 +453,18 @@ def from_mapping(cls: type[T], data: Any, path: str = "", base: T | None = None)
             if _enum_names_to_values(cls, errors, plain):
                 continue
             raise _config_error(cls, errors, path) from None
-        return typing.cast(T, getattr(checked, _WRAPPER_FIELD))
+        result = getattr(checked, _WRAPPER_FIELD)
+        wrong = _bools_taken_as_numbers(plain, result)
+        if wrong:
+            lines = []
+            for keys, value in wrong:
+                tp = _locate(cls, keys).tp
+                expected = _expected("enum", tp, {}) or _expected("literal_error", tp, {})
+                if expected is None or expected.endswith("?"):
+                    expected = "a number"
+                lines.append(f"{_dotted(path, keys)}: expected {expected}, got {value!r}")
+            raise ConfigError("\n".join(lines))
+        return typing.cast(T, result)
     raise ConfigError(f"{_where(path)}: too many enum names")  # pragma: no cover
 
 
@@ -572,12 +604,14 @@ class WorldSpec:
 
     cylinders rows ``[x, y, r, z_min, z_max]``; boxes rows of 6 numbers as ``World`` takes them
     (``[x_min, y_min, z_min, x_max, y_max, z_max]``). ``starts``/``goals`` (per drone, optional)
-    override ``start_center``/``goal_center`` + formation offsets.
+    override ``start_center``/``goal_center`` + formation offsets. With ``starts`` and ``goals``
+    the centres may be left out: they are then the centroids of the starts and of the goals, so
+    that after construction ``start_center`` and ``goal_center`` are never None.
     """
 
     cluttered_x: Vec2
-    start_center: Vec3
-    goal_center: Vec3
+    start_center: Vec3 | None = None
+    goal_center: Vec3 | None = None
     name: str = ""
     description: str = ""
     generator: ForestGenerator | None = None
@@ -599,6 +633,16 @@ class WorldSpec:
         if self.starts is not None and self.goals is not None:
             if len(self.starts) != len(self.goals):
                 raise ValueError("starts and goals must have the same length")
+            if len(self.starts) == 0:
+                raise ValueError("starts and goals: at least one drone")
+            for key, rows in (("start_center", self.starts), ("goal_center", self.goals)):
+                if getattr(self, key) is None:
+                    c = np.mean(np.asarray(rows, dtype=np.float64), axis=0)
+                    object.__setattr__(self, key, (float(c[0]), float(c[1]), float(c[2])))
+        elif self.start_center is None or self.goal_center is None:
+            raise ValueError(
+                "start_center and goal_center are required unless starts and goals are given"
+            )
 
     def endpoints(self, formation: Formation) -> tuple[np.ndarray, np.ndarray]:
         """(starts (N, 3), goals (N, 3)) for ``formation``."""
@@ -610,6 +654,7 @@ class WorldSpec:
                 )
             return np.array(self.starts, dtype=np.float64), np.array(self.goals, dtype=np.float64)
         offs = formation.centered
+        assert self.start_center is not None and self.goal_center is not None  # __post_init__
         return np.asarray(self.start_center) + offs, np.asarray(self.goal_center) + offs
 
     def build(self, seed: int, formation: Formation) -> tuple[World, np.ndarray, np.ndarray]:
@@ -765,8 +810,8 @@ def world_file(
         "boxes": rows(world.boxes),
         "ground_z": world.ground_z,
         "cluttered_x": [float(v) for v in spec.cluttered_x],
-        "start_center": [float(v) for v in spec.start_center],
-        "goal_center": [float(v) for v in spec.goal_center],
+        "start_center": [float(v) for v in spec.start_center or starts.mean(axis=0)],
+        "goal_center": [float(v) for v in spec.goal_center or goals.mean(axis=0)],
         "starts": rows(starts),
         "goals": rows(goals),
     }

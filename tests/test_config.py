@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import enum
 import json
-from dataclasses import dataclass
+import subprocess
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -18,6 +22,7 @@ from onboard.config import (
     load_planner_params,
     load_world_spec,
     parse_override,
+    world_file,
 )
 from onboard.planner.params import PlannerParams
 
@@ -270,3 +275,159 @@ def test_shipped_planner_file_equals_the_dataclass_defaults() -> None:
     from onboard.planner.params import PlannerParams
 
     assert load_planner_params() == PlannerParams()
+
+
+class _Colour(enum.Enum):
+    RED = "red"
+    BLUE = "blue"
+
+
+class _Level(enum.IntEnum):
+    LOW = 1
+    HIGH = 2
+
+
+@dataclass(frozen=True)
+class _Service:
+    """The kinds of fields a service config uses (nested, optional, enums, literals, dicts)."""
+
+    colour: _Colour = _Colour.RED
+    level: _Level = _Level.LOW
+    mode: Literal["fast", "slow"] = "fast"
+    port: int | str = 0
+    timeouts_s: dict[str, float] = field(default_factory=dict)
+    inners: dict[str, _Inner] = field(default_factory=dict)
+    pair: tuple[float, float] = (0.0, 1.0)
+    inner: _Inner = _Inner(a=5, b=(1.0,))
+    maybe_inner: _Inner | None = None
+
+    def __post_init__(self) -> None:
+        if self.inner.a < 0:
+            raise ValueError("inner.a must be >= 0")
+
+
+def test_from_mapping_enums_literals_dicts_unions() -> None:
+    s = from_mapping(
+        _Service,
+        {
+            "colour": "BLUE",
+            "level": 2,
+            "mode": "slow",
+            "port": "tty",
+            "timeouts_s": {"gcs": 5, "peer": 0.5},
+            "inners": {"x": {"a": 2}},
+            "maybe_inner": {"b": [3]},
+        },
+    )
+    assert s.colour is _Colour.BLUE and s.level is _Level.HIGH and s.mode == "slow"
+    assert s.port == "tty" and s.timeouts_s == {"gcs": 5.0, "peer": 0.5}
+    assert s.inners == {"x": _Inner(2, ())} and s.maybe_inner == _Inner(1, (3.0,))
+    assert from_mapping(_Service, {"colour": "blue", "level": "HIGH", "port": 7}) == _Service(
+        colour=_Colour.BLUE, level=_Level.HIGH, port=7
+    )
+    # numpy scalars and arrays are plain values
+    assert from_mapping(_Service, {"pair": np.array([1, 2.5])}).pair == (1.0, 2.5)
+    assert from_mapping(_Service, {"level": np.int64(2)}).level is _Level.HIGH
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"colour": "green"}, "svc.colour: expected one of ['red', 'blue'], got 'green'"),
+        ({"level": 3}, "svc.level: expected one of [1, 2], got 3"),
+        ({"level": True}, "svc.level: expected one of [1, 2], got True"),
+        ({"mode": "medium"}, "svc.mode: expected one of ['fast', 'slow'], got 'medium'"),
+        ({"port": 1.5}, "svc.port: expected an integer or a string, got 1.5"),
+        ({"timeouts_s": {"gcs": "5"}}, "svc.timeouts_s.gcs: expected a number, got '5'"),
+        ({"timeouts_s": [1]}, "svc.timeouts_s: expected a mapping, got [1]"),
+        ({"inners": {"x": {"c": 1}}}, "svc.inners.x.c: unknown key (known: ['a', 'b'])"),
+        ({"pair": [1, 2, 3]}, "svc.pair: expected a list of 2 items, got 3"),
+        ({"pair": [1]}, "svc.pair: expected a list of 2 items, got 1"),
+        ({"pair": [True, 1]}, "svc.pair[0]: expected a number, got True"),
+        ({"pair": [1, float("inf")]}, "svc.pair[1]: expected a finite number, got inf"),
+        ({"inner": None}, "svc.inner: expected a mapping, got None"),
+        ({"inner": {"a": -1}}, "svc: inner.a must be >= 0"),
+        ({"maybe_inner": {"a": "1"}}, "svc.maybe_inner.a: expected an integer, got '1'"),
+        ({"maybe_inner": 3}, "svc.maybe_inner: expected a mapping, got 3"),
+        ({"colour": b"red"}, "svc.colour: unsupported value b'red'"),
+        ({"bogus": 1}, "svc.bogus: unknown key (known: ['colour', 'inner', 'inners', "),
+    ],
+)
+def test_from_mapping_error_messages(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        from_mapping(_Service, data, "svc")
+    assert str(e.value).startswith(message), str(e.value)
+
+
+def test_from_mapping_reports_every_error_one_per_line() -> None:
+    with pytest.raises(ConfigError) as e:
+        from_mapping(_Service, {"mode": 1, "pair": [0, "x"], "nope": 2}, "svc")
+    lines = str(e.value).splitlines()
+    assert lines == [
+        "svc.mode: expected one of ['fast', 'slow'], got 1",
+        "svc.pair[1]: expected a number, got 'x'",
+        "svc.nope: unknown key (known: ['colour', 'inner', 'inners', 'level', 'maybe_inner', "
+        "'mode', 'pair', 'port', 'timeouts_s'])",
+    ]
+
+
+def test_from_mapping_partial_override_over_a_base() -> None:
+    base = from_mapping(_Service, {"colour": "blue", "inner": {"a": 9}})
+    assert base.inner == _Inner(9, (1.0,))  # filled in over the field's default, not _Inner()
+    s = from_mapping(_Service, {"mode": "slow", "inner": {"b": [2]}}, base=base)
+    assert s == _Service(colour=_Colour.BLUE, mode="slow", inner=_Inner(9, (2.0,)))
+    assert from_mapping(_Service, {}, base=s) == s
+    with pytest.raises(ConfigError, match=r"^svc\.inner\.a: expected an integer, got 1\.5"):
+        from_mapping(_Service, {"inner": {"a": 1.5}}, "svc", base=s)
+
+
+def test_from_mapping_accepts_no_booleans_or_strings_for_numbers() -> None:
+    for bad in (True, "1", "1.5", None, [1]):
+        with pytest.raises(ConfigError, match=r"^planner\.w_time: expected a number"):
+            load_planner_params(w_time=bad)
+    for bad in (2.0, "2", False):
+        with pytest.raises(ConfigError, match=r"^planner\.kappa: expected an integer"):
+            load_planner_params(kappa=bad)
+
+
+def test_world_with_explicit_starts_needs_no_centres(tmp_path: Path) -> None:
+    data = yaml.safe_load(EXPLICIT)
+    del data["start_center"], data["goal_center"]
+    spec = load_world_spec(_write(tmp_path, yaml.safe_dump(data), "bare.yaml"))
+    assert spec.start_center == (0.0, 0.0, 1.0) and spec.goal_center == (15.0, 0.0, 1.0)
+    pair = load_formation(_write(tmp_path, "points: [[0, 0, 0], [1, 0, 0]]\n"))
+    world, starts, goals = spec.build(0, pair)
+    assert np.array_equal(starts, [[0, 1, 1], [0, -1, 1]])
+    # exported again, it loads to the same world
+    again = load_world_spec(
+        _write(tmp_path, yaml.safe_dump(world_file(world, spec, starts, goals)), "again.yaml")
+    )
+    world2, starts2, goals2 = again.build(1, pair)
+    assert np.array_equal(world2.cylinders, world.cylinders)
+    assert np.array_equal(starts2, starts) and np.array_equal(goals2, goals)
+    del data["starts"], data["goals"]
+    with pytest.raises(ConfigError) as e:
+        load_world_spec(_write(tmp_path, yaml.safe_dump(data), "nothing.yaml"))
+    assert str(e.value).startswith(
+        "world: start_center and goal_center are required unless starts and goals are given"
+    )
+
+
+def test_config_loading_imports_no_numba_and_the_core_no_pydantic() -> None:
+    def loaded(code: str) -> set[str]:
+        out = subprocess.run(
+            [sys.executable, "-c", f"import sys\n{code}\nprint(*sorted(sys.modules))"],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return {m.split(".")[0] for m in out.stdout.split()}
+
+    config = loaded(
+        "from onboard.config import load_formation, load_world_spec, load_scenario\n"
+        "load_formation('hexagon-7'); load_world_spec('forest-medium')\n"
+        "load_scenario('tetrahedron-corridor')"
+    )
+    assert "pydantic" in config and "numba" not in config
+    core = loaded("import onboard.planner.planner, onboard.planner.objective, onboard.world")
+    assert "numba" in core and "pydantic" not in core
