@@ -1,4 +1,5 @@
-"""Trajectory sharing between drones: message types and peer-bus transports."""
+"""Swarm bus: message schema (``wire``), key expressions (``keys``), the receiving gate
+(``gate``), clock-offset estimates (``clock``), peer buses (in-memory, fault-injecting, Zenoh)."""
 
 from onboard.comm.bus import InMemoryBus, PeerBus
 from onboard.comm.messages import TrajectoryMsg
