@@ -1,6 +1,7 @@
-"""Fast-time swarm simulation: N onboard planners, an in-memory bus, perfect tracking.
+"""Fast-time swarm simulation: N onboard agents, an in-memory bus, perfect tracking.
 
-Every drone runs its own ``FormationPlanner`` on what it has sensed so far and on the latest
+Every drone is an ``onboard.agent.DroneAgent`` (the class the flight service runs), planning on
+what it has sensed so far and on the latest
 trajectories its peers broadcast (delivered with a delay). Drones track their trajectories
 perfectly; the simulation checks collisions against the full world at ``dt_s`` (100 Hz) and
 samples positions and the formation metric at 10 Hz. Simulated time runs as fast as the planner
@@ -9,7 +10,9 @@ allows; each plan call is timed with the wall clock.
 Timeline of one replan of drone i at simulated time t (every ``replan_period_s``, drone i offset
 by ``i * replan_period_s / N``): sense (obstacles with surface within ``sensing_radius_m`` join
 the drone's own map), read peers from the bus, plan from the state of the trajectory in flight at
-``t + plan_ahead_s``, publish at t; the new trajectory takes over at its start time.
+``t + plan_ahead_s``, publish at t; the new trajectory takes over at its start time (the
+agent's cycle). What the simulator adds: the sensing (``SensedWorld`` or ``MappedView``), perfect
+tracking of the trajectory in control, and the ``FlightMonitor`` that judges the flight.
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ import numpy as np
 
 from gcs.metrics import summary
 from gcs.monitor import CollisionEvent, FlightMonitor, MonitorConfig, Tracks
-from onboard.comm import InMemoryBus, TrajectoryMsg
+from onboard.agent import EPS_T, DroneAgent, MapSource, PlanInputs
+from onboard.comm import InMemoryBus
 from onboard.config import Formation, WorldSpec, load_planner_params
+from onboard.planner.field import AnalyticField, DistanceField
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -34,7 +39,6 @@ if TYPE_CHECKING:
     from onboard.planner.params import PlannerParams
     from onboard.planner.planner import PeerTrajectory
 
-_EPS_T = 1e-9
 PERCEPTIONS = ("ground-truth", "mapped")
 
 
@@ -241,47 +245,36 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-class _Drone:
-    """Simulation-side state of one drone (its planner, map and trajectories)."""
+class SensedWorld:
+    """A drone's map in the ground-truth perception: the exact distance to every obstacle whose
+    surface has come within ``radius_m`` of the drone at one of its replans (a ``MapSource``)."""
 
-    def __init__(
-        self, i: int, start: np.ndarray, goal: np.ndarray, planner: Any, ground_z: float | None
-    ) -> None:
-        self.i = i
-        self.goal = goal
-        self.planner = planner
-        self.current = Trajectory.hover(start, 0.0)
-        self.queue: list[Trajectory] = []  # published, not yet started; increasing t0_s
-        self.traj_id = 0
-        self.seen = World.empty(ground_z)
-        self.field = self.seen.field()
-        self.next_replan_s = 0.0
+    def __init__(self, world: World, radius_m: float) -> None:
+        self.world = world
+        self.radius_m = radius_m
+        self.seen = World.empty(world.ground_z)
+        self._field = AnalyticField(self.seen)
 
-    def flying(self, t: float) -> Trajectory:
-        """The trajectory that will be in control at time t (>= now)."""
-        out = self.current
-        for q in self.queue:
-            if t >= q.t0_s - _EPS_T:
-                out = q
-        return out
-
-    def advance(self, t: float) -> None:
-        """Hand control to every queued trajectory whose start time has come."""
-        while self.queue and t >= self.queue[0].t0_s - _EPS_T:
-            self.current = self.queue.pop(0)
-
-    def schedule(self, new: Trajectory) -> None:
-        """``new`` takes control at its start time, replacing what was queued from then on."""
-        if new is self.current or any(new is q for q in self.queue):
-            return
-        self.queue = [q for q in self.queue if q.t0_s < new.t0_s - _EPS_T]
-        self.queue.append(new)
-
-    def sense(self, world: World, p: np.ndarray, radius: float) -> None:
-        new = self.seen.merged(world.within(p, radius))
+    def snapshot(self, now_s: float, position: np.ndarray) -> DistanceField:
+        new = self.seen.merged(self.world.within(position, self.radius_m))
         if new.n_primitives != self.seen.n_primitives:
             self.seen = new
-            self.field = new.field()
+            self._field = AnalyticField(new)
+        return self._field
+
+
+class MappedView:
+    """The 'mapped' perception: the drone senses like ``SensedWorld`` (kept for the plan-call
+    records) but plans on the ESDF of its own simulated depth camera's map."""
+
+    def __init__(self, sensed: SensedWorld, eyes: Any) -> None:
+        self.sensed = sensed
+        self.eyes = eyes
+
+    def snapshot(self, now_s: float, position: np.ndarray) -> DistanceField:
+        self.sensed.snapshot(now_s, position)
+        field: DistanceField = self.eyes.field()
+        return field
 
 
 def _warm_up(planner: Any, starts: np.ndarray, peer_type: Any) -> float:
@@ -290,7 +283,7 @@ def _warm_up(planner: Any, starts: np.ndarray, peer_type: Any) -> float:
     peers = [peer_type(i, i, Trajectory.hover(starts[i], 0.0, 30.0)) for i in range(1, len(starts))]
     z3 = np.zeros(3)
     goal = starts[0] + np.array([3.0, 0.0, 0.0])
-    planner.plan(0.0, starts[0], z3, z3, goal, peers, World.empty().field(), None)
+    planner.plan(0.0, starts[0], z3, z3, goal, peers, AnalyticField(World.empty()), None)
     return time.perf_counter() - t0
 
 
@@ -304,7 +297,7 @@ def run_sim(
     recorder: called with every plan call's inputs before the call. progress: called about once
     per simulated second with (t_s, time_limit_s).
     """
-    from onboard.planner.planner import FormationPlanner, PeerTrajectory
+    from onboard.planner.planner import PeerTrajectory
 
     wall0 = time.perf_counter()
     world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
@@ -318,21 +311,50 @@ def run_sim(
     )
     silent = frozenset(cfg.silent_drones)
     bus = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
-    drones = [
-        _Drone(
+    sensed = [SensedWorld(world, cfg.sensing_radius_m) for _ in range(n)]
+    eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
+    maps: list[MapSource] = (
+        list(sensed) if eyes is None else [MappedView(sensed[i], eyes[i]) for i in range(n)]
+    )
+
+    def record(inputs: PlanInputs) -> None:
+        assert recorder is not None
+        i = inputs.drone_id
+        recorder(
+            PlanCall(
+                i,
+                inputs.slot,
+                inputs.t_start_s,
+                inputs.start_p,
+                inputs.start_v,
+                inputs.start_a,
+                inputs.goal,
+                inputs.peers,
+                sensed[i].seen,
+                inputs.previous,
+            )
+        )
+
+    agents = [
+        DroneAgent(
             i,
-            starts[i],
-            goals[i],
-            FormationPlanner(params, cfg.formation.points, i),
-            world.ground_z,
+            params,
+            cfg.formation.points,
+            i,
+            Trajectory.hover(starts[i], 0.0),
+            bus,
+            maps[i],
+            goal=goals[i],
+            replan_period_s=cfg.replan_period_s,
+            plan_ahead_s=cfg.plan_ahead_s,
+            first_replan_s=i * cfg.replan_period_s / n,
+            on_inputs=record if recorder is not None else None,
         )
         for i in range(n)
     ]
-    warmup_s = _warm_up(drones[0].planner, starts, PeerTrajectory) if cfg.warmup else 0.0
-    for d in drones:
-        d.next_replan_s = d.i * cfg.replan_period_s / n
-        bus.publish(TrajectoryMsg(d.i, d.traj_id, d.i, d.current), 0.0)
-    eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
+    warmup_s = _warm_up(agents[0].planner, starts, PeerTrajectory) if cfg.warmup else 0.0
+    for ag in agents:
+        ag.announce(0.0)
     next_frame_s = 0.0
 
     replan_ms: list[float] = []
@@ -340,30 +362,13 @@ def run_sim(
     evaluations: list[float] = []
     status_counts: dict[str, int] = {}
 
-    def replan(d: _Drone, t: float, p_now: np.ndarray) -> None:
-        d.sense(world, p_now, cfg.sensing_radius_m)
-        if eyes is not None:
-            d.field = eyes[d.i].field()
-        t_start = t + cfg.plan_ahead_s
-        flying = d.flying(t_start)
-        sp, sv, sa = flying.state(t_start)
-        msgs = bus.receive(d.i, t)
-        peers = tuple(
-            PeerTrajectory(m.drone_id, m.slot, m.trajectory) for _, m in sorted(msgs.items())
-        )
-        if recorder is not None:
-            recorder(PlanCall(d.i, d.i, t_start, sp, sv, sa, d.goal, peers, d.seen, flying))
-        c0 = time.perf_counter()
-        res = d.planner.plan(t_start, sp, sv, sa, d.goal, peers, d.field, flying)
-        replan_ms.append((time.perf_counter() - c0) * 1e3)
-        iterations.append(float(res.iterations))
-        evaluations.append(float(res.evaluations))
-        key = str(getattr(res.status, "value", res.status))
+    def replan(ag: DroneAgent, t: float, p_now: np.ndarray) -> None:
+        rep = ag.replan(t, p_now)
+        replan_ms.append(rep.plan_ms)
+        iterations.append(float(rep.iterations))
+        evaluations.append(float(rep.evaluations))
+        key = str(rep.status.value)
         status_counts[key] = status_counts.get(key, 0) + 1
-        new: Trajectory = res.trajectory
-        d.traj_id += 1
-        bus.publish(TrajectoryMsg(d.i, d.traj_id, d.i, new), t)
-        d.schedule(new)
 
     dt = cfg.dt_s
     mon = FlightMonitor(
@@ -386,27 +391,24 @@ def run_sim(
     vel = np.empty((n, 3))
 
     def velocities() -> np.ndarray:
-        for d in drones:
-            vel[d.i] = d.current.sample(t, order=1)
+        for i, ag in enumerate(agents):
+            vel[i] = ag.current.sample(t, order=1)
         return vel
 
     timed_out = True
     t = 0.0
     for k in range(n_steps_max + 1):
         t = k * dt
-        for d in drones:
-            d.advance(t)
-            pos[d.i] = d.current.sample(t)
-        if eyes is not None and t >= next_frame_s - _EPS_T:
-            for d in drones:
-                eyes[d.i].observe(t, pos[d.i], d.current.sample(t, order=1), d.goal)
+        for i, ag in enumerate(agents):
+            pos[i] = ag.advance(t).sample(t)
+        if eyes is not None and t >= next_frame_s - EPS_T:
+            for i, ag in enumerate(agents):
+                eyes[i].observe(t, pos[i], ag.current.sample(t, order=1), ag.goal)
             next_frame_s += 1.0 / cfg.camera_rate_hz
-        for d in sorted(drones, key=lambda q: q.next_replan_s):
-            if t >= d.next_replan_s - _EPS_T:
-                replan(d, t, pos[d.i].copy())
-                d.next_replan_s += cfg.replan_period_s
-                d.advance(t)
-                pos[d.i] = d.current.sample(t)
+        for i, ag in sorted(enumerate(agents), key=lambda q: q[1].next_replan_s):
+            if ag.due(t):
+                replan(ag, t, pos[i].copy())
+                pos[i] = ag.advance(t).sample(t)
         if mon.step(k, t, pos, velocities):
             timed_out = False
             break

@@ -1,0 +1,581 @@
+"""One drone's replan cycle: the same class in the fast-time simulator and in the flight service.
+
+A ``DroneAgent`` owns one drone's planner, its current and queued trajectories, its goal, its
+formation template and slot, and the replan timing. One cycle at time ``now`` (``replan``):
+
+1. map: ``map_source.snapshot(now, position)`` gives the distance field to plan on;
+2. state: the trajectory in control at ``t_start = now + plan_ahead_s`` and its (p, v, a) there;
+3. peers: the latest message of each peer from the bus (``PeerBus.receive``), sorted by id,
+   split into formation peers and peers that are only avoided (see below);
+4. plan: ``FormationPlanner.plan`` from that state, timed with ``timer`` (wall clock);
+5. publish the result on the bus at ``now``, then schedule it to take control at ``t_start``;
+6. the next replan is due one period later on the drone's own grid (or earlier on demand).
+
+Time is always passed in (global seconds): the simulator passes its simulated clock, the flight
+service the synchronised system clock. Nothing here sleeps or starts a thread.
+
+Peers are *avoided* by the planner in every case; they are also in the *formation* term unless
+the service excluded them (``set_peer_roles``), their message has expired (``valid_until_s``
+passed; they are forgotten ``peer_forget_s`` later), they fly another formation epoch, their
+slot lies outside the template, equals ours, or is claimed twice. Avoided-only peers take extra
+template rows whose formation-graph edges are masked out (an isolated vertex adds nothing to
+the similarity metric), so the formation among the others is unchanged.
+
+Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
+immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
+loop); ``advance``, ``schedule`` and ``reset`` lock; the setters (goal, formation, slot, peer
+roles), ``request_replan`` and ``cancel`` may be called from any thread; ``replan`` and
+``step`` run one at a time (a second caller waits).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from onboard.comm.bus import PeerBus
+from onboard.comm.messages import TrajectoryMsg
+from onboard.planner.field import DistanceField
+from onboard.planner.formation import complete_mask
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.trajectory import Trajectory
+
+EPS_T = 1e-9
+"""Times closer than this count as equal (a trajectory starting at t is in control at t)."""
+
+
+class MapSource(Protocol):
+    """Where the agent's distance field comes from (a sensed world, a mapping thread's ESDF)."""
+
+    def snapshot(self, now_s: float, position: np.ndarray) -> DistanceField:
+        """The field to plan on at ``now_s`` with the drone at ``position`` (ENU m); a source
+        that senses around the drone may update its map first. Must not be mutated later by
+        the source (hand out a new object when the map changes)."""
+        ...
+
+
+class StaticMap:
+    """A map that never changes (a known world, tests)."""
+
+    def __init__(self, field: DistanceField) -> None:
+        self.field = field
+
+    def snapshot(self, now_s: float, position: np.ndarray) -> DistanceField:
+        return self.field
+
+
+@dataclass(frozen=True, eq=False)
+class PlanInputs:
+    """Everything one plan call receives, in ``FormationPlanner(params, formation, slot,
+    edge_mask).plan(t_start_s, start_p, start_v, start_a, goal, peers, field, previous)``."""
+
+    drone_id: int
+    slot: int
+    t_start_s: float
+    start_p: np.ndarray
+    start_v: np.ndarray
+    start_a: np.ndarray
+    goal: np.ndarray
+    peers: tuple[PeerTrajectory, ...]
+    field: DistanceField
+    previous: Trajectory
+    formation: np.ndarray
+    """The template the planner used: the formation, plus one row per avoided-only peer."""
+    edge_mask: np.ndarray | None
+    """None: the complete graph; else the mask that isolates the avoided-only rows."""
+
+
+@dataclass(frozen=True, eq=False)
+class PlanReport:
+    """The outcome of one replan, as the service publishes it (status, timings, peers)."""
+
+    drone_id: int
+    seq: int
+    """Sequence number of the published trajectory message."""
+    planned_at_s: float
+    """Global time of the cycle (``now``); the message was published then."""
+    t_start_s: float
+    """Global time the new trajectory takes control."""
+    status: PlanStatus
+    message: str
+    trajectory: Trajectory
+    iterations: int
+    evaluations: int
+    plan_ms: float
+    """Wall time of the planner call alone."""
+    cycle_ms: float
+    """Wall time of the whole cycle (map snapshot, bus, planner, publish)."""
+    slot: int
+    formation_epoch: int
+    goal: np.ndarray
+    formation_peers: tuple[int, ...]
+    """Peers in the formation term, by drone id."""
+    avoided_peers: tuple[int, ...]
+    """Peers only avoided (excluded, expired, other epoch, bad or conflicting slot)."""
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The trajectory in control and the ones queued after it (increasing start times)."""
+
+    current: Trajectory
+    queue: tuple[Trajectory, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class _Assignment:
+    """What the drone is asked to do: goal, template, slot, epoch, peer roles."""
+
+    goal: np.ndarray | None
+    formation: np.ndarray
+    slot: int
+    epoch: int
+    avoid_only: frozenset[int]
+    ignore: frozenset[int]
+
+
+def _vec3(name: str, v: Sequence[float] | np.ndarray) -> np.ndarray:
+    a = np.array(v, dtype=np.float64, copy=True)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be a finite 3-vector, got {v!r}")
+    a.setflags(write=False)
+    return a
+
+
+def _template(formation: np.ndarray | Sequence[Sequence[float]]) -> np.ndarray:
+    F = np.array(formation, dtype=np.float64, copy=True)
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] < 1 or not np.all(np.isfinite(F)):
+        raise ValueError(f"formation must be a finite (N, 3) array, got shape {F.shape}")
+    F.setflags(write=False)
+    return F
+
+
+class DroneAgent:
+    """One drone: planner, trajectories, goal, formation slot and replan timing.
+
+    drone_id: the drone's id on the bus; params: planner limits and weights (the one owner);
+    formation: template (N, 3) ENU m; slot: this drone's row; initial: the trajectory in
+    control at the start (e.g. ``Trajectory.hover(p, t0)``); bus: where trajectories are
+    published and peers read (``PeerBus``); map_source: the distance field (``MapSource``).
+
+    goal: ENU m, None = no replans until one is set; replan_period_s: the replan grid;
+    plan_ahead_s: a new plan starts this long after the cycle that made it; first_replan_s:
+    the first grid point (None: the initial trajectory's start; the simulator staggers drones);
+    formation_epoch: the assignment the slot belongs to (peers of another epoch are avoided,
+    not formed with); validity_s: published messages are valid this long after publication
+    (inf: forever, the in-memory bus); peer_forget_s: an expired peer is still avoided this
+    long; on_inputs: called with every plan call's inputs before the call (records, replays);
+    on_plan: called with every ``PlanReport`` after the new trajectory is scheduled — the
+    service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
+    itself only reports; timer: wall clock for the timings (seconds, monotonic).
+    """
+
+    def __init__(
+        self,
+        drone_id: int,
+        params: PlannerParams,
+        formation: np.ndarray | Sequence[Sequence[float]],
+        slot: int,
+        initial: Trajectory,
+        bus: PeerBus,
+        map_source: MapSource,
+        *,
+        goal: np.ndarray | Sequence[float] | None = None,
+        replan_period_s: float = 1.0,
+        plan_ahead_s: float = 0.1,
+        first_replan_s: float | None = None,
+        formation_epoch: int = 0,
+        validity_s: float = math.inf,
+        peer_forget_s: float = 5.0,
+        on_inputs: Callable[[PlanInputs], None] | None = None,
+        on_plan: Callable[[PlanReport], None] | None = None,
+        timer: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
+            raise ValueError(f"replan_period_s must be > 0, got {replan_period_s!r}")
+        if not (math.isfinite(plan_ahead_s) and plan_ahead_s >= 0.0):
+            raise ValueError(f"plan_ahead_s must be >= 0, got {plan_ahead_s!r}")
+        if not validity_s > 0.0:
+            raise ValueError(f"validity_s must be > 0, got {validity_s!r}")
+        if not peer_forget_s >= 0.0:
+            raise ValueError(f"peer_forget_s must be >= 0, got {peer_forget_s!r}")
+        if not isinstance(initial, Trajectory):
+            raise TypeError(f"initial must be a Trajectory, got {type(initial).__name__}")
+        self.drone_id = int(drone_id)
+        self.params = params
+        self.bus = bus
+        self.map_source = map_source
+        self.replan_period_s = float(replan_period_s)
+        self.plan_ahead_s = float(plan_ahead_s)
+        self.validity_s = float(validity_s)
+        self.peer_forget_s = float(peer_forget_s)
+        self.on_inputs = on_inputs
+        self.on_plan = on_plan
+        self.timer = timer
+        self._traj_lock = threading.Lock()
+        self._cfg_lock = threading.Lock()
+        self._cycle_lock = threading.Lock()
+        self._plan = _Plan(initial)
+        F = _template(formation)
+        self._assign = _Assignment(
+            None if goal is None else _vec3("goal", goal),
+            F,
+            self._check_slot(slot, F),
+            self._check_epoch(formation_epoch),
+            frozenset(),
+            frozenset(),
+        )
+        self._planners: dict[tuple[int, bytes, int], FormationPlanner] = {}
+        self._active: FormationPlanner | None = None
+        self._next_replan_s = float(initial.t0_s if first_replan_s is None else first_replan_s)
+        if not math.isfinite(self._next_replan_s):
+            raise ValueError("first_replan_s must be finite")
+        self._demand_s = math.inf
+        self._seq = 0
+        self._last: PlanReport | None = None
+        self.status_counts: dict[str, int] = {}
+        """Replans by plan status value (``PlanStatus.value``)."""
+        self.avoided_count = 0
+        """Replans in which at least one peer was only avoided."""
+
+    # --- trajectories (any thread) ----------------------------------------------------------
+
+    @property
+    def current(self) -> Trajectory:
+        """The trajectory in control since the last ``advance``."""
+        return self._plan.current
+
+    @property
+    def queued(self) -> tuple[Trajectory, ...]:
+        """Published trajectories that have not taken control yet (increasing start times)."""
+        return self._plan.queue
+
+    def flying(self, t_s: float) -> Trajectory:
+        """The trajectory that will be in control at ``t_s`` (at or after the last advance)."""
+        plan = self._plan  # one immutable snapshot
+        out = plan.current
+        for q in plan.queue:
+            if t_s >= q.t0_s - EPS_T:
+                out = q
+        return out
+
+    def state(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position, velocity, acceleration) commanded at ``t_s``: the setpoint."""
+        return self.flying(t_s).state(t_s)
+
+    def advance(self, t_s: float) -> Trajectory:
+        """Hand control to every queued trajectory whose start time has come; the current."""
+        with self._traj_lock:
+            plan = self._plan
+            k = 0
+            while k < len(plan.queue) and t_s >= plan.queue[k].t0_s - EPS_T:
+                k += 1
+            if k:
+                plan = _Plan(plan.queue[k - 1], plan.queue[k:])
+                self._plan = plan
+            return plan.current
+
+    def schedule(self, new: Trajectory) -> None:
+        """``new`` takes control at its start time, replacing what was queued from then on."""
+        with self._traj_lock:
+            plan = self._plan
+            if new is plan.current or any(new is q for q in plan.queue):
+                return
+            keep = tuple(q for q in plan.queue if q.t0_s < new.t0_s - EPS_T)
+            self._plan = _Plan(plan.current, (*keep, new))
+
+    def reset(self, trajectory: Trajectory) -> None:
+        """``trajectory`` is in control now; everything queued is dropped (e.g. taking over
+        from the autopilot's own takeoff at the vehicle's position)."""
+        with self._traj_lock:
+            self._plan = _Plan(trajectory)
+
+    # --- assignment (any thread) ------------------------------------------------------------
+
+    @property
+    def goal(self) -> np.ndarray | None:
+        return self._assign.goal
+
+    @property
+    def formation(self) -> np.ndarray:
+        """The formation template (N, 3), read-only."""
+        return self._assign.formation
+
+    @property
+    def slot(self) -> int:
+        return self._assign.slot
+
+    @property
+    def formation_epoch(self) -> int:
+        return self._assign.epoch
+
+    def set_goal(self, goal: np.ndarray | Sequence[float] | None, replan: bool = True) -> None:
+        """A new goal (ENU m; None: stop replanning and keep the current trajectory); by
+        default the next ``due`` is at once."""
+        g = None if goal is None else _vec3("goal", goal)
+        with self._cfg_lock:
+            self._assign = dataclasses.replace(self._assign, goal=g)
+            if replan and g is not None:
+                self._demand_s = -math.inf
+        if g is None:
+            self.cancel()
+
+    def set_formation(
+        self,
+        formation: np.ndarray | Sequence[Sequence[float]],
+        slot: int,
+        epoch: int | None = None,
+        goal: np.ndarray | Sequence[float] | None = None,
+        replan: bool = True,
+    ) -> None:
+        """A new template and slot (and epoch; None: the current one + 1), optionally with a
+        new goal; takes effect at the next replan (at once by default)."""
+        F = _template(formation)
+        s = self._check_slot(slot, F)
+        g = None if goal is None else _vec3("goal", goal)
+        with self._cfg_lock:
+            e = self._assign.epoch + 1 if epoch is None else self._check_epoch(epoch)
+            self._assign = dataclasses.replace(
+                self._assign,
+                formation=F,
+                slot=s,
+                epoch=e,
+                goal=self._assign.goal if g is None else g,
+            )
+            if replan:
+                self._demand_s = -math.inf
+
+    def set_slot(self, slot: int, epoch: int | None = None, replan: bool = True) -> None:
+        """A new slot in the same template (and epoch; None: the current one + 1)."""
+        self.set_formation(self._assign.formation, slot, epoch, replan=replan)
+
+    def set_peer_roles(self, avoid_only: Iterable[int] = (), ignore: Iterable[int] = ()) -> None:
+        """Peers (drone ids) kept out of the formation term but still avoided, and peers not
+        considered at all. Replaces the previous sets."""
+        with self._cfg_lock:
+            self._assign = dataclasses.replace(
+                self._assign,
+                avoid_only=frozenset(int(i) for i in avoid_only),
+                ignore=frozenset(int(i) for i in ignore),
+            )
+
+    @staticmethod
+    def _check_slot(slot: int, formation: np.ndarray) -> int:
+        if int(slot) != slot or not 0 <= int(slot) < formation.shape[0]:
+            raise ValueError(f"slot {slot!r} is outside the formation of {formation.shape[0]}")
+        return int(slot)
+
+    @staticmethod
+    def _check_epoch(epoch: int) -> int:
+        if int(epoch) != epoch or epoch < 0:
+            raise ValueError(f"formation_epoch must be an integer >= 0, got {epoch!r}")
+        return int(epoch)
+
+    # --- timing -----------------------------------------------------------------------------
+
+    @property
+    def next_replan_s(self) -> float:
+        """The next replan time: the grid point or an earlier request."""
+        return min(self._next_replan_s, self._demand_s)
+
+    def due(self, now_s: float) -> bool:
+        """Is a replan due at ``now_s``? (Never while there is no goal.)"""
+        return self._assign.goal is not None and now_s >= self.next_replan_s - EPS_T
+
+    def request_replan(self, at_s: float | None = None) -> None:
+        """Replan at once (None) or by ``at_s``, whichever of it and the grid comes first."""
+        with self._cfg_lock:
+            self._demand_s = min(self._demand_s, -math.inf if at_s is None else float(at_s))
+
+    def cancel(self) -> None:
+        """Ask a running planner call (in another thread) to stop at its next evaluation; the
+        planner then keeps the previous trajectory if safe, else stops."""
+        p = self._active
+        if p is not None:
+            p.cancel()
+
+    # --- the cycle --------------------------------------------------------------------------
+
+    @property
+    def last(self) -> PlanReport | None:
+        """The latest replan's report."""
+        return self._last
+
+    @property
+    def planner(self) -> FormationPlanner:
+        """The planner of the current template and slot (all peers in the formation)."""
+        a = self._assign
+        return self._planner(a.formation, a.slot, 0)
+
+    def announce(self, now_s: float) -> None:
+        """Publish the trajectory in control (e.g. the initial hover) at ``now_s``."""
+        a = self._assign
+        self._publish(self.flying(now_s), a, now_s)
+
+    def step(self, now_s: float, position: np.ndarray | None = None) -> PlanReport | None:
+        """Advance to ``now_s`` and replan if due; the report, or None when not due."""
+        self.advance(now_s)
+        if not self.due(now_s):
+            return None
+        return self.replan(now_s, position)
+
+    def replan(self, now_s: float, position: np.ndarray | None = None) -> PlanReport:
+        """One cycle at ``now_s`` (see the module docstring), due or not.
+
+        position: where the drone is (ENU m), for map sources that sense around it; None: the
+        commanded position ``flying(now_s)`` at ``now_s``. Raises ValueError without a goal.
+        """
+        with self._cycle_lock:
+            return self._replan(float(now_s), position)
+
+    def _replan(self, now: float, position: np.ndarray | None) -> PlanReport:
+        c0 = self.timer()
+        with self._cfg_lock:
+            a = self._assign
+            self._demand_s = math.inf
+        if a.goal is None:
+            raise ValueError(f"drone {self.drone_id}: no goal to plan to")
+        p_now = self.flying(now).sample(now) if position is None else position
+        field = self.map_source.snapshot(now, p_now)
+        t_start = now + self.plan_ahead_s
+        flying = self.flying(t_start)
+        sp, sv, sa = flying.state(t_start)
+        msgs = self.bus.receive(self.drone_id, now)
+        formed, avoided = self._split_peers(msgs, a, now)
+        n_form = a.formation.shape[0]
+        peers = tuple(PeerTrajectory(m.drone_id, m.slot, m.trajectory) for m in formed) + tuple(
+            PeerTrajectory(m.drone_id, n_form + k, m.trajectory) for k, m in enumerate(avoided)
+        )
+        planner = self._planner(a.formation, a.slot, len(avoided))
+        if self.on_inputs is not None:
+            self.on_inputs(
+                PlanInputs(
+                    self.drone_id,
+                    a.slot,
+                    t_start,
+                    sp,
+                    sv,
+                    sa,
+                    a.goal,
+                    peers,
+                    field,
+                    flying,
+                    planner.formation,
+                    None if not avoided else planner.mask,
+                )
+            )
+        self._active = planner
+        p0 = self.timer()
+        try:
+            res = planner.plan(t_start, sp, sv, sa, a.goal, peers, field, flying)
+        finally:
+            self._active = None
+        plan_ms = (self.timer() - p0) * 1e3
+        new = res.trajectory
+        seq = self._publish(new, a, now)
+        self.schedule(new)
+        while self._next_replan_s <= now + EPS_T:
+            self._next_replan_s += self.replan_period_s
+        key = str(res.status.value)
+        self.status_counts[key] = self.status_counts.get(key, 0) + 1
+        if avoided:
+            self.avoided_count += 1
+        report = PlanReport(
+            drone_id=self.drone_id,
+            seq=seq,
+            planned_at_s=now,
+            t_start_s=t_start,
+            status=res.status,
+            message=res.message,
+            trajectory=new,
+            iterations=int(res.iterations),
+            evaluations=int(res.evaluations),
+            plan_ms=plan_ms,
+            cycle_ms=(self.timer() - c0) * 1e3,
+            slot=a.slot,
+            formation_epoch=a.epoch,
+            goal=a.goal,
+            formation_peers=tuple(m.drone_id for m in formed),
+            avoided_peers=tuple(m.drone_id for m in avoided),
+        )
+        self._last = report
+        if self.on_plan is not None:
+            self.on_plan(report)
+        return report
+
+    def _publish(self, traj: Trajectory, a: _Assignment, now: float) -> int:
+        seq = self._seq
+        self._seq += 1
+        msg = TrajectoryMsg(
+            self.drone_id,
+            seq,
+            a.slot,
+            traj,
+            formation_epoch=a.epoch,
+            valid_until_s=now + self.validity_s,
+        )
+        self.bus.publish(msg, now)
+        return seq
+
+    def _split_peers(
+        self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float
+    ) -> tuple[list[TrajectoryMsg], list[TrajectoryMsg]]:
+        """(formation peers, avoided-only peers), each by increasing drone id."""
+        formed: list[TrajectoryMsg] = []
+        avoided: list[TrajectoryMsg] = []
+        n = a.formation.shape[0]
+        for pid in sorted(msgs):
+            m = msgs[pid]
+            if pid in a.ignore or pid == self.drone_id:
+                continue
+            if now > m.valid_until_s + self.peer_forget_s:
+                continue
+            if (
+                pid in a.avoid_only
+                or now > m.valid_until_s
+                or m.formation_epoch != a.epoch
+                or not 0 <= m.slot < n
+                or m.slot == a.slot
+            ):
+                avoided.append(m)
+            else:
+                formed.append(m)
+        claims = Counter(m.slot for m in formed)
+        if any(c > 1 for c in claims.values()):
+            avoided = sorted(
+                avoided + [m for m in formed if claims[m.slot] > 1], key=lambda m: m.drone_id
+            )
+            formed = [m for m in formed if claims[m.slot] == 1]
+        return formed, avoided
+
+    def _planner(self, formation: np.ndarray, slot: int, n_avoided: int) -> FormationPlanner:
+        """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached)."""
+        key = (slot, formation.tobytes(), n_avoided)
+        hit = self._planners.get(key)
+        if hit is not None:
+            return hit
+        if len(self._planners) > 16:
+            self._planners.clear()
+        if n_avoided == 0:
+            planner = FormationPlanner(self.params, formation, slot)
+        else:
+            n = formation.shape[0]
+            F = np.vstack([formation, np.zeros((n_avoided, 3))])
+            mask = np.zeros((n + n_avoided, n + n_avoided))
+            mask[:n, :n] = complete_mask(n)
+            params = self.params
+            if params.formation_penalty == "relative":
+                # fixed offsets ignore the edge mask: no formation term while some are avoided
+                params = dataclasses.replace(params, w_formation=0.0)
+            planner = FormationPlanner(params, F, slot, edge_mask=mask)
+        self._planners[key] = planner
+        return planner

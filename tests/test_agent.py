@@ -1,0 +1,307 @@
+"""DroneAgent: one drone's replan cycle with an injected clock, bus and map."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from onboard.agent import DroneAgent, PlanInputs, PlanReport, StaticMap
+from onboard.comm import InMemoryBus, TrajectoryMsg
+from onboard.planner.field import AnalyticField
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+TRIANGLE = np.array([[0.0, 0.0, 0.0], [-1.0, 1.5, 0.0], [-1.0, -1.5, 0.0]])
+PARAMS = PlannerParams(v_max_m_s=1.0)
+EMPTY = StaticMap(AnalyticField(World.empty(0.0)))
+
+
+def _agent(
+    i: int,
+    bus: InMemoryBus,
+    start: np.ndarray,
+    goal: np.ndarray | None,
+    **kw: object,
+) -> DroneAgent:
+    return DroneAgent(
+        i,
+        PARAMS,
+        TRIANGLE,
+        i,
+        Trajectory.hover(start, 0.0),
+        bus,
+        kw.pop("map_source", EMPTY),  # type: ignore[arg-type]
+        goal=goal,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _hover_msg(i: int, p: np.ndarray, slot: int, **kw: object) -> TrajectoryMsg:
+    return TrajectoryMsg(i, 0, slot, Trajectory.hover(p, 0.0, 30.0), **kw)  # type: ignore[arg-type]
+
+
+def test_replan_grid_and_demand() -> None:
+    bus = InMemoryBus()
+    a = _agent(0, bus, np.array([0.0, 0, 1]), np.array([3.0, 0, 1]), first_replan_s=0.25)
+    assert not a.due(0.2) and a.due(0.25)
+    assert a.step(0.2) is None
+    rep = a.step(0.25)
+    assert rep is not None and a.next_replan_s == pytest.approx(1.25)
+    assert not a.due(1.0)
+    a.request_replan(at_s=0.6)
+    assert a.next_replan_s == 0.6 and a.due(0.6)
+    a.request_replan()  # at once
+    assert a.due(0.3)
+    a.replan(0.4)
+    # on demand between grid points: the grid stays (1.25), the request is used up
+    assert a.next_replan_s == pytest.approx(1.25)
+    # a stalled loop skips the grid points it missed instead of replanning in a burst
+    a.replan(3.6)
+    assert a.next_replan_s == pytest.approx(4.25)
+    # no goal: never due, and replan refuses
+    a.set_goal(None)
+    assert not a.due(100.0)
+    with pytest.raises(ValueError, match="no goal"):
+        a.replan(5.0)
+
+
+def test_trajectory_queue() -> None:
+    bus = InMemoryBus()
+    p0 = np.array([0.0, 0, 1])
+    a = _agent(0, bus, p0, None)
+    first = a.current
+    t1 = Trajectory.hover(p0 + 1.0, 1.0, 5.0)
+    t2 = Trajectory.hover(p0 + 2.0, 2.0, 5.0)
+    t3 = Trajectory.hover(p0 + 3.0, 1.5, 5.0)
+    a.schedule(t1)
+    a.schedule(t2)
+    assert a.queued == (t1, t2)
+    assert a.flying(0.5) is first and a.flying(1.0) is t1 and a.flying(2.5) is t2
+    a.schedule(t3)  # replaces what was queued from 1.5 on
+    assert a.queued == (t1, t3)
+    a.schedule(t3)  # scheduling the same object twice changes nothing
+    assert a.queued == (t1, t3)
+    assert a.advance(1.2) is t1 and a.queued == (t3,)
+    np.testing.assert_allclose(a.state(2.0)[0], p0 + 3.0)
+    a.reset(t2)
+    assert a.current is t2 and a.queued == ()
+
+
+def test_two_agents_plan_publish_and_see_each_other() -> None:
+    bus = InMemoryBus(delay_s=0.05)
+    starts = [np.array([0.0, 0, 1]), np.array([-1.0, 1.5, 1])]
+    goals = [s + np.array([4.0, 0, 0]) for s in starts]
+    inputs: list[PlanInputs] = []
+    reports: list[PlanReport] = []
+    agents = [
+        _agent(
+            i,
+            bus,
+            starts[i],
+            goals[i],
+            first_replan_s=0.5 * i,
+            on_inputs=inputs.append,
+            on_plan=reports.append,
+        )
+        for i in range(2)
+    ]
+    for ag in agents:
+        ag.announce(0.0)
+    for k in range(0, 1201):  # 12 s at 100 Hz, the clock passed in
+        t = k * 0.01
+        for ag in agents:
+            ag.step(t)
+    assert [r.drone_id for r in reports[:4]] == [0, 1, 0, 1]
+    assert all(r.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION) for r in reports)
+    # 50 ms bus delay: at t = 0 drone 0 sees nobody yet; at 0.5 s drone 1 sees drone 0
+    assert reports[0].formation_peers == () and reports[1].formation_peers == (0,)
+    assert all(r.avoided_peers == () for r in reports)
+    assert [r.seq for r in reports if r.drone_id == 0][:3] == [1, 2, 3]  # 0 was the announce
+    assert sum(agents[0].status_counts.values()) == len([r for r in reports if r.drone_id == 0])
+    # every plan starts plan_ahead_s after its cycle, from the state of the trajectory in control
+    for inp, rep in zip(inputs, reports, strict=True):
+        assert inp.t_start_s == pytest.approx(rep.planned_at_s + 0.1)
+        assert rep.plan_ms >= 0.0 and rep.cycle_ms >= rep.plan_ms
+    # what the peer received is what the agent flies
+    msg = bus.receive(1, 12.0)[0]
+    assert msg.trajectory is agents[0].flying(msg.trajectory.t0_s)
+    for ag, g in zip(agents, goals, strict=True):
+        np.testing.assert_allclose(ag.state(12.0)[0], g, atol=0.05)
+    assert agents[0].last is reports[-2] or agents[0].last is reports[-1]
+
+
+def test_goal_and_formation_change_mid_flight() -> None:
+    bus = InMemoryBus()
+    a = _agent(0, bus, np.array([0.0, 0, 1]), np.array([5.0, 0, 1]))
+    seen: list[PlanInputs] = []
+    a.on_inputs = seen.append
+    a.step(0.0)
+    assert not a.due(0.3)
+    a.set_goal([0.0, 4.0, 1.0])  # replans at once
+    assert a.due(0.3)
+    rep = a.step(0.3)
+    assert rep is not None and np.array_equal(rep.goal, [0.0, 4.0, 1.0])
+    np.testing.assert_array_equal(seen[-1].goal, [0.0, 4.0, 1.0])
+    line = np.array([[0.0, 0, 0], [0.0, 1.0, 0], [0.0, 2.0, 0], [0.0, 3.0, 0]])
+    a.set_formation(line, 2)  # new template and slot: epoch 0 -> 1
+    assert a.formation_epoch == 1 and a.slot == 2 and a.due(0.4)
+    rep = a.step(0.4)
+    assert rep is not None and rep.slot == 2 and rep.formation_epoch == 1
+    np.testing.assert_array_equal(seen[-1].formation, line)
+    msg = bus.receive(9, 0.5)[0]
+    assert (msg.slot, msg.formation_epoch) == (2, 1)
+    a.set_slot(3, epoch=7)
+    assert (a.slot, a.formation_epoch) == (3, 7)
+    with pytest.raises(ValueError, match="slot 4"):
+        a.set_slot(4)
+    with pytest.raises(ValueError, match="goal"):
+        a.set_goal([0.0, np.nan, 1.0])
+    with pytest.raises(ValueError, match="formation"):
+        a.set_formation(np.zeros((3, 2)), 0)
+
+
+def test_peers_outside_the_formation_are_avoided_not_formed_with() -> None:
+    bus = InMemoryBus()
+    me = np.array([0.0, 0, 1])
+    a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=2.0, peer_forget_s=3.0)
+    a.set_formation(TRIANGLE, 0, epoch=5, replan=False)
+    # 1 and 2 are fine; 3 claims our slot; 4 claims slot 2 too; 6 flies another epoch; 7 has
+    # no slot; 8 (slot 1, like 1) is valid until 0.5 s
+    cases = {
+        1: (1, 5),
+        2: (2, 5),
+        3: (0, 5),
+        4: (2, 5),
+        6: (1, 4),
+        7: (-1, 5),
+    }
+    for pid, (slot, epoch) in cases.items():
+        p = me + np.array([3.0, 2.0 * pid - 8.0, 0.0])
+        bus.publish(_hover_msg(pid, p, slot, formation_epoch=epoch), 0.0)
+    late = _hover_msg(8, me + np.array([2.0, 1.0, 0]), 1, formation_epoch=5, valid_until_s=0.5)
+    bus.publish(late, 0.0)
+    a.set_peer_roles(avoid_only=[1])
+    rep = a.replan(0.2)
+    # 1 excluded by the service, 2 and 4 share slot 2; 8 is valid until 0.5 s
+    assert rep.formation_peers == (8,)
+    assert rep.avoided_peers == (1, 2, 3, 4, 6, 7)
+    a.set_peer_roles()
+    rep = a.replan(1.0)
+    assert rep.formation_peers == (1,)  # 8 expired at 0.5; 2 and 4 still share slot 2
+    assert rep.avoided_peers == (2, 3, 4, 6, 7, 8)
+    a.set_peer_roles(ignore=[4])
+    rep = a.replan(4.0)  # 8 forgotten 3 s after it expired
+    assert rep.formation_peers == (1, 2) and rep.avoided_peers == (3, 6, 7)
+    assert a.avoided_count == 3
+
+
+def test_avoided_peer_adds_nothing_to_the_formation_term() -> None:
+    """The isolated template row of an avoided peer leaves the formation cost unchanged."""
+    me = np.array([0.0, 0, 1])
+    peer1 = PeerTrajectory(1, 1, Trajectory.hover(me + np.array([-1.0, 1.7, 0]), 0.0, 30.0))
+    intruder = Trajectory.hover(me + np.array([2.0, -0.3, 0]), 0.0, 30.0)
+    field = AnalyticField(World.empty(0.0))
+    goal = me + np.array([5.0, 0, 0])
+    z = np.zeros(3)
+
+    def terms(planner: FormationPlanner, peers: list[PeerTrajectory]) -> dict[str, float]:
+        prob = planner.prepare(0.0, me, z, z, goal, peers, field)
+        return prob.cost_terms(prob.x0)
+
+    bus = InMemoryBus()
+    a = _agent(0, bus, me, goal)
+    ext = a._planner(a.formation, 0, 1)
+    with_intruder = terms(ext, [peer1, PeerTrajectory(2, 3, intruder)])
+    without = terms(a.planner, [peer1])
+    assert with_intruder["formation"] == pytest.approx(without["formation"], rel=1e-12)
+    assert with_intruder["formation"] > 0.0
+    assert with_intruder["swarm"] > without["swarm"]  # the intruder is still avoided
+
+
+def test_conflicting_peer_is_avoided_in_the_plan() -> None:
+    bus = InMemoryBus()
+    me = np.array([0.0, 0, 1])
+    a = _agent(0, bus, me, me + np.array([6.0, 0, 0]))
+    blocker = Trajectory.hover(me + np.array([3.0, 0.3, 0]), 0.0, 60.0)
+    bus.publish(TrajectoryMsg(1, 0, 0, blocker), 0.0)  # claims our slot
+    rep = a.replan(0.0)
+    assert rep.avoided_peers == (1,) and rep.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    ts = np.linspace(rep.t_start_s, rep.trajectory.t_end_s, 400)
+    gap = np.linalg.norm(rep.trajectory.sample(ts) - blocker.sample(ts), axis=1)
+    assert gap.min() > PARAMS.check_drone_m
+
+
+def test_emergency_is_reported_and_the_policy_hook_decides() -> None:
+    """Inside an obstacle nothing is safe: the agent reports 'emergency', schedules the
+    planner's braking stop, and the hook (the service's policy) asks for a retry."""
+    wall = World(np.array([[0.0, 0.0, 0.5, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    bus = InMemoryBus()
+    decisions: list[str] = []
+
+    def policy(rep: PlanReport) -> None:
+        if rep.status in (PlanStatus.KEPT_PREVIOUS, PlanStatus.EMERGENCY):
+            decisions.append(rep.status.value)
+            a.request_replan(at_s=rep.planned_at_s + 0.2)
+
+    a = _agent(
+        0,
+        bus,
+        np.array([0.0, 0, 1]),
+        np.array([5.0, 0, 1]),
+        map_source=StaticMap(AnalyticField(wall)),
+        on_plan=policy,
+    )
+    rep = a.step(0.0)
+    assert rep is not None and rep.status is PlanStatus.EMERGENCY
+    assert a.flying(rep.t_start_s) is rep.trajectory
+    assert decisions == ["emergency"] and a.next_replan_s == pytest.approx(0.2)
+    assert a.status_counts == {"emergency": 1}
+
+
+def test_setpoint_reader_thread_sees_whole_trajectories() -> None:
+    """A 'setpoint thread' reads while the planning thread schedules and advances."""
+    bus = InMemoryBus()
+    p0 = np.array([0.0, 0, 1])
+    a = _agent(0, bus, p0, None)
+    made = [Trajectory.hover(p0 + [0.01 * k, 0, 0], 0.001 * k, 1.0) for k in range(1, 2001)]
+    allowed = {id(tr) for tr in made} | {id(a.current)}
+    bad: list[str] = []
+    stop = threading.Event()
+
+    def reader() -> None:
+        t = 0.0
+        while not stop.is_set():
+            tr = a.flying(t)
+            p, v, _ = a.state(t)
+            if id(tr) not in allowed or not np.all(np.isfinite(p)):
+                bad.append(f"t={t}")
+            t += 0.0005
+
+    th = threading.Thread(target=reader)
+    th.start()
+    try:
+        for k, tr in enumerate(made):
+            a.schedule(tr)
+            a.advance(0.001 * k)
+    finally:
+        stop.set()
+        th.join(5.0)
+    assert not th.is_alive() and bad == []
+    assert a.advance(10.0) is made[-1]
+
+
+def test_bad_construction() -> None:
+    bus = InMemoryBus()
+    hover = Trajectory.hover(np.zeros(3), 0.0)
+    with pytest.raises(ValueError, match="slot 3"):
+        DroneAgent(0, PARAMS, TRIANGLE, 3, hover, bus, EMPTY)
+    with pytest.raises(ValueError, match="replan_period_s"):
+        DroneAgent(0, PARAMS, TRIANGLE, 0, hover, bus, EMPTY, replan_period_s=0.0)
+    with pytest.raises(ValueError, match="goal"):
+        DroneAgent(0, PARAMS, TRIANGLE, 0, hover, bus, EMPTY, goal=[1.0, 2.0])
+    with pytest.raises(TypeError, match="initial"):
+        DroneAgent(0, PARAMS, TRIANGLE, 0, np.zeros(3), bus, EMPTY)  # type: ignore[arg-type]
