@@ -97,7 +97,8 @@ check-target: $(STAMP)
 		--platform manylinux_2_17_aarch64 --platform manylinux2014_aarch64 \
 		--python-version 3.10 --implementation cp \
 		$$($(PY) -c "from importlib.metadata import requires; \
-			print(*(r.replace(' ', '') for r in requires('swarm-formation') if 'extra' not in r))")
+			reqs = [r.replace(' ', '') for r in requires('swarm-formation')]; \
+			print(*(r for r in reqs if ';extra==' not in r))")
 	ls build/target-wheels
 
 clean:

@@ -184,18 +184,22 @@ def _fill(cls: type, data: dict[str, Any], base: Any, path: str) -> dict[str, An
     """``data`` completed from ``base`` (keys not given keep its values) and, for a nested
     dataclass given as a mapping, from that field's current value (partial override)."""
     out = dict(data)
+    hints: dict[str, Any] | None = None
     for f in dataclasses.fields(cls):
         if not f.init:
             continue
+        sub = f"{path}.{f.name}" if path else f.name
         if f.name in data:
             value = data[f.name]
-            if isinstance(value, dict):
-                default = _field_default(f, base)
-                if dataclasses.is_dataclass(default) and not isinstance(default, type):
-                    sub = f"{path}.{f.name}" if path else f.name
+            default = _field_default(f, base) if isinstance(value, dict) else None
+            if dataclasses.is_dataclass(default) and not isinstance(default, type):
+                # only where the field holds one dataclass type (``A`` or ``A | None``): the
+                # mapping of ``A | B`` may be meant for ``B``
+                hints = hints if hints is not None else typing.get_type_hints(cls)
+                if _members(hints[f.name]) == [type(default)]:
                     out[f.name] = _fill(type(default), value, default, sub)
         elif base is not None:
-            out[f.name] = _plain(getattr(base, f.name), path)
+            out[f.name] = _plain(getattr(base, f.name), sub)
     return out
 
 
