@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 _NUM = {"type": "number"}
 _VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
 _TIME = {
@@ -252,9 +254,9 @@ class FlightRecorder:
     def setpoint(
         self,
         t_s: float,
-        position: Sequence[float],
-        velocity: Sequence[float],
-        acceleration: Sequence[float],
+        position: Sequence[float] | np.ndarray,
+        velocity: Sequence[float] | np.ndarray,
+        acceleration: Sequence[float] | np.ndarray,
         yaw_rad: float,
     ) -> None:
         self.put(

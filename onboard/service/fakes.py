@@ -1,0 +1,209 @@
+"""In-memory edges for the service: an autopilot that tracks setpoints perfectly, a bus, a depth
+source. Driven by a clock passed in (tests, benchmarks of the service's own logic)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from onboard.planner.trajectory import Trajectory
+from onboard.service.ports import (
+    CommandFailed,
+    IncomingCommand,
+    PeerInfo,
+    SetpointSampler,
+    VehicleSnapshot,
+)
+from onboard.service.state import Command
+
+
+class FakeAutopilot:
+    """A PX4 stand-in. ``tick()`` advances it to ``clock()``: when armed in OFFBOARD with a
+    stream, it is exactly where the last setpoint says; in AUTO.LAND it descends at
+    ``land_speed_m_s`` and disarms on the ground. ``alive`` False silences its heartbeat."""
+
+    def __init__(self, clock: Callable[[], float], start: tuple[float, float, float] = (0, 0, 0)):
+        self.clock = clock
+        self.position = np.array(start, dtype=np.float64)
+        self.ground_z = float(start[2])
+        self.velocity = np.zeros(3)
+        self.yaw = 0.0
+        self.armed = False
+        self.mode = "AUTO.LOITER"
+        self.alive = True
+        self.last_heartbeat = clock()
+        self.sampler: SetpointSampler | None = None
+        self.setpoints: list[tuple[float, np.ndarray]] = []
+        self.calls: list[str] = []
+        self.deny: set[str] = set()
+        self.land_speed_m_s = 0.7
+        self._t = clock()
+
+    # ---- AutopilotPort ---------------------------------------------------------------------
+    def vehicle(self) -> VehicleSnapshot | None:
+        return VehicleSnapshot(
+            self._t,
+            self.position.copy(),
+            self.velocity.copy(),
+            self.yaw,
+            (math.cos(self.yaw / 2), 0.0, 0.0, math.sin(self.yaw / 2)),
+            self.armed,
+            self.landed,
+            self.mode,
+            15.8,
+        )
+
+    def heartbeat_age_s(self) -> float:
+        return self.clock() - self.last_heartbeat
+
+    def stream(self, sampler: SetpointSampler | None) -> None:
+        self.calls.append("stream" if sampler is not None else "stop")
+        self.sampler = sampler
+
+    @property
+    def streaming(self) -> bool:
+        return self.sampler is not None
+
+    def request_offboard(self) -> None:
+        self.calls.append("offboard")
+        if "offboard" in self.deny:
+            raise CommandFailed("OFFBOARD denied")
+        if self.sampler is None:
+            raise CommandFailed("no setpoint stream")
+        self.mode = "OFFBOARD"
+
+    def arm(self) -> None:
+        self.calls.append("arm")
+        if "arm" in self.deny:
+            raise CommandFailed("arming denied")
+        self.armed = True
+
+    def land(self) -> None:
+        self.calls.append("land")
+        self.mode = "AUTO.LAND"
+
+    def counters(self) -> dict[str, int]:
+        return {"setpoints": len(self.setpoints)}
+
+    def close(self) -> None:
+        self.sampler = None
+
+    # ---- simulation --------------------------------------------------------------------------
+    @property
+    def landed(self) -> bool:
+        return (
+            self.position[2] <= self.ground_z + 0.05 and float(np.linalg.norm(self.velocity)) < 0.1
+        )
+
+    def tick(self) -> None:
+        now = self.clock()
+        dt = max(now - self._t, 0.0)
+        self._t = now
+        if self.alive:
+            self.last_heartbeat = now
+        if self.sampler is not None:
+            sp = self.sampler(now)
+            if sp is not None:
+                self.setpoints.append((now, sp.position_m.copy()))
+                if self.armed and self.mode == "OFFBOARD":
+                    self.position = np.maximum(sp.position_m, [-1e9, -1e9, self.ground_z])
+                    self.velocity = sp.velocity_m_s.copy()
+                    self.yaw = sp.yaw_rad
+        if self.mode == "AUTO.LAND" and self.armed:
+            self.velocity = np.array([0.0, 0.0, -self.land_speed_m_s])
+            self.position = self.position + self.velocity * dt
+            if self.position[2] <= self.ground_z:
+                self.position[2] = self.ground_z
+                self.velocity = np.zeros(3)
+                self.armed = False
+
+
+class FakeBus:
+    """The swarm bus in memory: what the service publishes is kept in lists; tests set
+    ``peer_infos``, queue ``commands`` and set ``gcs_heard``."""
+
+    def __init__(self) -> None:
+        self.trajectories: list[tuple[int, int, int, Trajectory, float]] = []
+        self.states: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.acks: list[tuple[int, bool, str]] = []
+        self.peer_infos: dict[int, PeerInfo] = {}
+        self.commands: list[IncomingCommand] = []
+        self.gcs_heard: float | None = None
+        self._next_id = 1
+
+    def send(self, command: Command, heard_s: float | None = None) -> int:
+        cid = self._next_id
+        self._next_id += 1
+        self.commands.append(IncomingCommand(cid, command))
+        if heard_s is not None:
+            self.gcs_heard = heard_s
+        return cid
+
+    def ack_of(self, cmd_id: int) -> tuple[bool, str]:
+        for c, ok, why in self.acks:
+            if c == cmd_id:
+                return ok, why
+        raise KeyError(f"no ack for command {cmd_id}")
+
+    # ---- SwarmBusPort ------------------------------------------------------------------------
+    def publish_trajectory(
+        self, traj_id: int, slot: int, epoch: int, trajectory: Trajectory, valid_for_s: float
+    ) -> None:
+        self.trajectories.append((traj_id, slot, epoch, trajectory, valid_for_s))
+
+    def publish_state(self, fields: dict[str, Any]) -> None:
+        self.states.append(fields)
+
+    def publish_status(self, fields: dict[str, Any]) -> None:
+        self.statuses.append(fields)
+
+    def ack(self, cmd_id: int, accepted: bool, reason: str) -> None:
+        self.acks.append((cmd_id, accepted, reason))
+
+    def peers(self) -> dict[int, PeerInfo]:
+        return dict(self.peer_infos)
+
+    def poll_commands(self) -> list[IncomingCommand]:
+        out, self.commands = self.commands, []
+        return out
+
+    def gcs_last_heard_s(self) -> float | None:
+        return self.gcs_heard
+
+    def counters(self) -> dict[str, int]:
+        return {"acks": len(self.acks)}
+
+    def close(self) -> None:
+        pass
+
+
+class FakeDepth:
+    """Depth frames of nothing (every pixel a far return) from the fake vehicle's pose while
+    ``on``; ``read`` gives one new frame per call."""
+
+    def __init__(self, clock: Callable[[], float], vehicle: FakeAutopilot) -> None:
+        from onboard.mapping.camera import CameraIntrinsics
+
+        self.clock = clock
+        self.vehicle = vehicle
+        self.on = True
+        self.intrinsics = CameraIntrinsics(32, 24, 16.0, 16.0, 16.0, 12.0, 0.2, 5.0)
+        self._last = -math.inf
+
+    def read(self) -> Any:
+        from onboard.mapping.camera import DepthFrame, look_rotation
+
+        now = self.clock()
+        if not self.on or now <= self._last:
+            return None
+        self._last = now
+        depth = np.zeros((24, 32), dtype=np.float32)  # no return: nothing mapped
+        rot = look_rotation(self.vehicle.yaw)
+        return DepthFrame(depth, now, self.vehicle.position + [0, 0, 0.05], rot, self.intrinsics)
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,171 @@
+"""What the service needs from its edges, as small interfaces: the autopilot link, the swarm bus,
+the depth source and the replanner. The process wires real implementations
+(``onboard.service.adapters``); the tests wire in-memory fakes (``tests/service_fakes.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from onboard.planner.trajectory import Trajectory
+from onboard.service.state import Command
+
+
+@dataclass(frozen=True, eq=False)
+class VehicleSnapshot:
+    """The autopilot's latest telemetry, ENU. ``t_s``: global time of the sample; ``mode``: PX4
+    mode name (``OFFBOARD``, ``AUTO.LAND``, ``AUTO.LOITER``, ``POSCTL`` ...); ``landed``: the
+    landed state says on the ground."""
+
+    t_s: float
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+    yaw_rad: float
+    attitude_wxyz: tuple[float, float, float, float]
+    armed: bool
+    landed: bool
+    mode: str
+    battery_v: float | None = None
+
+    @property
+    def on_ground(self) -> bool:
+        return self.landed and not self.armed
+
+
+@dataclass(frozen=True, eq=False)
+class Setpoint:
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+    acceleration_m_s2: np.ndarray
+    yaw_rad: float
+
+
+SetpointSampler = Callable[[float], "Setpoint | None"]
+"""Global time -> the setpoint to send now (None: send nothing this period)."""
+
+
+class CommandFailed(RuntimeError):
+    """An autopilot command was denied, failed or timed out (the message says which)."""
+
+
+class AutopilotPort(Protocol):
+    def vehicle(self) -> VehicleSnapshot | None:
+        """The latest telemetry (None before the first)."""
+        ...
+
+    def heartbeat_age_s(self) -> float:
+        """Seconds since the autopilot's last HEARTBEAT (inf before the first)."""
+        ...
+
+    def stream(self, sampler: SetpointSampler | None) -> None:
+        """Start streaming setpoints from ``sampler`` at the configured rate (with the companion
+        heartbeat), or stop at once (None)."""
+        ...
+
+    @property
+    def streaming(self) -> bool: ...
+
+    def request_offboard(self) -> None:
+        """Switch to OFFBOARD (setpoints must already flow); raises ``CommandFailed``."""
+        ...
+
+    def arm(self) -> None: ...
+
+    def land(self) -> None: ...
+
+    def counters(self) -> dict[str, int]: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True, eq=False)
+class PeerInfo:
+    """A peer's latest trajectory as the bus delivered it."""
+
+    drone_id: int
+    slot: int
+    formation_epoch: int
+    trajectory: Trajectory
+    valid_until_s: float
+    received_s: float
+
+
+@dataclass(frozen=True)
+class IncomingCommand:
+    cmd_id: int
+    command: Command
+
+
+class SwarmBusPort(Protocol):
+    def publish_trajectory(
+        self, traj_id: int, slot: int, epoch: int, trajectory: Trajectory, valid_for_s: float
+    ) -> None: ...
+
+    def publish_state(self, fields: dict[str, Any]) -> None: ...
+
+    def publish_status(self, fields: dict[str, Any]) -> None: ...
+
+    def ack(self, cmd_id: int, accepted: bool, reason: str) -> None: ...
+
+    def peers(self) -> dict[int, PeerInfo]:
+        """The latest accepted trajectory of every peer heard."""
+        ...
+
+    def poll_commands(self) -> list[IncomingCommand]:
+        """Commands addressed to this drone since the last call (decoded and checked)."""
+        ...
+
+    def gcs_last_heard_s(self) -> float | None:
+        """Global time the ground station was last heard (command or liveliness)."""
+        ...
+
+    def counters(self) -> dict[str, int]: ...
+
+    def close(self) -> None: ...
+
+
+def braking_trajectory(
+    t0_s: float, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_max_m_s2: float
+) -> Trajectory:
+    """One quintic piece from (p, v, a) to rest, then hovering there: a braking stop that
+    decelerates at about a third of ``a_max_m_s2``."""
+    from onboard.planner.minco import Minco
+
+    p = np.asarray(p, dtype=np.float64).reshape(3)
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    a = np.asarray(a, dtype=np.float64).reshape(3)
+    speed = float(np.linalg.norm(v))
+    tb = max(0.5, 3.0 * speed / max(a_max_m_s2, 1e-3))
+    m = Minco(1)
+    z = np.zeros(3)
+    m.set_conditions(np.stack([p, v, a]), np.stack([p + 0.5 * tb * v, z, z]))
+    m.set_parameters(np.zeros((0, 3)), np.array([tb]))
+    return Trajectory(t0_s, m.coeffs, np.array([tb]))
+
+
+def climb_trajectory(
+    t0_s: float, start: np.ndarray, height_m: float, speed_m_s: float
+) -> Trajectory:
+    """A vertical climb of ``height_m`` from rest to rest at about ``speed_m_s``."""
+    from onboard.planner.minco import Minco
+
+    s = np.asarray(start, dtype=np.float64).reshape(3)
+    T = max(1.0, 1.875 * abs(height_m) / max(speed_m_s, 1e-3))  # peak speed of a rest-to-rest
+    m = Minco(1)
+    z = np.zeros(3)
+    m.set_conditions(np.stack([s, z, z]), np.stack([s + [0.0, 0.0, height_m], z, z]))
+    m.set_parameters(np.zeros((0, 3)), np.array([T]))
+    return Trajectory(t0_s, m.coeffs, np.array([T]))
+
+
+def heading_of(v: np.ndarray, previous: float, min_speed_m_s: float = 0.2) -> float:
+    """ENU yaw that faces the direction of horizontal motion (the camera looks ahead), or the
+    previous yaw when slower than ``min_speed_m_s``."""
+    if math.hypot(float(v[0]), float(v[1])) < min_speed_m_s:
+        return previous
+    return math.atan2(float(v[1]), float(v[0]))

@@ -1,0 +1,912 @@
+"""The flight service of one drone: the loops around the flight state machine.
+
+Threads (each loop is a ``*_step`` method the tests call directly with an injected clock):
+
+- the autopilot link's own receive and setpoint threads (``AutopilotPort``): the setpoint thread
+  calls ``sample_setpoint`` at 50 Hz, which only evaluates the trajectory in control (no lock
+  held by anyone for long, no I/O);
+- ``depth``: frames at camera rate into the rolling map; the planner's ESDF snapshot refreshed
+  at ``mapping.esdf_rate_hz`` (a new immutable field object each time: the planner and the
+  monitor always read a consistent one);
+- ``planner``: a replan every ``planning.replan_period_s`` and at once when asked (new goal,
+  the monitor's prediction);
+- ``monitor``: at ``planning.monitor_rate_hz`` the trajectory in control is checked against the
+  map, the peers' latest trajectories and the geofence over ``monitor_horizon_s``; a predicted
+  conflict asks for a replan at once, and if the conflict is still there after it, brakes;
+- ``actions``: autopilot commands that wait for acknowledgements (offboard, arm, land), so the
+  main loop never blocks;
+- the main loop (``main_step``): ground-station commands, the reactions, the state machine's
+  timers, state (10 Hz) and status (1 Hz) publishing, the flight record, the watchdog.
+
+Only the main loop touches the state machine; the other threads read an immutable ``Intent``
+that it publishes, and post their results back through a queue.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from onboard.planner.planner import PlanStatus
+from onboard.planner.trajectory import Trajectory
+from onboard.record import FlightRecorder, flight_file_name
+from onboard.service.config import OnboardConfig
+from onboard.service.logs import event
+from onboard.service.planning import Replanner, inside_box, split_peers, warm_up
+from onboard.service.ports import (
+    AutopilotPort,
+    CommandFailed,
+    IncomingCommand,
+    Setpoint,
+    SwarmBusPort,
+    VehicleSnapshot,
+    braking_trajectory,
+    climb_trajectory,
+    heading_of,
+)
+from onboard.service.sdnotify import Notifier
+from onboard.service.state import (
+    COMMANDING,
+    Command,
+    CommandResult,
+    FlightState,
+    FlightStateMachine,
+    Goal,
+    MachineParams,
+    Transition,
+    Waypoints,
+)
+
+log = logging.getLogger("onboard.service")
+
+S = FlightState
+_EPS_T = 1e-9
+
+
+@dataclass(frozen=True)
+class Intent:
+    """What the main loop wants the planner to do (immutable; swapped as a whole)."""
+
+    state: FlightState
+    goal: np.ndarray | None = None
+    """This drone's own goal: the formation goal plus its slot's offset."""
+    slot: int = -1
+    epoch: int = -1
+    points: tuple[tuple[float, float, float], ...] = ()
+
+
+@dataclass
+class Health:
+    """Last time each worker thread reported (monotonic seconds)."""
+
+    beats: dict[str, float] = field(default_factory=dict)
+
+    def beat(self, name: str) -> None:
+        self.beats[name] = time.monotonic()
+
+    def stalled(self, stall_s: float) -> list[str]:
+        now = time.monotonic()
+        return [k for k, t in self.beats.items() if now - t > stall_s]
+
+
+class FlightService:
+    """One drone's service. Edges are passed in (``autopilot``, ``bus``, ``depth`` a
+    ``onboard.sensors.DepthSource`` or None); ``clock`` is global time (seconds)."""
+
+    def __init__(
+        self,
+        config: OnboardConfig,
+        autopilot: AutopilotPort,
+        bus: SwarmBusPort,
+        depth: Any = None,
+        clock: Callable[[], float] = time.time,
+        notifier: Notifier | None = None,
+        record_dir: Path | None = None,
+    ) -> None:
+        self.cfg = config
+        self.id = config.drone.id
+        self.ap = autopilot
+        self.bus = bus
+        self.depth = depth
+        self.clock = clock
+        self.notifier = notifier if notifier is not None else Notifier()
+        rec = config.record
+        self.record_dir = record_dir if record_dir is not None else Path(rec.directory)
+        self._record_enabled = rec.enabled
+        gf = config.geofence
+        self.machine = FlightStateMachine(
+            self.id,
+            clock,
+            MachineParams(
+                emergency_hover_s=config.flight.emergency_hover_s,
+                retry_after_s=config.planning.retry_after_s,
+                max_failed_s=config.planning.max_failed_s,
+                gcs_lost_action=config.reactions.gcs_lost.action,
+            ),
+            inside_geofence=lambda p: gf.contains(self._own_goal(np.asarray(p, dtype=float))),
+            listener=self._on_transition,
+        )
+        self.replanner = Replanner(config.planner)
+        self._transitions: list[Transition] = []
+        self._intent = Intent(S.IDLE)
+        self._results: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._actions: queue.Queue[tuple[str, Callable[[], None]] | None] = queue.Queue()
+        self._replan_now = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # guards the trajectory in control and the next one
+        self._current: Trajectory | None = None
+        self._next: Trajectory | None = None
+        self._yaw = 0.0
+        self._traj_id = 0
+        self._field: Any = None
+        self._ground_field: Any = None
+        self.mapper: Any = None
+        self._last_frame_s = -math.inf
+        self._last_esdf_s = -math.inf
+        self._offboard_seen = False
+        self._land_seen = False
+        self._depth_lost = False
+        self._link_ok = True
+        self._gcs_ok = True
+        self._started_s = clock()
+        self._last_state_pub = -math.inf
+        self._last_status_pub = -math.inf
+        self._last_plan_s = -math.inf
+        self._last_plan_monotonic = -math.inf
+        self._monitor_brake_at = -math.inf
+        self._plan_ms: list[float] = []
+        self._plan_status = ""
+        self._plan_stamp: float | None = None
+        self._last_event = ""
+        self.recorder: FlightRecorder | None = None
+        self.health = Health()
+        self.counters: dict[str, int] = {
+            "replans": 0,
+            "plans_failed": 0,
+            "monitor_replans": 0,
+            "monitor_brakes": 0,
+            "frames": 0,
+            "frames_rejected": 0,
+            "esdf_builds": 0,
+            "commands": 0,
+            "commands_rejected": 0,
+            "setpoints_sampled": 0,
+            "peers_dropped": 0,
+        }
+        self.ready = False
+        self._threads: list[threading.Thread] = []
+        self._warm_s = 0.0
+        self._last_watchdog = -math.inf
+
+    # ---- geometry helpers --------------------------------------------------------------------
+    def _own_goal(self, formation_goal: np.ndarray) -> np.ndarray:
+        """The formation goal plus this drone's offset in the formation (its slot's point minus
+        the template's centroid); the goal itself when no formation is known."""
+        m = self.machine
+        a = m.assignment if m.assignment is not None else m.pending
+        if a is None:
+            return formation_goal
+        slot = a.slot_of(self.id)
+        if slot is None:
+            return formation_goal
+        pts = np.asarray(a.points, dtype=np.float64)
+        return formation_goal + pts[slot] - pts.mean(axis=0)
+
+    # ---- trajectory in control (any thread) --------------------------------------------------
+    def set_trajectory(self, traj: Trajectory, replace_next: bool = True) -> None:
+        """``traj`` takes control now (or at its start time if that lies ahead)."""
+        with self._lock:
+            now = self.clock()
+            if traj.t0_s <= now + _EPS_T or self._current is None:
+                self._current = traj
+                if replace_next:
+                    self._next = None
+            else:
+                self._next = traj
+
+    def flying(self, t_s: float) -> Trajectory | None:
+        """The trajectory in control at ``t_s`` (>= now)."""
+        with self._lock:
+            if self._next is not None and t_s >= self._next.t0_s - _EPS_T:
+                return self._next
+            return self._current
+
+    def sample_setpoint(self, t_s: float) -> Setpoint | None:
+        """Called by the setpoint thread at 50 Hz: the trajectory in control at ``t_s``."""
+        with self._lock:
+            if self._next is not None and t_s >= self._next.t0_s - _EPS_T:
+                self._current, self._next = self._next, None
+            traj = self._current
+        if traj is None:
+            return None
+        p, v, a = traj.state(t_s)
+        self._yaw = heading_of(v, self._yaw)
+        self.counters["setpoints_sampled"] += 1
+        rec = self.recorder
+        if rec is not None:
+            rec.setpoint(t_s, p, v, a, self._yaw)
+        return Setpoint(p, v, a, self._yaw)
+
+    # ---- transitions -------------------------------------------------------------------------
+    def _on_transition(self, tr: Transition) -> None:
+        self._transitions.append(tr)
+
+    def _apply_transitions(self, veh: VehicleSnapshot | None) -> None:
+        while self._transitions:
+            tr = self._transitions.pop(0)
+            event(
+                log,
+                "transition",
+                source=tr.source.value,
+                target=tr.target.value,
+                reason=tr.reason,
+            )
+            self._last_event = f"{tr.source.value}->{tr.target.value}: {tr.reason}"
+            if tr.target is S.TAKEOFF:
+                self._open_record(tr.t_s)
+            if self.recorder is not None:
+                self.recorder.transition(tr.t_s, tr.source.value, tr.target.value, tr.reason)
+            self._enter(tr, veh)
+            if tr.target in (S.LANDED, S.IDLE) and self.recorder is not None:
+                self._close_record()
+        self._publish_intent()
+
+    def _enter(self, tr: Transition, veh: VehicleSnapshot | None) -> None:
+        """Actions on entering a state."""
+        now = tr.t_s
+        target = tr.target
+        if target not in COMMANDING:
+            self._offboard_seen = False
+        if target in (S.PILOT, S.LINK_LOST, S.IDLE, S.LANDED):
+            self.ap.stream(None)  # at once: never fight the pilot, never stream blind
+            return
+        if target is S.TAKEOFF:
+            self._queue_action("takeoff", self._do_takeoff)
+            return
+        if target is S.LANDING:
+            self.ap.stream(None)
+            self._land_seen = False
+            self._queue_action("land", self.ap.land)
+            return
+        if target in (S.HOVER, S.EMERGENCY):
+            self._brake(now, veh, keep_hover=tr.source is S.TAKEOFF)
+            if tr.source in (S.PILOT, S.LINK_LOST, S.EMERGENCY) and target is S.HOVER:
+                self._queue_action("resume", self._do_resume)
+            return
+        if target is S.FORMATION_FLIGHT:
+            self._replan_now.set()
+
+    def _brake(self, now: float, veh: VehicleSnapshot | None, keep_hover: bool = False) -> None:
+        """A braking stop from the state of the trajectory in control (or the vehicle)."""
+        traj = self.flying(now)
+        if keep_hover and traj is not None:
+            end = traj.end_position
+            self.set_trajectory(Trajectory.hover(end, now, 1.0))
+            return
+        if traj is not None:
+            p, v, a = traj.state(now)
+        elif veh is not None:
+            p, v, a = veh.position_m, veh.velocity_m_s, np.zeros(3)
+        else:
+            return
+        self.set_trajectory(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
+
+    def _publish_intent(self) -> None:
+        m = self.machine
+        a = m.assignment
+        goal = None if m.goal is None else self._own_goal(np.asarray(m.goal, dtype=float))
+        self._intent = Intent(
+            m.state,
+            goal,
+            -1 if a is None else (a.slot_of(self.id) if a.slot_of(self.id) is not None else -1),  # type: ignore[arg-type]
+            -1 if a is None else a.epoch,
+            () if a is None else a.points,
+        )
+
+    # ---- actions (the actions thread) --------------------------------------------------------
+    def _queue_action(self, name: str, fn: Callable[[], None]) -> None:
+        self._actions.put((name, fn))
+
+    def _do_takeoff(self) -> None:
+        veh = self.ap.vehicle()
+        if veh is None:
+            raise CommandFailed("no telemetry")
+        start = veh.position_m.copy()
+        self._yaw = veh.yaw_rad
+        now = self.clock()
+        self.set_trajectory(Trajectory.hover(start, now, 1.0))
+        self.ap.stream(self.sample_setpoint)
+        self.ap.request_offboard()
+        self.ap.arm()
+        alt = self.machine.takeoff_altitude_m or self.cfg.flight.takeoff_altitude_m
+        self.set_trajectory(
+            climb_trajectory(self.clock(), start, alt, self.cfg.flight.takeoff_speed_m_s)
+        )
+
+    def _do_resume(self) -> None:
+        veh = self.ap.vehicle()
+        if veh is None:
+            raise CommandFailed("no telemetry")
+        if self.flying(self.clock()) is None:
+            self.set_trajectory(Trajectory.hover(veh.position_m, self.clock(), 1.0))
+        self.ap.stream(self.sample_setpoint)
+        self.ap.request_offboard()
+
+    def actions_step(self, timeout_s: float = 0.2) -> bool:
+        """Run one queued action (the actions thread); False when there was none."""
+        try:
+            item = self._actions.get(timeout=timeout_s)
+        except queue.Empty:
+            return False
+        if item is None:
+            return False
+        name, fn = item
+        try:
+            fn()
+        except CommandFailed as e:
+            self._results.put(("action_failed", (name, str(e))))
+        else:
+            self._results.put(("action_done", name))
+        return True
+
+    # ---- depth (the depth thread) ------------------------------------------------------------
+    def _make_mapper(self) -> Any:
+        from onboard.mapping import LocalMapper
+
+        return LocalMapper(self.cfg.mapping.occupancy)
+
+    def depth_step(self) -> bool:
+        """Read and ingest one frame if there is one; refresh the ESDF when due."""
+        if self.depth is None:
+            return False
+        frame = self.depth.read()
+        if frame is None:
+            return False
+        if self.mapper is None:
+            self.mapper = self._make_mapper()
+        res = self.mapper.ingest(frame, step=self.cfg.depth.step)
+        now = self.clock()
+        if not res.accepted:
+            self.counters["frames_rejected"] += 1
+            return True
+        self.counters["frames"] += 1
+        self._last_frame_s = now
+        if now - self._last_esdf_s >= 1.0 / self.cfg.mapping.esdf_rate_hz - 1e-3:
+            self._field = self.mapper.planning_field()
+            self._last_esdf_s = now
+            self.counters["esdf_builds"] += 1
+        return True
+
+    def field(self) -> Any:
+        """The distance field to plan on: the latest ESDF snapshot, or the ground alone when the
+        service has no camera."""
+        if self._field is not None:
+            return self._field
+        if self.depth is None:
+            if self._ground_field is None:
+                from onboard.world import World
+
+                self._ground_field = World.empty(self.cfg.geofence.min_enu_m[2]).field()
+            return self._ground_field
+        return None
+
+    # ---- planning (the planner thread) -------------------------------------------------------
+    def plan_step(self, reason: str = "period") -> PlanStatus | None:
+        """One replan if the intent is a formation flight; posts the outcome to the main loop."""
+        it = self._intent
+        if it.state is not S.FORMATION_FLIGHT or it.goal is None or it.slot < 0:
+            return None
+        fld = self.field()
+        if fld is None:
+            return None
+        now = self.clock()
+        self._last_plan_s = now
+        self._last_plan_monotonic = time.monotonic()
+        t_start = now + self.cfg.planning.plan_ahead_s
+        flying = self.flying(t_start)
+        if flying is None:
+            return None
+        start = flying.state(t_start)
+        rc = self.cfg.reactions.peer_lost
+        split = split_peers(
+            self.bus.peers(),
+            now,
+            self.id,
+            it.slot,
+            it.epoch,
+            len(it.points),
+            rc.validity_s,
+            rc.avoid_for_s,
+        )
+        c0 = time.perf_counter()
+        res = self.replanner.plan(
+            it.points, it.slot, t_start, start, it.goal, split.formation, fld, flying
+        )
+        traj = res.trajectory
+        status = res.status
+        why = res.message
+        if status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
+            pl = self.replanner.planner(it.points, it.slot)
+            if not inside_box(traj, t_start, self.cfg.geofence):
+                status, why = PlanStatus.EMERGENCY, "plan leaves the geofence"
+            elif split.avoid_only:
+                safe, w = pl.check(traj, t_start, fld, split.avoid_only)
+                if not safe:
+                    status, why = PlanStatus.EMERGENCY, f"silent peer: {w}"
+            if status is PlanStatus.EMERGENCY:
+                traj = braking_trajectory(t_start, *start, self.cfg.planner.a_max_m_s2)
+        plan_ms = (time.perf_counter() - c0) * 1e3
+        self.set_trajectory(traj, replace_next=True)
+        self._traj_id += 1
+        if traj is not flying:
+            valid = max(traj.t_end_s - now, 0.0) + self.cfg.reactions.peer_lost.validity_s
+            self.bus.publish_trajectory(self._traj_id, it.slot, it.epoch, traj, min(valid, 600.0))
+        self._results.put(("plan", (status, plan_ms, why, len(split.formation), split.dropped)))
+        rec = self.recorder
+        if rec is not None:
+            rec.plan(
+                now,
+                status=status.value,
+                traj_id=self._traj_id,
+                reason=reason + (f": {why}" if why else ""),
+                plan_ms=plan_ms,
+                iterations=res.iterations,
+                evaluations=res.evaluations,
+                n_peers=len(split.formation),
+                t0_s=traj.t0_s,
+                durations_s=traj.durations_s,
+                coeffs=traj.coeffs.ravel(),
+                goal_enu_m=it.goal,
+            )
+        return status
+
+    # ---- the safety monitor (the monitor thread) ---------------------------------------------
+    def monitor_step(self) -> str:
+        """Check the trajectory in control over the horizon; '' when clear, else what was done
+        ('replan' or 'brake') and why."""
+        it = self._intent
+        if it.state not in (S.FORMATION_FLIGHT, S.HOVER, S.EMERGENCY):
+            return ""
+        fld = self.field()
+        now = self.clock()
+        traj = self.flying(now)
+        if traj is None:
+            return ""
+        p = self.cfg.planner
+        ts = np.arange(now, now + self.cfg.planning.monitor_horizon_s + 1e-9, 0.1)
+        pos = traj.sample(ts)
+        problem = ""
+        if fld is not None:
+            d, _ = fld.distance(pos)
+            k = int(np.argmin(d))
+            if d[k] < p.check_obstacle_m:
+                problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
+        if not problem:
+            rc = self.cfg.reactions.peer_lost
+            for pid, info in self.bus.peers().items():
+                if pid == self.id or now > info.received_s + rc.validity_s + rc.avoid_for_s:
+                    continue
+                dd = np.linalg.norm(pos - info.trajectory.sample(ts), axis=1)
+                k = int(np.argmin(dd))
+                if dd[k] < p.check_drone_m:
+                    problem = f"drone {pid} {dd[k]:.2f} m in {ts[k] - now:.1f} s"
+                    break
+        if not problem:
+            lo = np.asarray(self.cfg.geofence.min_enu_m)
+            hi = np.asarray(self.cfg.geofence.max_enu_m)
+            if not np.all((pos >= lo) & (pos <= hi)):
+                problem = "geofence"
+        if not problem:
+            return ""
+        if it.state is S.FORMATION_FLIGHT and now - self._last_plan_s > 0.3:
+            self.counters["monitor_replans"] += 1
+            self._replan_now.set()
+            return f"replan: {problem}"
+        if now - self._monitor_brake_at < 1.0:
+            return f"braking: {problem}"
+        self._monitor_brake_at = now
+        self.counters["monitor_brakes"] += 1
+        pp, vv, aa = traj.state(now)
+        self.set_trajectory(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2))
+        self._results.put(("monitor_brake", problem))
+        return f"brake: {problem}"
+
+    # ---- the main loop -----------------------------------------------------------------------
+    def _handle_command(self, inc: IncomingCommand) -> CommandResult:
+        cmd: Command = inc.command
+        self.counters["commands"] += 1
+        if isinstance(cmd, (Goal, Waypoints)) and self.depth is not None:
+            if self._field is None:
+                return CommandResult(False, "no map yet")
+        res = self.machine.command(cmd)
+        if not res.accepted:
+            self.counters["commands_rejected"] += 1
+        event(
+            log,
+            "command",
+            cmd_id=inc.cmd_id,
+            kind=type(cmd).__name__.lower(),
+            accepted=res.accepted,
+            reason=res.reason,
+        )
+        if self.recorder is not None:
+            self.recorder.event(
+                self.clock(),
+                f"command {inc.cmd_id} {type(cmd).__name__}: "
+                + ("accepted" if res.accepted else f"rejected ({res.reason})"),
+            )
+        if isinstance(cmd, (Goal, Waypoints)) and res.accepted:
+            self._replan_now.set()
+        return res
+
+    def _react(self, now: float, veh: VehicleSnapshot | None) -> None:
+        m = self.machine
+        # autopilot heartbeat
+        age = self.ap.heartbeat_age_s()
+        hb_timeout = self.cfg.autopilot.heartbeat_timeout_s
+        if age > hb_timeout and self._link_ok:
+            self._link_ok = False
+            event(log, "autopilot_lost", logging.WARNING, heartbeat_age_s=age)
+            self.ap.stream(None)
+            m.link_lost()
+        elif age <= hb_timeout and not self._link_ok:
+            self._link_ok = True
+            event(log, "autopilot_back", heartbeat_age_s=age)
+            m.link_restored()
+        if veh is not None and self._link_ok:
+            m.set_on_ground(veh.on_ground)
+            # the pilot (or PX4 itself) took the vehicle out of the service's mode
+            if m.state in COMMANDING:
+                if veh.mode == "OFFBOARD":
+                    self._offboard_seen = True
+                elif self._offboard_seen:
+                    m.pilot_took_over(veh.mode)
+            elif m.state is S.LANDING:
+                if veh.mode.endswith("LAND"):
+                    self._land_seen = True
+                elif self._land_seen and not veh.landed:
+                    m.pilot_took_over(veh.mode)
+        # depth frames
+        if self.depth is not None and m.state in COMMANDING:
+            silent = now - max(self._last_frame_s, self._started_s)
+            if silent > self.cfg.reactions.depth_lost.timeout_s and not self._depth_lost:
+                self._depth_lost = True
+                event(log, "depth_lost", logging.WARNING, silent_s=silent)
+                m.depth_lost()
+            elif silent <= self.cfg.reactions.depth_lost.timeout_s and self._depth_lost:
+                self._depth_lost = False
+                event(log, "depth_back")
+                m.depth_restored()
+        # ground station
+        heard = self.bus.gcs_last_heard_s()
+        since = now - (heard if heard is not None else self._started_s)
+        if since > self.cfg.reactions.gcs_lost.timeout_s and self._gcs_ok:
+            self._gcs_ok = False
+            event(log, "gcs_lost", logging.WARNING, silent_s=since)
+            m.gcs_lost()
+        elif since <= self.cfg.reactions.gcs_lost.timeout_s and not self._gcs_ok:
+            self._gcs_ok = True
+            event(log, "gcs_back")
+            m.gcs_restored()
+        # progress
+        if veh is not None:
+            if m.state is S.TAKEOFF and self.ap.streaming:
+                traj = self.flying(now)
+                if traj is not None and now >= traj.t_end_s and veh.armed:
+                    err = float(np.linalg.norm(veh.position_m - traj.end_position))
+                    if err < 0.25 and float(np.linalg.norm(veh.velocity_m_s)) < 0.3:
+                        m.takeoff_reached()
+            elif m.state is S.FORMATION_FLIGHT and m.goal is not None:
+                goal = self._own_goal(np.asarray(m.goal, dtype=float))
+                pc = self.cfg.planning
+                if (
+                    float(np.linalg.norm(veh.position_m - goal)) < pc.goal_tolerance_m
+                    and float(np.linalg.norm(veh.velocity_m_s)) < pc.arrival_speed_m_s
+                ):
+                    m.goal_reached()
+
+    def _drain_results(self) -> None:
+        m = self.machine
+        while True:
+            try:
+                kind, payload = self._results.get_nowait()
+            except queue.Empty:
+                return
+            if kind == "plan":
+                status, plan_ms, why, n_peers, dropped = payload
+                self.counters["replans"] += 1
+                self._plan_ms.append(plan_ms)
+                self._plan_status = status.value
+                self._plan_stamp = self.clock()
+                if dropped:
+                    self.counters["peers_dropped"] = len(dropped)
+                if status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
+                    m.plan_ok()
+                else:
+                    self.counters["plans_failed"] += 1
+                    event(log, "plan_failed", logging.WARNING, status=status.value, why=why)
+                    m.plan_failed(status.value)
+            elif kind == "monitor_brake":
+                event(log, "monitor_brake", logging.WARNING, why=payload)
+                m.plan_failed("emergency")
+            elif kind == "action_failed":
+                name, why = payload
+                event(log, "action_failed", logging.ERROR, action=name, why=why)
+                if self.recorder is not None:
+                    self.recorder.event(self.clock(), f"{name} failed: {why}", "error")
+                if name == "takeoff":
+                    self.ap.stream(None)
+                    m.takeoff_failed(why)
+            elif kind == "action_done":
+                event(log, "action_done", action=payload)
+
+    def main_step(self) -> None:
+        """One iteration of the main loop."""
+        now = self.clock()
+        veh = self.ap.vehicle()
+        for inc in self.bus.poll_commands():
+            res = self._handle_command(inc)
+            self.bus.ack(inc.cmd_id, res.accepted, res.reason)
+            self._apply_transitions(veh)
+        self._drain_results()
+        self._apply_transitions(veh)
+        self._react(now, veh)
+        self._apply_transitions(veh)
+        self.machine.tick()
+        self._apply_transitions(veh)
+        self._publish(now, veh)
+        if self.recorder is not None:
+            self.recorder.flush()
+
+    # ---- publishing --------------------------------------------------------------------------
+    def _publish(self, now: float, veh: VehicleSnapshot | None) -> None:
+        m = self.machine
+        a = m.assignment
+        slot = m.slot()
+        if veh is not None and now - self._last_state_pub >= 1.0 / self.cfg.bus.state_rate_hz:
+            self._last_state_pub = now
+            self.bus.publish_state(
+                {
+                    "flight_state": m.state.value,
+                    "measured_s": veh.t_s,
+                    "position_m": tuple(float(x) for x in veh.position_m),
+                    "velocity_m_s": tuple(float(x) for x in veh.velocity_m_s),
+                    "attitude_wxyz": veh.attitude_wxyz,
+                    "armed": veh.armed,
+                    "autopilot_mode": veh.mode,
+                    "slot": -1 if slot is None else slot,
+                    "formation_epoch": 0 if a is None else a.epoch,
+                }
+            )
+            if self.recorder is not None:
+                self.recorder.state(
+                    now,
+                    flight_state=m.state.value,
+                    position_enu_m=veh.position_m,
+                    velocity_enu_m_s=veh.velocity_m_s,
+                    yaw_enu_rad=veh.yaw_rad,
+                    armed=veh.armed,
+                    landed=veh.landed,
+                    mode=veh.mode,
+                    battery_v=veh.battery_v if veh.battery_v is not None else math.nan,
+                    quaternion_wxyz=veh.attitude_wxyz,
+                )
+        if now - self._last_status_pub >= 1.0 / self.cfg.bus.status_rate_hz:
+            self._last_status_pub = now
+            counters = self.all_counters()
+            ms = self._plan_ms
+            self.bus.publish_status(
+                {
+                    "flight_state": m.state.value,
+                    "plan_status": self._plan_status,
+                    "plan_stamp_s": self._plan_stamp,
+                    "plan_ms_last": ms[-1] if ms else 0.0,
+                    "plan_ms_max": max(ms) if ms else 0.0,
+                    "replans": self.counters["replans"],
+                    "links": [
+                        ("autopilot", self._link_ok, self.ap.heartbeat_age_s()),
+                        ("gcs", self._gcs_ok, None),
+                        ("depth", not self._depth_lost, None),
+                    ],
+                    "battery_v": None if veh is None else veh.battery_v,
+                    "counters": counters,
+                    "message": self._last_event[:200],
+                }
+            )
+            self._plan_ms = ms[-1:]
+            if self.recorder is not None:
+                self.recorder.counters(now, counters)
+
+    def all_counters(self) -> dict[str, int]:
+        out = {f"service.{k}": int(v) for k, v in self.counters.items()}
+        out.update({f"bus.{k}": int(v) for k, v in self.bus.counters().items()})
+        out.update({f"autopilot.{k}": int(v) for k, v in self.ap.counters().items()})
+        return out
+
+    # ---- flight records ----------------------------------------------------------------------
+    def _open_record(self, t_s: float) -> None:
+        if not self._record_enabled or self.recorder is not None:
+            return
+        path = self.record_dir / flight_file_name(self.id, t_s)
+        try:
+            self.recorder = FlightRecorder(
+                path,
+                self.id,
+                metadata={
+                    "swarm": self.cfg.drone.swarm,
+                    "autopilot": self.cfg.autopilot.implementation,
+                    "start_s": t_s,
+                },
+            )
+        except OSError as e:
+            event(log, "record_failed", logging.ERROR, path=str(path), why=str(e))
+            return
+        event(log, "record_open", path=str(path))
+
+    def _close_record(self) -> None:
+        rec = self.recorder
+        self.recorder = None
+        if rec is not None:
+            rec.close()
+            event(log, "record_closed", path=str(rec.path), messages=rec.written)
+
+    # ---- readiness and the process -----------------------------------------------------------
+    def link_up(self) -> bool:
+        return (
+            self.ap.heartbeat_age_s() <= self.cfg.autopilot.heartbeat_timeout_s
+            and self.ap.vehicle() is not None
+        )
+
+    def map_up(self) -> bool:
+        return self.depth is None or self._field is not None
+
+    def warm(self) -> float:
+        """Warm the planner (numba's cache) unless the config says not to."""
+        if self.cfg.planning.warm_up:
+            self._warm_s = warm_up(self.cfg.planner)
+        return self._warm_s
+
+    def _loop(self, name: str, period_s: float, step: Callable[[], Any]) -> None:
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self.health.beat(name)
+            try:
+                step()
+            except Exception:  # a worker that dies silently is worse: log, count, go on
+                log.exception("%s step failed", name)
+                self.counters[f"{name}_errors"] = self.counters.get(f"{name}_errors", 0) + 1
+            next_t += period_s
+            delay = next_t - time.monotonic()
+            if delay < 0:
+                next_t = time.monotonic()
+                delay = 0.0
+            self._stop.wait(delay)
+
+    def _planner_loop(self) -> None:
+        period = self.cfg.planning.replan_period_s
+        while not self._stop.is_set():
+            self.health.beat("planner")
+            asked = self._replan_now.wait(min(period, 0.5))
+            if self._stop.is_set():
+                return
+            due = time.monotonic() - self._last_plan_monotonic >= period
+            if not (asked or due):
+                continue
+            self._replan_now.clear()
+            try:
+                self.plan_step("asked" if asked else "period")
+            except Exception:
+                log.exception("planner step failed")
+                self.counters["planner_errors"] = self.counters.get("planner_errors", 0) + 1
+                self._last_plan_monotonic = time.monotonic()
+
+    def _depth_loop(self) -> None:
+        period = 1.0 / (2.0 * self.cfg.depth.rate_hz)
+        while not self._stop.is_set():
+            self.health.beat("depth")
+            try:
+                got = self.depth_step()
+            except Exception:
+                log.exception("depth step failed")
+                self.counters["depth_errors"] = self.counters.get("depth_errors", 0) + 1
+                got = False
+            if not got:
+                self._stop.wait(period)
+
+    def _actions_loop(self) -> None:
+        while not self._stop.is_set():
+            self.health.beat("actions")
+            self.actions_step(0.2)
+
+    def start_threads(self) -> None:
+        specs: list[tuple[str, Callable[[], None]]] = [
+            ("planner", self._planner_loop),
+            ("actions", self._actions_loop),
+            (
+                "monitor",
+                lambda: self._loop(
+                    "monitor", 1.0 / self.cfg.planning.monitor_rate_hz, self.monitor_step
+                ),
+            ),
+        ]
+        if self.depth is not None:
+            specs.append(("depth", self._depth_loop))
+        for name, target in specs:
+            t = threading.Thread(target=target, name=f"svc-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def run(self, ready_timeout_s: float = 60.0, duration_s: float | None = None) -> int:
+        """Start the workers, wait for READY, then run the main loop until ``stop()``."""
+        t0 = time.monotonic()
+        self.notifier.status("warming the planner")
+        warm_s = self.warm()
+        self.start_threads()
+        self.notifier.status("waiting for the autopilot and the map")
+        while not (self.link_up() and self.map_up()):
+            if self._stop.wait(0.05):
+                return 0
+            if time.monotonic() - t0 > ready_timeout_s:
+                event(
+                    log,
+                    "not_ready",
+                    logging.ERROR,
+                    link=self.link_up(),
+                    map=self.map_up(),
+                    waited_s=ready_timeout_s,
+                )
+                return 1
+        self.ready = True
+        ready_s = time.monotonic() - t0
+        self.notifier.ready(f"drone {self.id} ready")
+        event(log, "ready", start_to_ready_s=ready_s, warm_up_s=warm_s)
+        period = 1.0 / self.cfg.watchdog.main_loop_hz
+        end = math.inf if duration_s is None else time.monotonic() + duration_s
+        next_t = time.monotonic()
+        while not self._stop.is_set() and time.monotonic() < end:
+            self.health.beat("main")
+            self.main_step()
+            self._feed_watchdog()
+            next_t += period
+            self._stop.wait(max(next_t - time.monotonic(), 0.0))
+        return 0
+
+    def _feed_watchdog(self) -> None:
+        period = self.notifier.watchdog_period_s
+        if period is None:
+            return
+        stalled = self.health.stalled(self.cfg.watchdog.stall_s)
+        if stalled:
+            if time.monotonic() - self._last_watchdog > period:
+                event(log, "unhealthy", logging.ERROR, stalled=",".join(stalled))
+            return
+        if time.monotonic() - self._last_watchdog >= period / 2.0:
+            self._last_watchdog = time.monotonic()
+            self.notifier.watchdog()
+
+    def stop(self) -> None:
+        """Stop the workers and the stream; close the record (safe from a signal handler's
+        thread via ``request_stop``)."""
+        self._stop.set()
+        self._replan_now.set()
+        self._actions.put(None)
+        for t in self._threads:
+            t.join(5.0)
+        self._threads.clear()
+        self.ap.stream(None)
+        if self.recorder is not None:
+            self.recorder.flush()
+            self._close_record()
+
+    def request_stop(self) -> None:
+        self._stop.set()
+        self._replan_now.set()

@@ -1,0 +1,333 @@
+"""The flight service's logic with in-memory edges and a clock passed in: a nominal flight, and
+every reaction, each tested by cutting its input."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from onboard.config import merge_mappings
+from onboard.planner.minco import Minco
+from onboard.planner.trajectory import Trajectory
+from onboard.record import read_record
+from onboard.service.config import default_config_path, load_onboard_config
+from onboard.service.fakes import FakeAutopilot, FakeBus, FakeDepth
+from onboard.service.planning import inside_box, split_peers
+from onboard.service.ports import PeerInfo
+from onboard.service.sdnotify import Notifier
+from onboard.service.service import FlightService
+from onboard.service.state import FlightState, Goal, Land, Resume, SetFormation, Takeoff
+
+S = FlightState
+T0 = 1_700_000_000.0
+POINTS = ((0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = T0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def moving(a: np.ndarray, b: np.ndarray, t0: float, speed: float = 0.4) -> Trajectory:
+    """Rest to rest from a to b."""
+    T = max(float(np.linalg.norm(b - a)) * 1.875 / speed, 1.0)
+    m = Minco(1)
+    z = np.zeros(3)
+    m.set_conditions(np.stack([a, z, z]), np.stack([b, z, z]))
+    m.set_parameters(np.zeros((0, 3)), np.array([T]))
+    return Trajectory(t0, m.coeffs, np.array([T]))
+
+
+class Harness:
+    """One service, its fake edges, and a loop that steps them all on the same clock."""
+
+    def __init__(self, tmp_path: Path, depth: bool = True, **overrides: Any) -> None:
+        self.clock = Clock()
+        data = merge_mappings(
+            {"record": {"directory": str(tmp_path)}, "planning": {"warm_up": False}},
+            overrides,
+        )
+        self.cfg = load_onboard_config(default_config_path(), 1, overrides=data)
+        self.ap = FakeAutopilot(self.clock)
+        self.bus = FakeBus()
+        self.bus.gcs_heard = self.clock.t
+        self.depth = FakeDepth(self.clock, self.ap) if depth else None
+        self.svc = FlightService(
+            self.cfg, self.ap, self.bus, self.depth, clock=self.clock, notifier=Notifier({})
+        )
+        self.gcs = True
+        self.monitor_results: list[str] = []
+
+    @property
+    def state(self) -> FlightState:
+        return self.svc.machine.state
+
+    def step(self, n: int = 1, dt: float = 0.05) -> None:
+        svc = self.svc
+        for _ in range(n):
+            self.clock.t += dt
+            if self.gcs:
+                self.bus.gcs_heard = self.clock.t
+            self.ap.tick()
+            if self.depth is not None:
+                svc.depth_step()
+            svc.main_step()
+            while svc.actions_step(0.0):
+                pass
+            r = svc.monitor_step()
+            if r:
+                self.monitor_results.append(r)
+            due = self.clock.t - svc._last_plan_s >= self.cfg.planning.replan_period_s
+            if svc._replan_now.is_set() or due:
+                svc._replan_now.clear()
+                svc.plan_step()
+
+    def until(self, cond: Callable[[], bool], max_s: float, what: str) -> None:
+        t_end = self.clock.t + max_s
+        while not cond():
+            assert self.clock.t < t_end, f"{what} not within {max_s} s (state {self.state})"
+            self.step()
+
+    def command(self, cmd: Any) -> tuple[bool, str]:
+        cid = self.bus.send(cmd)
+        self.step()
+        return self.bus.ack_of(cid)
+
+    def formation(self, epoch: int = 1) -> None:
+        ok, why = self.command(SetFormation(epoch, self.clock.t, ((0, 0), (1, 1), (2, 2)), POINTS))
+        assert ok, why
+
+    def airborne(self) -> None:
+        self.formation()
+        ok, why = self.command(Takeoff())
+        assert ok, why
+        self.until(lambda: self.state is S.HOVER, 10.0, "hover after take-off")
+
+    def peers_along(self, goal_center: np.ndarray, valid_for_s: float = 60.0) -> None:
+        """Two peers flying their slots from the start formation to the goal formation."""
+        start_center = np.array([0.0, 0.0, 1.0])
+        c = np.mean(POINTS, axis=0)
+        for pid in (0, 2):
+            off = np.array(POINTS[pid]) - c
+            traj = moving(start_center + off, goal_center + off, self.clock.t)
+            self.bus.peer_infos[pid] = PeerInfo(
+                pid, pid, 1, traj, self.clock.t + valid_for_s, self.clock.t
+            )
+
+
+def test_nominal_flight_takeoff_formation_goal_land_with_a_record(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    assert h.svc.link_up() and not h.ap.streaming
+    h.airborne()
+    assert h.ap.calls[:3] == ["stream", "offboard", "arm"]
+    assert h.ap.position[2] == pytest.approx(1.0, abs=0.05)
+    goal = np.array([4.0, 0.0, 1.0])
+    h.peers_along(goal)
+    ok, why = h.command(Goal(tuple(goal)))
+    assert ok, why
+    assert h.state is S.FORMATION_FLIGHT
+    h.until(lambda: h.state is S.HOVER, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+    assert h.bus.trajectories, "no trajectory published"
+    assert all(slot == 1 and epoch == 1 for _, slot, epoch, _, _ in h.bus.trajectories)
+    ok, why = h.command(Land())
+    assert ok, why
+    h.until(lambda: h.state is S.LANDED, 10.0, "landed")
+    assert not h.ap.armed and not h.ap.streaming
+    assert h.bus.states and h.bus.statuses
+    assert h.bus.statuses[-1]["counters"]["service.replans"] >= 1
+    files = list(tmp_path.glob("drone1-*.mcap"))
+    assert len(files) == 1
+    rec = read_record(files[0])
+    targets = [t for _, _, t, _ in rec.transitions()]
+    assert targets == ["takeoff", "hover", "formation-flight", "hover", "landing", "landed"]
+    assert rec.messages("/setpoint") and rec.messages("/plan") and rec.messages("/state")
+    assert {m["status"] for m in rec.messages("/plan")} <= {"ok", "ok-no-formation"}
+
+
+def test_goal_outside_the_geofence_is_refused(tmp_path: Path) -> None:
+    h = Harness(tmp_path, geofence={"min_enu_m": [-5, -5, 0], "max_enu_m": [5, 5, 3]})
+    h.airborne()
+    ok, why = h.command(Goal((4.9, 0.0, 1.0)))
+    assert ok, why  # this drone's own goal (slot 1, the centre) is inside
+    ok, why = h.command(Goal((0.0, 4.0, 1.0)))  # slot offset 0: inside; but checked per drone
+    assert ok, why
+    ok, why = h.command(Goal((6.0, 0.0, 1.0)))
+    assert not ok and "geofence" in why
+
+
+def test_plans_never_leave_the_geofence() -> None:
+    from onboard.service.config import GeofenceSection
+
+    box = GeofenceSection((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0))
+    inside = moving(np.array([0.0, 0, 1]), np.array([0.9, 0, 1]), 0.0)
+    outside = moving(np.array([0.0, 0, 1]), np.array([1.5, 0, 1]), 0.0)
+    assert inside_box(inside, 0.0, box)
+    assert not inside_box(outside, 0.0, box)
+
+
+def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    h.airborne()
+    goal = np.array([6.0, 0.0, 1.0])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT
+    h.depth.on = False  # type: ignore[union-attr]
+    t_cut = h.clock.t
+    h.until(lambda: h.state is S.HOVER, 1.0, "hover after the depth cut")
+    assert h.clock.t - t_cut == pytest.approx(0.5, abs=0.11)
+    h.step(40)  # two seconds later: stopped where the braking ended
+    x_stop = h.ap.position.copy()
+    h.step(10)
+    assert np.linalg.norm(h.ap.position - x_stop) < 1e-6
+    assert h.state is S.HOVER and h.ap.streaming
+    h.depth.on = True  # type: ignore[union-attr]
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 1.0, "flight resumed")
+    h.until(lambda: h.state is S.HOVER, 40.0, "arrival after the depth came back")
+    assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+
+
+def test_autopilot_heartbeat_lost_stops_commanding_and_never_resumes_by_itself(
+    tmp_path: Path,
+) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.ap.alive = False
+    t_cut = h.clock.t
+    h.until(lambda: h.state is S.LINK_LOST, 2.0, "link lost")
+    assert h.clock.t - t_cut == pytest.approx(1.0, abs=0.11)
+    assert not h.ap.streaming
+    h.ap.alive = True
+    h.step(40)
+    assert h.state is S.LINK_LOST and not h.ap.streaming  # link back: still silent
+    n_offboard = h.ap.calls.count("offboard")
+    ok, why = h.command(Resume())
+    assert ok, why
+    assert h.state is S.HOVER and h.ap.streaming
+    assert h.ap.calls.count("offboard") == n_offboard + 1
+
+
+def test_pilot_switching_out_of_offboard_is_obeyed_at_once(tmp_path: Path) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    goal = np.array([4.0, 0.0, 1.0])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(10)
+    h.ap.mode = "POSCTL"  # the pilot's switch
+    h.step(1)
+    assert h.state is S.PILOT
+    assert not h.ap.streaming
+    n = len(h.ap.calls)
+    h.step(40)
+    assert h.ap.calls[n:] == []  # no stream, no mode request: the pilot keeps the vehicle
+    ok, why = h.command(Land())
+    assert not ok and "pilot" in why
+
+
+@pytest.mark.parametrize("action", ["hover", "land"])
+def test_gcs_lost_finishes_the_goal_then_hovers_or_lands(tmp_path: Path, action: str) -> None:
+    h = Harness(tmp_path, depth=False, reactions={"gcs_lost": {"timeout_s": 1.0, "action": action}})
+    h.airborne()
+    goal = np.array([3.0, 0.0, 1.0])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.gcs = False
+    h.step(30)
+    assert not h.svc.machine.gcs_ok
+    assert h.state is S.FORMATION_FLIGHT  # the current goal is finished
+    h.until(lambda: h.state is not S.FORMATION_FLIGHT, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+    if action == "land":
+        assert h.state is S.LANDING
+        h.until(lambda: h.state is S.LANDED, 10.0, "landed")
+    else:
+        h.step(40)
+        assert h.state is S.HOVER
+
+
+def test_peer_silent_past_validity_leaves_the_formation_but_is_avoided_for_a_while() -> None:
+    traj = Trajectory.hover(np.array([0.0, 1.5, 1.0]), T0, 100.0)
+    peers = {
+        0: PeerInfo(0, 0, 1, traj, T0 + 2.0, T0),  # valid until T0 + 2
+        2: PeerInfo(2, 2, 1, traj, T0 + 50.0, T0),
+        3: PeerInfo(3, 1, 1, traj, T0 + 50.0, T0),  # claims our slot: avoided, not in formation
+    }
+
+    def split(now: float) -> tuple[list[int], list[int], list[int]]:
+        s = split_peers(peers, now, 1, 1, 1, 3, validity_s=3.0, avoid_for_s=10.0)
+        return (
+            [p.drone_id for p in s.formation],
+            [p.drone_id for p in s.avoid_only],
+            list(s.dropped),
+        )
+
+    assert split(T0 + 1.0) == ([0, 2], [3], [])
+    assert split(T0 + 2.5) == ([2], [0, 3], [])  # 0 past its message's validity
+    assert split(T0 + 3.5) == ([], [0, 2, 3], [])  # 2 silent past validity_s
+    assert split(T0 + 13.5) == ([], [], [0, 2, 3])  # avoided no longer
+
+
+def test_silent_peer_drops_out_of_the_plans_formation(tmp_path: Path) -> None:
+    h = Harness(tmp_path, depth=False, reactions={"peer_lost": {"validity_s": 1.0}})
+    h.airborne()
+    goal = np.array([4.0, 0.0, 1.0])
+    h.peers_along(goal, valid_for_s=1.0)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(5)
+    rec = h.svc.recorder
+    assert rec is not None
+    rec.flush()
+    h.step(40)  # the peers said nothing more: after 1 s they leave the formation
+    h.svc._close_record()
+    plans = read_record(next(tmp_path.glob("*.mcap"))).messages("/plan")
+    assert plans[0]["n_peers"] == 2
+    assert plans[-1]["n_peers"] == 0
+
+
+def test_monitor_brakes_when_a_peer_will_cross_the_path(tmp_path: Path) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    goal = np.array([8.0, 0.0, 1.0])
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(40)  # cruising
+    flying = h.svc.flying(h.clock.t)
+    assert flying is not None
+    # a peer of another epoch flies across the path, through where this drone will be in 1.9 s
+    cross = flying.sample(h.clock.t + 1.9)
+    a, b = cross + [0.0, -3.0, 0.0], cross + [0.0, 3.0, 0.0]
+    T = 6.0 * 1.875 / 4.0
+    intruder = moving(a, b, h.clock.t + 1.9 - T / 2, speed=4.0)
+    h.bus.peer_infos[7] = PeerInfo(7, 0, 9, intruder, h.clock.t + 30, h.clock.t)
+    h.step(2)
+    assert h.monitor_results, "the monitor saw nothing"
+    assert h.monitor_results[0].startswith("replan")
+    h.until(lambda: h.state is S.HOVER or h.svc.counters["monitor_brakes"] > 0, 3.0, "reaction")
+    ts = np.arange(h.clock.t - 0.1, h.clock.t + 3.0, 0.05)
+    d_before = np.linalg.norm(flying.sample(ts) - intruder.sample(ts), axis=1)
+    assert d_before.min() < h.cfg.planner.check_drone_m  # without a reaction: a collision
+    flown = h.svc.flying(h.clock.t)
+    assert flown is not None
+    d = np.linalg.norm(flown.sample(ts) - intruder.sample(ts), axis=1)
+    assert d.min() > h.cfg.planner.check_drone_m
+
+
+def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.formation()
+    h.ap.deny.add("arm")
+    ok, _ = h.command(Takeoff())
+    assert ok  # accepted; the autopilot then refuses to arm
+    h.step(2)
+    assert h.state is S.IDLE
+    assert not h.ap.streaming
+    assert "arming denied" in h.svc.machine.history[-1].reason
