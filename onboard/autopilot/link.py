@@ -363,7 +363,7 @@ class AutopilotLink(ABC):
         if obs.offboard_lost:
             was = self._streaming
             if self.config.stop_streaming_on_offboard_loss:
-                self._halt_streaming()
+                self._halt_streaming(wait=False)
             self._c["offboard_losses"] += 1
             log.warning(
                 "%s: vehicle left OFFBOARD for %s without being asked (%s); %s",
@@ -604,7 +604,16 @@ class AutopilotLink(ABC):
         if self._halt_streaming():
             log.info("%s: streaming stopped", self.name)
 
-    def _halt_streaming(self) -> bool:
+    def _halt_streaming(self, wait: bool = True) -> bool:
+        """Stop streaming. ``wait``: under ``_send_lock``, so that no setpoint leaves after
+        the return; receiving threads pass False (flag flips only, never waiting on the
+        streamer, which may be inside the implementation's send call): at most the setpoint
+        being sent at that instant still goes out."""
+        if not wait:
+            was = self._streaming
+            self._streaming = False
+            self._stream_gen += 1
+            return was
         with self._send_lock:
             was = self._streaming
             self._streaming = False
