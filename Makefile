@@ -50,7 +50,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 typecheck: $(STAMP)
-	$(VENV)/bin/mypy onboard/planner onboard/mapping onboard/sensors
+	$(VENV)/bin/mypy onboard/planner onboard/mapping onboard/sensors onboard/config.py
 
 pytest: $(STAMP)
 	$(VENV)/bin/pytest -q

@@ -214,6 +214,21 @@ def _members(tp: Any) -> list[Any]:
     return [tp]
 
 
+def _tag(tp: Any) -> str:
+    """How pydantic names a union member in an error location (without spaces)."""
+    if tp is Ellipsis:
+        return "..."
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return f"enum[{tp.__name__}]"
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is Literal:
+        return f"literal[{','.join(repr(a) for a in args)}]"
+    if origin is not None and args:
+        name = getattr(origin, "__name__", str(origin))
+        return f"{name}[{','.join(_tag(a) for a in args)}]"
+    return str(getattr(tp, "__name__", tp)).replace(" ", "")
+
+
 @dataclass(frozen=True)
 class _Located:
     """What a pydantic error location points at: ``tp`` the type there (None if unknown), ``keys``
@@ -237,7 +252,7 @@ def _locate(cls: type, loc: tuple[str | int, ...]) -> _Located:
         if len(options) > 1:  # a union: pydantic names the member it tried
             if union_at is None:
                 union_at, member = len(keys), str(key)
-            match = [m for m in options if str(key) in (getattr(m, "__name__", None), repr(m))]
+            match = [m for m in options if _tag(m) == str(key).replace(" ", "")]
             tp = match[0] if len(match) == 1 else None
             if tp is None:
                 return _Located(None, tuple(keys), union_at, member)
@@ -463,8 +478,11 @@ def from_mapping(cls: type[T], data: Any, path: str = "", base: T | None = None)
             lines = []
             for keys, value in wrong:
                 tp = _locate(cls, keys).tp
-                expected = _expected("enum", tp, {}) or _expected("literal_error", tp, {})
-                if expected is None or expected.endswith("?"):
+                if isinstance(tp, type) and issubclass(tp, enum.Enum):
+                    expected = _expected("enum", tp, {})
+                elif typing.get_origin(tp) is Literal:
+                    expected = _expected("literal_error", tp, {})
+                else:
                     expected = "a number"
                 lines.append(f"{_dotted(path, keys)}: expected {expected}, got {value!r}")
             raise ConfigError("\n".join(lines))

@@ -431,3 +431,33 @@ def test_config_loading_imports_no_numba_and_the_core_no_pydantic() -> None:
     assert "pydantic" in config and "numba" not in config
     core = loaded("import onboard.planner.planner, onboard.planner.objective, onboard.world")
     assert "numba" in core and "pydantic" not in core
+
+
+@dataclass(frozen=True)
+class _Unions:
+    count: Literal[1, 2] = 1
+    colour_or_index: _Colour | int = 0
+    inner_or_name: _Inner | str = ""
+
+
+def test_from_mapping_unions_and_literals() -> None:
+    assert from_mapping(_Unions, {"colour_or_index": "BLUE"}).colour_or_index is _Colour.BLUE
+    assert from_mapping(_Unions, {"colour_or_index": 3}).colour_or_index == 3
+    assert from_mapping(_Unions, {"inner_or_name": {"a": 2}}).inner_or_name == _Inner(2)
+    cases = [
+        ({"count": True}, "u.count: expected one of [1, 2], got True"),
+        ({"count": 3}, "u.count: expected one of [1, 2], got 3"),
+        (
+            {"colour_or_index": "green"},
+            "u.colour_or_index: expected one of ['red', 'blue'] or an integer, got 'green'",
+        ),
+        (
+            {"inner_or_name": {"a": "x"}},
+            "u.inner_or_name: expected _Inner (a: expected an integer, got 'x') or a string, "
+            "got {'a': 'x'}",
+        ),
+    ]
+    for data, message in cases:
+        with pytest.raises(ConfigError) as e:
+            from_mapping(_Unions, data, "u")
+        assert str(e.value) == message
