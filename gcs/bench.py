@@ -65,6 +65,7 @@ _STARTUP_SCRIPT = textwrap.dedent(
     import time
     t0 = time.perf_counter()
     import pickle, sys
+    from onboard.planner.field import AnalyticField
     from onboard.planner.planner import FormationPlanner
     t_import = time.perf_counter() - t0
     with open(sys.argv[1], "rb") as fh:
@@ -72,7 +73,7 @@ _STARTUP_SCRIPT = textwrap.dedent(
     planner = FormationPlanner(params, formation, call.slot)
     t1 = time.perf_counter()
     res = planner.plan(call.t_start_s, call.start_p, call.start_v, call.start_a, call.goal,
-                       list(call.peers), call.world.field(), call.previous)
+                       list(call.peers), AnalyticField(call.world), call.previous)
     t2 = time.perf_counter()
     print(f"{t_import} {t2 - t1} {t2 - t0} {res.status.value}")
     """

@@ -526,6 +526,6 @@ def replay_inputs(call: PlanCall) -> tuple[Any, ...]:
         call.start_a,
         call.goal,
         list(call.peers),
-        call.world.field(),
+        AnalyticField(call.world),
         call.previous,
     )

@@ -13,20 +13,21 @@ Primitives (all float64, one row each):
 Signed distances are negative inside a solid; the gradient is the unit vector of steepest ascent.
 This is the ground truth the obstacle cost J_o of the paper (Sec. IV) is evaluated against when
 no mapped ESDF is used.
+
+The world model knows nothing of the planner: the planner's exact field of a world is
+``onboard.planner.field.AnalyticField(world)``.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from numba import njit
-
-if TYPE_CHECKING:
-    from onboard.planner.field import AnalyticField
 
 FAR_DISTANCE_M = 1.0e6  # distance reported when there is nothing at all in the world
 CYLINDER_COLS = 5
@@ -457,8 +458,18 @@ class World:
             self.name or other.name,
         )
 
-    def field(self) -> AnalyticField:
-        """This world as the planner's distance field (exact, everywhere known)."""
+    def field(self) -> Any:
+        """Deprecated: use ``onboard.planner.field.AnalyticField(world)``.
+
+        Forwards there for the callers not yet switched (issue #9); the world model itself does
+        not depend on the planner, and this method goes once no caller is left
+        (tests/test_layers.py names it as the one exception).
+        """
+        warnings.warn(
+            "World.field() is deprecated: use onboard.planner.field.AnalyticField(world)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         from onboard.planner.field import AnalyticField
 
         return AnalyticField(self)

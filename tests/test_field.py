@@ -26,7 +26,7 @@ def _forest() -> World:
 
 def test_primitives_kind_matches_world() -> None:
     world = _forest()
-    field: DistanceField = world.field()
+    field: DistanceField = AnalyticField(world)
     data = field.kernel_data()
     assert data.kind == FIELD_PRIMITIVES
     pts = np.random.default_rng(0).uniform([0, 0, -0.5], [8, 6, 3.5], size=(200, 3))
@@ -39,6 +39,16 @@ def test_primitives_kind_matches_world() -> None:
             world.cylinders, world.rings, world.boxes, 0.0, *p
         )
     assert field.is_known(pts).all()
+
+
+def test_world_field_is_a_deprecated_forwarder() -> None:
+    """The world model no longer owns the planner's field type; the old call still works."""
+    world = _forest()
+    with pytest.warns(DeprecationWarning, match="AnalyticField"):
+        old = world.field()
+    assert isinstance(old, AnalyticField) and old.world is world
+    pts = np.random.default_rng(1).uniform([0, 0, 0], [8, 6, 3], size=(50, 3))
+    np.testing.assert_array_equal(old.distance(pts)[0], AnalyticField(world).distance(pts)[0])
 
 
 def test_kernel_data_layout_is_uniform() -> None:
@@ -98,7 +108,7 @@ def test_grid_gradient_central_differences() -> None:
 
 def test_grid_from_analytic_agrees_with_it() -> None:
     world = _forest()
-    truth = world.field()
+    truth = AnalyticField(world)
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([8.0, 6.0, 3.0])
     res = 0.1
     grid = GridField.from_function(truth.distance, lo, hi, res)
