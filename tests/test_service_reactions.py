@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 
 from onboard.config import merge_mappings
-from onboard.planner.minco import Minco
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.service.config import default_config_path, load_onboard_config
-from onboard.service.fakes import FakeAutopilot, FakeBus, FakeDepth
+from onboard.service.fakes import FakeAutopilot, FakeBus, FakeDepth, straight_trajectory
 from onboard.service.planning import inside_box, split_peers
 from onboard.service.ports import PeerInfo
 from onboard.service.sdnotify import Notifier
@@ -35,14 +34,7 @@ class Clock:
         return self.t
 
 
-def moving(a: np.ndarray, b: np.ndarray, t0: float, speed: float = 0.4) -> Trajectory:
-    """Rest to rest from a to b."""
-    T = max(float(np.linalg.norm(b - a)) * 1.875 / speed, 1.0)
-    m = Minco(1)
-    z = np.zeros(3)
-    m.set_conditions(np.stack([a, z, z]), np.stack([b, z, z]))
-    m.set_parameters(np.zeros((0, 3)), np.array([T]))
-    return Trajectory(t0, m.coeffs, np.array([T]))
+moving = straight_trajectory
 
 
 class Harness:

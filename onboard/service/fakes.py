@@ -56,7 +56,7 @@ class FakeAutopilot:
             15.8,
         )
 
-    def heartbeat_age_s(self) -> float:
+    def link_age_s(self) -> float:
         return self.clock() - self.last_heartbeat
 
     def stream(self, sampler: SetpointSampler | None) -> None:
@@ -207,3 +207,20 @@ class FakeDepth:
 
     def close(self) -> None:
         pass
+
+
+def straight_trajectory(
+    a: np.ndarray, b: np.ndarray, t0_s: float, speed: float = 0.4
+) -> Trajectory:
+    """One quintic piece from rest at ``a`` to rest at ``b`` peaking at about ``speed`` (a
+    simulated peer's trajectory)."""
+    from onboard.planner.minco import Minco
+
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    T = max(float(np.linalg.norm(b - a)) * 1.875 / speed, 1.0)
+    m = Minco(1)
+    z = np.zeros(3)
+    m.set_conditions(np.stack([a, z, z]), np.stack([b, z, z]))
+    m.set_parameters(np.zeros((0, 3)), np.array([T]))
+    return Trajectory(t0_s, m.coeffs, np.array([T]))

@@ -113,6 +113,7 @@ def warm_up(params: PlannerParams) -> float:
     """Plan a small formation problem once (numba's cache loaded, kernels hot); seconds taken."""
     import time
 
+    from onboard.planner.field import AnalyticField
     from onboard.world import World
 
     t0 = time.perf_counter()
@@ -121,5 +122,5 @@ def warm_up(params: PlannerParams) -> float:
     start = np.array([0.0, 0.0, 1.0])
     peers = [PeerTrajectory(k, k, Trajectory.hover(start + formation[k], 0.0, 5.0)) for k in (0, 2)]
     z = np.zeros(3)
-    pl.plan(0.0, start, z, z, np.array([3.0, 0.0, 1.0]), peers, World.empty(0.0).field())
+    pl.plan(0.0, start, z, z, np.array([3.0, 0.0, 1.0]), peers, AnalyticField(World.empty(0.0)))
     return time.perf_counter() - t0

@@ -58,8 +58,11 @@ class AutopilotPort(Protocol):
         """The latest telemetry (None before the first)."""
         ...
 
-    def heartbeat_age_s(self) -> float:
-        """Seconds since the autopilot's last HEARTBEAT (inf before the first)."""
+    def link_age_s(self) -> float:
+        """Seconds since the autopilot was last heard (inf before the first message). The real
+        link counts every valid message (PX4 sends hundreds a second; its 1 Hz heartbeat alone
+        would make a 1 s timeout fire on every late heartbeat); the service declares the link
+        lost after ``autopilot.heartbeat_timeout_s``."""
         ...
 
     def stream(self, sampler: SetpointSampler | None) -> None:

@@ -393,9 +393,10 @@ class FlightService:
             return self._field
         if self.depth is None:
             if self._ground_field is None:
+                from onboard.planner.field import AnalyticField
                 from onboard.world import World
 
-                self._ground_field = World.empty(self.cfg.geofence.min_enu_m[2]).field()
+                self._ground_field = AnalyticField(World.empty(self.cfg.geofence.min_enu_m[2]))
             return self._ground_field
         return None
 
@@ -551,7 +552,7 @@ class FlightService:
     def _react(self, now: float, veh: VehicleSnapshot | None) -> None:
         m = self.machine
         # autopilot heartbeat
-        age = self.ap.heartbeat_age_s()
+        age = self.ap.link_age_s()
         hb_timeout = self.cfg.autopilot.heartbeat_timeout_s
         if age > hb_timeout and self._link_ok:
             self._link_ok = False
@@ -713,7 +714,7 @@ class FlightService:
                     "plan_ms_max": max(ms) if ms else 0.0,
                     "replans": self.counters["replans"],
                     "links": [
-                        ("autopilot", self._link_ok, self.ap.heartbeat_age_s()),
+                        ("autopilot", self._link_ok, self.ap.link_age_s()),
                         ("gcs", self._gcs_ok, None),
                         ("depth", not self._depth_lost, None),
                     ],
@@ -762,7 +763,7 @@ class FlightService:
     # ---- readiness and the process -----------------------------------------------------------
     def link_up(self) -> bool:
         return (
-            self.ap.heartbeat_age_s() <= self.cfg.autopilot.heartbeat_timeout_s
+            self.ap.link_age_s() <= self.cfg.autopilot.heartbeat_timeout_s
             and self.ap.vehicle() is not None
         )
 
