@@ -7,7 +7,6 @@ fastest of several batches.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import pickle
 import platform
@@ -176,7 +175,6 @@ def bench_planner(
     count, and one objective evaluation at x0 (``eval_us``). Breakdown per problem:
     cost = evaluations x eval_us, solver and set-up overhead = replan - cost (medians reported).
     """
-    from onboard.config import load_planner_params
     from onboard.planner.planner import FormationPlanner
 
     if repeats < 1:
@@ -184,8 +182,7 @@ def bench_planner(
     calls: list[PlanCall] = []
     flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
     chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
-    base = cfg.planner if cfg.planner is not None else load_planner_params()
-    params = dataclasses.replace(base, v_max_m_s=cfg.v_max_m_s)
+    params = cfg.params
     planners = [FormationPlanner(params, cfg.formation.points, i) for i in range(cfg.formation.n)]
 
     replan_ms: list[float] = []  # the whole plan() call
@@ -244,7 +241,7 @@ def bench_planner(
             "formation": cfg.formation.name,
             "world": cfg.world.name,
             "seed": cfg.seed,
-            "v_max_m_s": cfg.v_max_m_s,
+            "v_max_m_s": params.v_max_m_s,
             "flight_success": flight.success,
             "flight_replans": len(calls),
             "skip_s": skip_s,

@@ -40,11 +40,27 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
 
-def _planner_params(planner_file: Path | None, sets: Sequence[str]) -> PlannerParams:
+def _planner_params(
+    planner_file: Path | None, sets: Sequence[str], v_max: float | None = None
+) -> PlannerParams:
+    """The planner parameters: the file, then ``--set`` overrides, then ``--v-max`` (shorthand
+    for ``--set v_max_m_s=``; both with different values is an error)."""
     overrides: dict[str, Any] = {}
     for s in sets:
         overrides = merge_mappings(overrides, parse_override(s))
+    if v_max is not None:
+        given = overrides.get("v_max_m_s")
+        if given is not None and given != v_max:
+            raise ConfigError(
+                f"--v-max {v_max} and --set v_max_m_s={given} disagree: give the speed limit once"
+            )
+        overrides["v_max_m_s"] = v_max
     return load_planner_params(planner_file, **overrides)
+
+
+def _sets_v_max(sets: Sequence[str]) -> bool:
+    """Does one of the ``--set`` overrides give the speed limit?"""
+    return any("v_max_m_s" in parse_override(s) for s in sets)
 
 
 @contextmanager
@@ -129,7 +145,6 @@ def _sim_config(
     formation: str,
     world: str,
     seed: int,
-    v_max: float,
     params: PlannerParams,
     time_limit: float | None = None,
     silent: Sequence[int] = (),
@@ -145,7 +160,6 @@ def _sim_config(
         formation=f,
         world=w,
         seed=seed,
-        v_max_m_s=v_max,
         planner=params,
         time_limit_s=time_limit,
         silent_drones=tuple(silent),
@@ -171,7 +185,11 @@ _world_opt = click.option(
 )
 _seed_opt = click.option("--seed", default=1, show_default=True, help="Seed of the world.")
 _vmax_opt = click.option(
-    "--v-max", "v_max", default=0.5, show_default=True, type=float, help="Speed limit [m/s]."
+    "--v-max",
+    "v_max",
+    default=None,
+    type=float,
+    help="Speed limit [m/s], shorthand for --set v_max_m_s=V [default: the planner's, 0.5].",
 )
 _planner_opt = click.option(
     "--planner",
@@ -229,7 +247,7 @@ def sim(
     world: str,
     scenario: str | None,
     seed: int,
-    v_max: float,
+    v_max: float | None,
     planner_file: Path | None,
     sets: tuple[str, ...],
     time_limit: float | None,
@@ -248,8 +266,8 @@ def sim(
 
     console = _console(quiet)
     try:
-        params = _planner_params(planner_file, sets)
-        cfg = _sim_config(formation, world, seed, v_max, params, time_limit, silent)
+        params = _planner_params(planner_file, sets, v_max)
+        cfg = _sim_config(formation, world, seed, params, time_limit, silent)
         if scenario is not None:
             sc = load_scenario(scenario)
             ctx = click.get_current_context()
@@ -261,8 +279,9 @@ def sim(
                 cfg,
                 formation=cfg.formation if given("formation") else sc.formation,
                 world=cfg.world if given("world") else sc.world,
-                v_max_m_s=cfg.v_max_m_s if given("v_max") else sc.v_max_m_s,
             )
+            if v_max is None and not _sets_v_max(sets):  # the scenario's speed, unless given
+                cfg = cfg.with_v_max(sc.v_max_m_s)
         cfg = dataclasses.replace(
             cfg, **perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
         )
@@ -360,7 +379,7 @@ def bench_flights(
     formation: str,
     world: str,
     seeds: int,
-    v_max: float,
+    v_max: float | None,
     planner_file: Path | None,
     sets: tuple[str, ...],
     json_path: Path | None,
@@ -377,10 +396,10 @@ def bench_flights(
     if seeds < 1:
         raise click.BadParameter("must be >= 1", param_hint="--seeds")
     try:
-        params = _planner_params(planner_file, sets)
+        params = _planner_params(planner_file, sets, v_max)
         extra = perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
         cfgs = [
-            dataclasses.replace(_sim_config(formation, world, s, v_max, params), **extra)
+            dataclasses.replace(_sim_config(formation, world, s, params), **extra)
             for s in range(1, seeds + 1)
         ]
     except ConfigError as e:
@@ -396,7 +415,8 @@ def bench_flights(
             d = r.to_json()
             rows.append({"seed": cfg.seed, **{k: d[k] for k in _FLIGHT_KEYS if k in d}})
             bar.advance(task)
-    t = Table(title=f"{formation} through {world}, v_max {v_max} m/s, seeds 1..{seeds}")
+    v_max_m_s = params.v_max_m_s
+    t = Table(title=f"{formation} through {world}, v_max {v_max_m_s} m/s, seeds 1..{seeds}")
     for col in ("seed", "success", "collisions", "min obst. m", "min drone m", "e_sim", "time s"):
         t.add_column(col, justify="right")
     for row in rows:
@@ -415,7 +435,7 @@ def bench_flights(
     report = {
         "formation": formation,
         "world": world,
-        "v_max_m_s": v_max,
+        "v_max_m_s": v_max_m_s,
         "seeds": seeds,
         "success_count": n_ok,
         "collision_free_count": n_clean,
@@ -493,7 +513,7 @@ def bench_table(
     method: str,
     world_override: str | None,
     formation: str,
-    v_max: float,
+    v_max: float | None,
     planner_file: Path | None,
     sets: tuple[str, ...],
     jobs: int,
@@ -508,7 +528,7 @@ def bench_table(
     if trials < 1:
         raise click.BadParameter("must be >= 1", param_hint="--trials")
     try:
-        params = _planner_params(planner_file, sets)
+        params = _planner_params(planner_file, sets, v_max)
         form = load_formation(formation)
         if world_override is not None:
             spec = load_world_spec(world_override)
@@ -529,7 +549,6 @@ def bench_table(
                 methods,
                 trials,
                 seed,
-                v_max,
                 params,
                 jobs,
                 progress=lambda done, _n: bar.update(task, completed=done),
@@ -537,7 +556,10 @@ def bench_table(
         except (ConfigError, ValueError) as e:
             raise click.ClickException(str(e)) from e
 
-    t = Table(title=f"{form.name}, {trials} trials per cell, v_max {v_max} m/s (paper in brackets)")
+    t = Table(
+        title=f"{form.name}, {trials} trials per cell, v_max {params.v_max_m_s} m/s "
+        "(paper in brackets)"
+    )
     for col in ("scenario", "method", "success %", "e_dist (m)", "e_sim", "min obst. m", "time s"):
         t.add_column(col, justify="right" if col not in ("scenario", "method") else "left")
 
@@ -631,7 +653,7 @@ def bench_planner(
     formation: str,
     world: str,
     seed: int,
-    v_max: float,
+    v_max: float | None,
     planner_file: Path | None,
     sets: tuple[str, ...],
     repeats: int,
@@ -654,8 +676,8 @@ def bench_planner(
         raise click.BadParameter("must be >= 1", param_hint="--repeats")
     console = _console(quiet)
     try:
-        params = _planner_params(planner_file, sets)
-        cfg = _sim_config(formation, world, seed, v_max, params)
+        params = _planner_params(planner_file, sets, v_max)
+        cfg = _sim_config(formation, world, seed, params)
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
 

@@ -49,8 +49,11 @@ class SimConfig:
     formation: Formation
     world: WorldSpec
     seed: int = 0
-    v_max_m_s: float = 0.5
-    """Speed limit handed to every planner (overrides ``planner.v_max_m_s``)."""
+    v_max_m_s: float | None = None
+    """Shorthand for ``planner.v_max_m_s``: the planner's parameters are the one owner of the
+    speed limit. None takes the planner's; a value replaces the default planner's. Giving a
+    ``planner`` and a different value here is an error. After construction both agree (use
+    ``with_v_max`` to change the speed of a config)."""
     sensing_radius_m: float = 5.0
     replan_period_s: float = 1.0
     plan_ahead_s: float = 0.1
@@ -68,7 +71,8 @@ class SimConfig:
     collision_drone_m: float = 0.4
     """Two drones collide when their centres are closer than this."""
     planner: PlannerParams | None = None
-    """None: ``load_planner_params()`` (config/planner.yaml)."""
+    """None: ``load_planner_params()`` (config/planner.yaml), with ``v_max_m_s`` if given. Always
+    set after construction (``params``)."""
     silent_drones: tuple[int, ...] = ()
     """Drones whose broadcasts never reach anyone (a failed radio)."""
     max_events: int = 20
@@ -86,10 +90,26 @@ class SimConfig:
     """Every n-th pixel row and column of a frame is rendered and ray cast ('mapped')."""
 
     def __post_init__(self) -> None:
-        positive = ("v_max_m_s", "replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
+        positive = ("replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
         for name in positive:
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0")
+        v = self.v_max_m_s
+        if v is not None and not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"v_max_m_s must be > 0, got {v!r}")
+        if self.planner is not None:
+            params = self.planner
+            if v is not None and v != params.v_max_m_s:
+                raise ValueError(
+                    f"v_max_m_s={v} differs from planner.v_max_m_s={params.v_max_m_s}: the "
+                    "planner's parameters own the speed limit, give it once"
+                )
+        elif v is not None:
+            params = load_planner_params(v_max_m_s=v)
+        else:
+            params = load_planner_params()
+        object.__setattr__(self, "planner", params)
+        object.__setattr__(self, "v_max_m_s", params.v_max_m_s)
         if self.plan_ahead_s < 0.0 or self.bus_delay_s < 0.0 or self.sensing_radius_m < 0.0:
             raise ValueError("plan_ahead_s, bus_delay_s and sensing_radius_m must be >= 0")
         if self.time_limit_s is not None and not self.time_limit_s > 0.0:
@@ -98,6 +118,23 @@ class SimConfig:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if not self.camera_rate_hz > 0.0 or self.camera_skip_pixel < 1:
             raise ValueError("camera_rate_hz must be > 0 and camera_skip_pixel >= 1")
+
+    @property
+    def params(self) -> PlannerParams:
+        """The planner parameters every drone flies with (speed limit included)."""
+        assert self.planner is not None  # set by __post_init__
+        return self.planner
+
+    @property
+    def speed_m_s(self) -> float:
+        """The speed limit, ``params.v_max_m_s``."""
+        return self.params.v_max_m_s
+
+    def with_v_max(self, v_max_m_s: float) -> SimConfig:
+        """This config with another speed limit (in the planner's parameters)."""
+        return dataclasses.replace(
+            self, planner=dataclasses.replace(self.params, v_max_m_s=v_max_m_s), v_max_m_s=None
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -302,12 +339,11 @@ def run_sim(
     wall0 = time.perf_counter()
     world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
     n = cfg.formation.n
-    base = cfg.planner if cfg.planner is not None else load_planner_params()
-    params = dataclasses.replace(base, v_max_m_s=cfg.v_max_m_s)
+    params = cfg.params
     t_limit = (
         cfg.time_limit_s
         if cfg.time_limit_s is not None
-        else default_time_limit_s(starts, goals, cfg.v_max_m_s)
+        else default_time_limit_s(starts, goals, params.v_max_m_s)
     )
     silent = frozenset(cfg.silent_drones)
     bus = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)

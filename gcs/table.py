@@ -121,17 +121,13 @@ def run_trial(
     seed: int,
     formation: Formation,
     world: WorldSpec,
-    v_max_m_s: float,
     base: PlannerParams,
     keep_result: bool,
 ) -> tuple[TrialResult, SimResult | None]:
-    """Fly one trial with one method; the full SimResult only when ``keep_result``."""
+    """Fly one trial with one method (speed limit: ``base.v_max_m_s``); the full SimResult only
+    when ``keep_result``."""
     cfg = SimConfig(
-        formation=formation,
-        world=world,
-        seed=seed,
-        v_max_m_s=v_max_m_s,
-        planner=method_params(method, base),
+        formation=formation, world=world, seed=seed, planner=method_params(method, base)
     )
     if method == "zhou":
         from gcs.baselines import run_virtual_structure
@@ -219,13 +215,13 @@ def run_table(
     methods: Sequence[str],
     trials: int,
     seed: int,
-    v_max_m_s: float = 0.5,
     base: PlannerParams | None = None,
     jobs: int = 1,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[dict[str, Any], dict[tuple[str, str], SimResult]]:
-    """Run every (world, method, trial); returns (report, the first trial's SimResult of every
-    (world label, method) for the plots)."""
+    """Run every (world, method, trial) with the planner parameters ``base`` (default
+    config/planner.yaml; its ``v_max_m_s`` is the speed limit of every method); returns (report,
+    the first trial's SimResult of every (world label, method) for the plots)."""
     if trials < 1:
         raise ValueError("trials must be >= 1")
     for m in methods:
@@ -233,7 +229,7 @@ def run_table(
             raise ValueError(f"unknown method {m!r}; choose from {METHODS}")
     params = base if base is not None else load_planner_params()
     jobs_args = [
-        (m, label, k, seed + k, formation, spec, v_max_m_s, params, k == 0)
+        (m, label, k, seed + k, formation, spec, params, k == 0)
         for label, spec in worlds
         for k in range(trials)
         for m in methods
@@ -255,7 +251,7 @@ def run_table(
     kept = {(r.density, r.method): s for r, s in results if s is not None}
     report = {
         "formation": formation.name,
-        "v_max_m_s": v_max_m_s,
+        "v_max_m_s": params.v_max_m_s,
         "seed": seed,
         "trials_per_cell": trials,
         "methods": list(methods),

@@ -45,6 +45,52 @@ def test_sim_quiet_and_config_errors(tmp_path: Path) -> None:
     assert out.exit_code == 0 and out.output == ""
 
 
+def test_one_owner_of_the_speed_limit(tmp_path: Path) -> None:
+    """--set v_max_m_s takes effect; --v-max is its shorthand; both differently is an error."""
+    base = ["sim", "--formation", "triangle-3", "--world", "forest-small", "--time-limit", "1"]
+    seen = {}
+    for name, extra in {
+        "set": ["--set", "v_max_m_s=2"],
+        "v-max": ["--v-max", "1.5"],
+        "both, agreeing": ["--v-max", "2", "--set", "v_max_m_s=2.0"],
+        "default": [],
+    }.items():
+        js = tmp_path / f"{name}.json"
+        out = CliRunner().invoke(main, [*base, *extra, "--quiet", "--json", str(js)])
+        assert out.exit_code == 0, (name, out.output)
+        cfg = json.loads(js.read_text())["config"]
+        assert cfg["v_max_m_s"] == cfg["planner"]["v_max_m_s"], name
+        seen[name] = cfg["v_max_m_s"]
+    assert seen == {"set": 2.0, "v-max": 1.5, "both, agreeing": 2.0, "default": 0.5}
+    out = CliRunner().invoke(main, [*base, "--v-max", "1", "--set", "v_max_m_s=2", "--quiet"])
+    assert out.exit_code != 0
+    assert "--v-max 1.0 and --set v_max_m_s=2 disagree" in out.output
+    out = CliRunner().invoke(main, [*base, "--v-max", "-1", "--quiet"])
+    assert out.exit_code != 0 and "v_max_m_s must be a positive number" in out.output
+    # the same rule in every command that flies
+    for cmd in (["bench", "flights", "--seeds", "1"], ["bench", "planner"]):
+        out = CliRunner().invoke(main, [*cmd, "--v-max", "1", "--set", "v_max_m_s=2", "-q"])
+        assert out.exit_code != 0 and "disagree" in out.output, cmd
+    out = CliRunner().invoke(
+        main, ["bench", "table", "--trials", "1", "--v-max", "1", "--set", "v_max_m_s=2", "-q"]
+    )
+    assert out.exit_code != 0 and "disagree" in out.output
+
+
+def test_scenario_speed_unless_given(tmp_path: Path) -> None:
+    js = tmp_path / "s.json"
+    base = ["sim", "--scenario", "tetrahedron-corridor", "--time-limit", "0.5", "-q"]
+    for extra, want in (([], None), (["--set", "v_max_m_s=0.7"], 0.7), (["--v-max", "0.9"], 0.9)):
+        out = CliRunner().invoke(main, [*base, *extra, "--json", str(js)])
+        assert out.exit_code == 0, out.output
+        got = json.loads(js.read_text())["config"]["v_max_m_s"]
+        if want is None:
+            from onboard.config import load_scenario
+
+            want = load_scenario("tetrahedron-corridor").v_max_m_s
+        assert got == want, extra
+
+
 def test_bench_planner_small(tmp_path: Path) -> None:
     js = tmp_path / "bench.json"
     args = [

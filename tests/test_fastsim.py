@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -116,3 +117,23 @@ def test_collisions_are_counted(tmp_path: Path) -> None:
     assert r.collisions == r.obstacle_collisions + r.drone_collisions >= 2
     assert r.min_obstacle_clearance_m < 0.0
     assert r.min_drone_distance_m <= 0.35 + 1e-9
+
+
+def test_planner_params_own_the_speed_limit() -> None:
+    form, world = load_formation("triangle-3"), load_world_spec("forest-small")
+    default = SimConfig(form, world)
+    assert default.v_max_m_s == default.params.v_max_m_s == 0.5  # config/planner.yaml
+    fast = SimConfig(form, world, v_max_m_s=1.5)  # shorthand for the planner's field
+    assert fast.params.v_max_m_s == fast.v_max_m_s == 1.5
+    assert fast.params.w_formation == default.params.w_formation
+    own = SimConfig(form, world, planner=dataclasses.replace(default.params, v_max_m_s=2.0))
+    assert own.v_max_m_s == 2.0  # taken from the planner, never overwritten
+    assert SimConfig(form, world, v_max_m_s=2.0, planner=own.params).v_max_m_s == 2.0
+    with pytest.raises(ValueError, match="v_max_m_s=1.0 differs from planner.v_max_m_s=2.0"):
+        SimConfig(form, world, v_max_m_s=1.0, planner=own.params)
+    with pytest.raises(ValueError, match="differs"):
+        dataclasses.replace(own, v_max_m_s=1.0)  # a silent half-change is refused
+    slow = own.with_v_max(0.3)
+    assert slow.v_max_m_s == slow.params.v_max_m_s == 0.3 and slow.seed == own.seed
+    with pytest.raises(ValueError, match="v_max_m_s must be > 0"):
+        SimConfig(form, world, v_max_m_s=0.0)
