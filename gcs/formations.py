@@ -298,3 +298,24 @@ def formation_errors(
     if not np.all(np.isfinite(cur)):
         return None
     return e_dist(cur, want), float(similarity(cur, want)[0])
+
+
+def per_drone_errors(
+    positions: Mapping[int, Sequence[float] | np.ndarray],
+    slots: Mapping[int, int],
+    points: np.ndarray,
+) -> dict[int, float]:
+    """Each drone's distance [m] from its slot after the best Sim(3) alignment of the swarm onto
+    the formation (the terms of e_dist); empty when fewer than 2 drones have a position."""
+    from gcs.metrics import umeyama
+
+    ids = [d for d in sorted(slots) if d in positions]
+    if len(ids) < 2:
+        return {}
+    cur = np.array([np.asarray(positions[d], dtype=np.float64).reshape(3) for d in ids])
+    if not np.all(np.isfinite(cur)):
+        return {}
+    want = np.asarray(points, dtype=np.float64)[[slots[d] for d in ids]]
+    s, R, t = umeyama(cur, want)
+    r = np.linalg.norm(want - (s * cur @ R.T + t), axis=1)
+    return {d: float(x) for d, x in zip(ids, r, strict=True)}

@@ -200,3 +200,18 @@ def test_bad_scale_yaw_drones_positions() -> None:
         a.assign("hexagon-7", pos)
     with pytest.raises(FormationError, match="none is up"):
         a.assign("hexagon-7", {})
+
+
+def test_per_drone_errors_are_the_terms_of_e_dist() -> None:
+    from gcs.formations import per_drone_errors
+
+    tpl = load_template("hexagon-7").points
+    cur = place(tpl, (1.0, 2.0, 1.0), 2.0, 0.3)  # a similar copy: no error
+    slots = {d: d for d in range(7)}
+    assert max(per_drone_errors(_positions(cur), slots, tpl).values()) < 1e-9
+    cur[3] += (0.5, 0.0, 0.0)  # one drone off its slot
+    per = per_drone_errors(_positions(cur), slots, tpl)
+    e = formation_errors(_positions(cur), slots, tpl)
+    assert e is not None and max(per, key=lambda d: per[d]) == 3
+    assert math.sqrt(sum(v * v for v in per.values())) == pytest.approx(e[0])
+    assert per_drone_errors({0: cur[0]}, slots, tpl) == {}

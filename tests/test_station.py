@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import pytest
@@ -85,6 +86,17 @@ class FakeDrone:
                 epoch,
             )  # fmt: skip
         )
+
+    def publish_states(self, stop: threading.Event, period_s: float = 0.1) -> threading.Thread:
+        """Publish the state every ``period_s`` until ``stop`` is set (as a drone does)."""
+
+        def run() -> None:
+            while not stop.wait(period_s):
+                self.publish_state()
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        return th
 
     def commands(self) -> list[Command]:
         with self.lock:
@@ -247,3 +259,115 @@ def test_no_drone_up_is_an_error() -> None:
             gs.land()
         with pytest.raises(StationError, match="empty list"):
             gs.land(targets=[])
+
+
+# --- the operator commands (gcs/commands.py), in-process against fake drones ------------------
+
+
+@pytest.fixture
+def drones_only() -> Iterator[Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]]]:
+    """``make({id: mode})``: fake drones on a loopback mesh and the --connect value that reaches
+    all of them."""
+    with ExitStack() as stack:
+
+        def make(modes: dict[int, str]) -> tuple[dict[int, FakeDrone], str]:
+            eps = peer_mesh(len(modes))
+            drones = {}
+            for (i, mode), ep in zip(modes.items(), eps, strict=True):
+                node = SwarmNode(SWARM, i, ep)
+                stack.callback(node.close)
+                drones[i] = FakeDrone(node, mode)
+            for d in drones.values():
+                wait_for(partial(_sees, d.node, set(modes)), "mesh up")
+            stop = threading.Event()
+            for d in drones.values():
+                stack.callback(d.publish_states(stop).join)
+            stack.callback(stop.set)  # runs first (the stack unwinds last in, first out)
+            return drones, ",".join(ep.listen[0] for ep in eps)
+
+        yield make
+
+
+def _sees(node: SwarmNode, ids: set[int]) -> bool:
+    return node.alive_drones() == ids
+
+
+def _run(args: list[str]) -> Any:
+    from click.testing import CliRunner
+
+    from gcs.commands import COMMANDS
+
+    cmds = {c.name: c for c in COMMANDS}
+    return CliRunner().invoke(cmds[args[0]], args[1:], catch_exceptions=False)
+
+
+def test_cli_commands_report_acks(
+    drones_only: Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]],
+    tmp_path: Any,
+) -> None:
+    import json
+
+    drones, connect = drones_only({0: "answer", 1: "answer", 2: "silent"})
+    for i, d in drones.items():
+        d.position = (float(i) * 2.0, 0.0, 1.0)
+    bus = ["--swarm", SWARM, "--connect", connect, "--timeout", "0.6", "--expect", "3"]
+    r = _run(["takeoff", "--altitude", "2", *bus])
+    assert (
+        r.exit_code == 1 and "NO ANSWER from [2]" in r.output and "accepted by [0, 1]" in r.output
+    )
+    r = _run(["land", "--drones", "0,1", "--json", *bus])
+    out = json.loads(r.output)
+    assert r.exit_code == 0 and out["ok"] and out["addressed"] == [0, 1]
+    r = _run(["goal", "5", "1", "1.5", "--yaw", "90", "--drones", "0-1", *bus])
+    assert r.exit_code == 0, r.output
+    g = drones[0].commands()[-1].action
+    assert isinstance(g, Goal) and g.position_m == (5.0, 1.0, 1.5)
+    assert g.yaw_rad == pytest.approx(math.pi / 2)
+    wp = tmp_path / "wp.yaml"
+    wp.write_text("points: [[1, 0, 1.5], [2, 1, 1.5]]\n")
+    assert _run(["waypoints", str(wp), "--drones", "1", *bus]).exit_code == 0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("points: [[1, 0], [2, 1, 1.5]]\n")
+    r = _run(["waypoints", str(bad), *bus])
+    assert r.exit_code == 2 and "points[0]" in r.output
+    # a bad formation is refused before anything is sent
+    n_before = {i: len(d.commands()) for i, d in drones.items()}
+    r = _run(["formation", "hexagon-7", *bus])
+    assert r.exit_code == 1 and "has 7 points but 3 drones" in r.output
+    assert "nothing sent" in r.output
+    r = _run(["formation", "no-such-shape", *bus])
+    assert r.exit_code == 1 and "no file named 'no-such-shape'" in r.output
+    assert {i: len(d.commands()) for i, d in drones.items()} == n_before
+    r = _run(["formation", "line-4", "--drones", "0,1,2,7", *bus, "--wait", "0.5"])
+    assert r.exit_code == 1 and "drones [7] are not up" in r.output
+    r = _run(["formation", "triangle-3", "--scale", "1.5", "--json", *bus])
+    out = json.loads(r.output)
+    assert r.exit_code == 1 and out["missing"] == [2] and out["formation"] == "triangle-3"
+    assert sorted(out["slots"].values()) == [0, 1, 2]
+    r = _run(["formation", "line-4", "--drones", "0,1", "--scale", "0.5", *bus])
+    assert r.exit_code == 1 and "has 4 points but 2 drones" in r.output
+
+
+def test_cli_status_and_usage_errors(
+    drones_only: Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]],
+) -> None:
+    import json
+
+    drones, connect = drones_only({0: "answer", 1: "answer"})
+    for i, d in drones.items():
+        d.position = (float(i) * 2.0, 0.0, 1.0)
+    bus = ["--swarm", SWARM, "--connect", connect, "--expect", "2"]
+    r = _run(["status", "--once", "--json", *bus])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.output)
+    assert [d["id"] for d in data["drones"]] == [0, 1]
+    assert data["drones"][1]["position_m"] == [2.0, 0.0, 1.0]
+    assert data["drones"][1]["flight_state"] == "hover" and data["formation"] is None
+    r = _run(["status", "--once", *bus])
+    assert r.exit_code == 0 and "2 drone(s) up" in r.output and "(2.0, 0.0, 1.0)" in r.output
+    r = _run(["land", "--swarm", SWARM])
+    assert r.exit_code == 2 and "--connect" in r.output
+    r = _run(["land", "--drones", "1,x", *bus])
+    assert r.exit_code == 2 and "drone ids" in r.output
+    r = _run(["land", "--swarm", "bad swarm*", "--connect", connect])
+    assert r.exit_code == 2 and "swarm name" in r.output
