@@ -72,3 +72,78 @@ def check_config(file: Path, drone_id: int | None) -> None:
         f"{cfg.autopilot.implementation} at {cfg.autopilot.endpoint(cfg.drone.id)}, depth "
         f"{cfg.depth.source}"
     )
+
+
+@main.command()
+@click.option("--id", "drone_id", type=int, required=True, help="This drone's id (0-based).")
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Service config (default: config/onboard.yaml).",
+)
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override a setting.")
+@click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
+def run(
+    drone_id: int, config_file: Path | None, sets: tuple[str, ...], duration: float | None
+) -> None:
+    """The flight service of drone ID: autopilot link, swarm bus, depth, planner, reactions.
+
+    Tells systemd READY=1 once the link, the map and a warm planner are up; stops cleanly on
+    SIGTERM or SIGINT."""
+    import logging
+    import signal
+
+    from onboard.config import ConfigError, merge_mappings, parse_override
+    from onboard.service.adapters import open_autopilot, open_bus, open_depth
+    from onboard.service.config import load_onboard_config
+    from onboard.service.logs import event, setup_logging
+    from onboard.service.sdnotify import Notifier
+    from onboard.service.service import FlightService
+
+    try:
+        overrides: dict = {}
+        for s_ in sets:
+            overrides = merge_mappings(overrides, parse_override(s_))
+        cfg = load_onboard_config(config_file, drone_id, overrides)
+    except ConfigError as e:
+        click.echo(f"config: {e}", err=True)
+        sys.exit(2)
+    setup_logging(cfg.drone.id, cfg.logging.level, cfg.logging.format)
+    log = logging.getLogger("onboard.service")
+    notifier = Notifier()
+    notifier.status("connecting to the autopilot")
+    event(log, "starting", swarm=cfg.drone.swarm, autopilot=cfg.autopilot.endpoint(drone_id))
+    closers: list = []
+    try:
+        ap = open_autopilot(cfg)
+        closers.append(ap.close)
+        bus = open_bus(cfg)
+        closers.append(bus.close)
+        depth = open_depth(cfg)
+        if depth is not None:
+            closers.append(depth.close)
+    except Exception as e:  # noqa: BLE001 - any edge that cannot open ends the process
+        event(log, "start_failed", logging.ERROR, why=f"{type(e).__name__}: {e}")
+        for c in reversed(closers):
+            c()
+        sys.exit(1)
+    svc = FlightService(cfg, ap, bus, depth, notifier=notifier)
+
+    def on_signal(signum: int, _frame: object) -> None:
+        svc.request_stop()
+
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rc = 1
+    try:
+        rc = svc.run(duration_s=duration)
+    finally:
+        notifier.stopping()
+        svc.stop()
+        for c in reversed(closers):
+            c()
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        event(log, "stopped", code=rc)
+    sys.exit(rc)

@@ -178,8 +178,191 @@ def open_autopilot(cfg: OnboardConfig, clock: Callable[[], float] = time.time) -
     return AutopilotAdapter(link, clock)
 
 
+def command_from_wire(action: Any) -> Any:
+    """A ground-station action (``onboard.comm.wire``) as a state-machine command."""
+    from onboard.comm import wire
+    from onboard.service import state
+
+    if isinstance(action, wire.Takeoff):
+        return state.Takeoff(float(action.altitude_m))
+    if isinstance(action, wire.Land):
+        return state.Land()
+    if isinstance(action, wire.Abort):
+        return state.Abort()
+    if isinstance(action, wire.Resume):
+        return state.Resume()
+    if isinstance(action, wire.Goal):
+        return state.Goal(tuple(float(v) for v in action.position_m))  # type: ignore[arg-type]
+    if isinstance(action, wire.Waypoints):
+        return state.Waypoints(
+            tuple(tuple(float(v) for v in p) for p in action.points_m)  # type: ignore[misc]
+        )
+    if isinstance(action, wire.FormationAssignment):
+        c, s_ = math.cos(action.yaw_rad), math.sin(action.yaw_rad)
+        pts = []
+        for x, y, z in action.points_m:
+            x, y, z = x * action.scale, y * action.scale, z * action.scale
+            pts.append((c * x - s_ * y, s_ * x + c * y, z))
+        return state.SetFormation(
+            int(action.epoch),
+            float(action.effective_s),
+            tuple(sorted((int(d), int(k)) for d, k in action.slots.items())),
+            tuple(pts),
+        )
+    raise ValueError(f"unknown action {type(action).__name__}")
+
+
+class SwarmBusAdapter:
+    """``SwarmBusPort`` over ``onboard.comm.zenoh_bus.SwarmNode`` (one drone's node)."""
+
+    def __init__(self, node: Any, clock: Callable[[], float] = time.time) -> None:
+        import threading
+
+        self.node = node
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._peers: dict[int, PeerInfo] = {}
+        self._commands: list[IncomingCommand] = []
+        self._last_cmd_s: float | None = None
+        self._bad_commands = 0
+        node.on_trajectory(self._on_traj)
+        node.on_command(self._on_command)
+
+    def _on_traj(self, env: Any, receive_s: float) -> None:
+        from onboard.comm.messages import TrajectoryMsg
+
+        m = TrajectoryMsg.from_envelope(env)
+        info = PeerInfo(
+            m.drone_id, m.slot, m.formation_epoch, m.trajectory, m.valid_until_s, receive_s
+        )
+        with self._lock:
+            self._peers[m.drone_id] = info
+
+    def _on_command(self, env: Any, receive_s: float) -> None:
+        body = env.body
+        try:
+            cmd = command_from_wire(body.action)
+        except ValueError as e:
+            self.node.send_ack(body.cmd_id, False, str(e)[:200])
+            with self._lock:
+                self._bad_commands += 1
+            return
+        with self._lock:
+            self._commands.append(IncomingCommand(int(body.cmd_id), cmd))
+            self._last_cmd_s = receive_s
+
+    # ---- SwarmBusPort ------------------------------------------------------------------------
+    def publish_trajectory(
+        self, traj_id: int, slot: int, epoch: int, trajectory: Any, valid_for_s: float
+    ) -> None:
+        from onboard.comm.messages import TrajectoryMsg
+
+        now = self.clock()
+        msg = TrajectoryMsg(
+            self.node.drone_id, traj_id, slot, trajectory, max(epoch, 0), now + valid_for_s
+        )
+        self.node.publish_trajectory(msg, now)
+
+    def publish_state(self, fields: dict[str, Any]) -> None:
+        from onboard.comm.wire import StateBody
+
+        f = dict(fields)
+        f["formation_epoch"] = max(int(f["formation_epoch"]), 0)
+        self.node.publish_state(StateBody(**f))
+
+    def publish_status(self, fields: dict[str, Any]) -> None:
+        from onboard.comm.wire import LinkHealth, StatusBody
+
+        offsets = [abs(c.offset_s) for c in self.node.clock_report().values() if c is not None]
+        links = [
+            LinkHealth(name, bool(up), None if age is None or not math.isfinite(age) else age)
+            for name, up, age in fields["links"]
+        ]
+        batt = fields.get("battery_v")
+        self.node.publish_status(
+            StatusBody(
+                flight_state=fields["flight_state"],
+                plan_status=fields["plan_status"],
+                plan_stamp_s=fields["plan_stamp_s"],
+                plan_ms_last=float(fields["plan_ms_last"]),
+                plan_ms_max=float(fields["plan_ms_max"]),
+                replans=int(fields["replans"]),
+                links=links,
+                battery_v=None if batt is None or not 0.0 <= batt <= 100.0 else float(batt),
+                battery_remaining=None,
+                clock_offset_max_s=max(offsets) if offsets else None,
+                counters={k: max(int(v), 0) for k, v in list(fields["counters"].items())[:128]},
+                message=str(fields.get("message", ""))[:200],
+            )
+        )
+
+    def ack(self, cmd_id: int, accepted: bool, reason: str) -> None:
+        self.node.send_ack(cmd_id, accepted, reason[:200])
+
+    def peers(self) -> dict[int, PeerInfo]:
+        with self._lock:
+            return dict(self._peers)
+
+    def poll_commands(self) -> list[IncomingCommand]:
+        with self._lock:
+            out, self._commands = self._commands, []
+        return out
+
+    def gcs_last_heard_s(self) -> float | None:
+        if self.node.gcs_alive():
+            return self.clock()
+        with self._lock:
+            return self._last_cmd_s
+
+    def counters(self) -> dict[str, int]:
+        out = {k: int(v) for k, v in self.node.counters().items()}
+        out["commands_undecodable"] = self._bad_commands
+        return out
+
+    def close(self) -> None:
+        self.node.close()
+
+
+def open_bus(cfg: OnboardConfig, clock: Callable[[], float] = time.time) -> SwarmBusAdapter:
+    from onboard.comm.zenoh_bus import BusConfig, SwarmNode
+
+    node = SwarmNode(
+        cfg.drone.swarm,
+        cfg.drone.id,
+        cfg.zenoh.endpoints(),
+        config=BusConfig(
+            traj_valid_for_s=cfg.reactions.peer_lost.validity_s,
+            clock_offset_bound_s=cfg.bus.clock_offset_bound_s,
+        ),
+        clock=clock,
+    )
+    return SwarmBusAdapter(node, clock)
+
+
+def open_depth(cfg: OnboardConfig, pose_at: Any = None) -> Any:
+    """The configured depth source, or None ('none')."""
+    d = cfg.depth
+    if d.source == "none":
+        return None
+    if d.source == "realsense":
+        from onboard.sensors.realsense import RealSenseSource
+
+        if pose_at is None:
+            raise ValueError("a RealSense source needs the vehicle's pose provider")
+        return RealSenseSource(pose_at, d.realsense_bag, clock=time.time, fps=int(d.rate_hz))
+    # zenoh-sim: the SITL mock's frames over Zenoh (their camera pose is in each frame)
+    from onboard.sensors import zenoh_sim  # type: ignore[attr-defined]
+
+    sub = zenoh_sim.open_subscriber(d.sim_prefix, d.sim_connect)
+    return sub.depth_source(cfg.autopilot.target_system(cfg.drone.id))
+
+
 __all__ = [
     "AutopilotAdapter",
+    "SwarmBusAdapter",
+    "command_from_wire",
+    "open_bus",
+    "open_depth",
     "IncomingCommand",
     "PeerInfo",
     "link_config",
