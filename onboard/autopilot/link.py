@@ -126,8 +126,9 @@ class ModeTracker:
         self._expected: dict[FlightMode, float] = {}
 
     def expect(self, mode: FlightMode, now: float) -> None:
-        """The link is about to ask for ``mode`` (before the command goes out)."""
-        self._expected[mode] = now
+        """The link is about to ask for ``mode`` (before the command goes out). Replaces any
+        earlier request: only the latest one excuses a change."""
+        self._expected = {mode: now}
         if mode == FlightMode.TAKEOFF:  # PX4 switches to Hold by itself after a takeoff
             self._expected[FlightMode.HOLD] = now
 
@@ -143,6 +144,8 @@ class ModeTracker:
         if prev == FlightMode.UNKNOWN:
             return ModeObservation(None, False)
         commanded = self.commanded(mode, now)
+        if commanded:  # a request excuses one change only
+            del self._expected[mode]
         lost = prev == FlightMode.OFFBOARD and not commanded
         return ModeObservation((prev, mode, commanded), lost)
 

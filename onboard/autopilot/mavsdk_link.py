@@ -156,12 +156,13 @@ class MavsdkLink(AutopilotLink):
         cfg = self.config
         conf = Configuration.create_manual(cfg.own_system_id, cfg.component_id, False)
         self._mavsdk = Mavsdk(conf)
-        self._mavsdk.subscribe_raw_bytes_to_be_sent(self._on_outgoing)
         result = self._mavsdk.add_any_connection("raw://")
         if result != ConnectionResult.SUCCESS:
             self._mavsdk.destroy()
             self._mavsdk = None
             raise LinkError(f"{self.name}: MAVSDK raw connection failed: {result!r}")
+        # nothing goes out before the autopilot is found, so subscribing after is lossless
+        self._mavsdk.subscribe_raw_bytes_to_be_sent(self._on_outgoing)
         self._start_thread(self._pump_loop, "autopilot-pump")
         self._start_thread(self._discover, "autopilot-discover")
 
