@@ -9,164 +9,54 @@ onboard service can consume it through the same kind of interface:
   (``onboard.mapping.SimulatedDepthCamera``) from the true pose;
 - sinks: ``InMemoryTruth`` (same process: tests, demos) and ``ZenohTruth`` (other processes,
   key expressions ``<prefix>/<system_id>/pose`` and ``<prefix>/<system_id>/depth``);
-- the consuming side: ``ZenohTruthSubscriber`` (or ``InMemoryTruth``) hands out, per vehicle,
-  a depth source with the interface of ``onboard.sensors.DepthSource`` (``read()`` ->
-  ``onboard.mapping.DepthFrame``) and a camera pose provider (``onboard.sensors.PoseProvider``);
-- wire formats: a pose is a small JSON object; a depth frame is a JSON header plus the image as
-  little-endian uint16 millimetres (the D435's Z16 format; 0 = no return).
+- the consuming side, ``ZenohTruthSubscriber`` (or ``InMemoryTruth``), hands out per vehicle a
+  depth source (``onboard.sensors.DepthSource``) and a camera pose provider; it and the wire
+  formats (a pose is a small JSON object; a depth frame is a JSON header plus the image as
+  little-endian uint16 millimetres, the D435's Z16 format) live in
+  ``onboard.sensors.zenoh_depth``, the camera mount in ``onboard.sensors.mount``: the flight
+  service reads them without importing the mock. They are re-exported here.
 """
 
 from __future__ import annotations
 
-import json
-import math
-import struct
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
-from sitl_mock.frames import matrix_from_quaternion
+from onboard.comm.zenoh_session import ZenohEndpoints, open_session
 
-# camera mounting: optical frame (x right, y down, z forward) in the FLU body frame
-R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-CAMERA_OFFSET_BODY_M = np.array([0.10, 0.0, 0.0])
+# The consuming side and the wire formats live in onboard/ (the flight service reads them);
+# re-exported here so that code importing them from the mock keeps working.
+from onboard.sensors.mount import CAMERA_OFFSET_BODY_M, R_BODY_CAM
+from onboard.sensors.zenoh_depth import (
+    DecodeError,
+    DepthImage,
+    TruthDepthSource,
+    TruthSample,
+    ZenohTruthSubscriber,
+    pose_provider,
+)
 
-
-@dataclass(frozen=True)
-class TruthSample:
-    """True state of one vehicle. ENU world, FLU body; quaternion (w, x, y, z) body -> world."""
-
-    system_id: int
-    t_s: float
-    position_m: tuple[float, float, float]
-    velocity_m_s: tuple[float, float, float]
-    quaternion: tuple[float, float, float, float]
-    yaw_rad: float
-    armed: bool
-    landed: bool
-    mode: str
-    collisions: int
-
-    def to_bytes(self) -> bytes:
-        return json.dumps(
-            {
-                "system_id": self.system_id,
-                "t_s": self.t_s,
-                "position_enu_m": list(self.position_m),
-                "velocity_enu_m_s": list(self.velocity_m_s),
-                "quaternion_enu_flu": list(self.quaternion),
-                "yaw_enu_rad": self.yaw_rad,
-                "armed": self.armed,
-                "landed": self.landed,
-                "mode": self.mode,
-                "collisions": self.collisions,
-            },
-            separators=(",", ":"),
-        ).encode()
-
-    @staticmethod
-    def from_bytes(data: bytes) -> TruthSample:
-        d = json.loads(data)
-        return TruthSample(
-            system_id=int(d["system_id"]),
-            t_s=float(d["t_s"]),
-            position_m=_vec3(d["position_enu_m"]),
-            velocity_m_s=_vec3(d["velocity_enu_m_s"]),
-            quaternion=(
-                float(d["quaternion_enu_flu"][0]),
-                float(d["quaternion_enu_flu"][1]),
-                float(d["quaternion_enu_flu"][2]),
-                float(d["quaternion_enu_flu"][3]),
-            ),
-            yaw_rad=float(d["yaw_enu_rad"]),
-            armed=bool(d["armed"]),
-            landed=bool(d["landed"]),
-            mode=str(d["mode"]),
-            collisions=int(d["collisions"]),
-        )
-
-    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """(position (3,), world_from_camera (3, 3)) of the forward depth camera."""
-        r_world_body = matrix_from_quaternion(self.quaternion)
-        pos = np.asarray(self.position_m) + r_world_body @ CAMERA_OFFSET_BODY_M
-        return pos, r_world_body @ R_BODY_CAM
-
-
-def _vec3(v: Sequence[Any]) -> tuple[float, float, float]:
-    return float(v[0]), float(v[1]), float(v[2])
-
-
-@dataclass(frozen=True, eq=False)
-class DepthImage:
-    """A depth image (height, width) float32 metres (0 = no return) from a camera pose.
-
-    ``intrinsics``: width, height, fx, fy, cx, cy, min_depth_m, max_depth_m.
-    """
-
-    system_id: int
-    stamp_s: float
-    depth_m: np.ndarray
-    position: np.ndarray
-    rotation: np.ndarray
-    intrinsics: dict[str, float]
-
-    def to_bytes(self) -> bytes:
-        header = json.dumps(
-            {
-                "system_id": self.system_id,
-                "stamp_s": self.stamp_s,
-                "position": [float(x) for x in self.position],
-                "rotation": [float(x) for x in np.asarray(self.rotation).reshape(9)],
-                "intrinsics": self.intrinsics,
-                "shape": list(self.depth_m.shape),
-                "encoding": "z16_mm",
-            },
-            separators=(",", ":"),
-        ).encode()
-        d = np.nan_to_num(np.asarray(self.depth_m, dtype=np.float64), nan=0.0, posinf=0.0)
-        mm = np.clip(np.rint(d * 1000.0), 0, 65535).astype("<u2")
-        return b"DPT1" + struct.pack("<I", len(header)) + header + mm.tobytes()
-
-    @staticmethod
-    def from_bytes(data: bytes) -> DepthImage:
-        if data[:4] != b"DPT1":
-            raise ValueError("not a depth frame")
-        (n,) = struct.unpack("<I", data[4:8])
-        h = json.loads(data[8 : 8 + n])
-        shape = tuple(int(x) for x in h["shape"])
-        mm = np.frombuffer(data[8 + n :], dtype="<u2")
-        if mm.size != shape[0] * shape[1]:
-            raise ValueError("depth frame size does not match its header")
-        return DepthImage(
-            system_id=int(h["system_id"]),
-            stamp_s=float(h["stamp_s"]),
-            depth_m=(mm.reshape(shape).astype(np.float32) / np.float32(1000.0)),
-            position=np.array(h["position"], dtype=np.float64),
-            rotation=np.array(h["rotation"], dtype=np.float64).reshape(3, 3),
-            intrinsics={k: float(v) for k, v in h["intrinsics"].items()},
-        )
-
-    def to_depth_frame(self) -> Any:
-        """This image as the perception work's ``onboard.mapping.DepthFrame``."""
-        from onboard.mapping.camera import CameraIntrinsics, DepthFrame
-
-        i = self.intrinsics
-        intr = CameraIntrinsics(
-            int(i["width"]),
-            int(i["height"]),
-            i["fx"],
-            i["fy"],
-            i["cx"],
-            i["cy"],
-            i.get("min_depth_m", 0.2),
-            i.get("max_depth_m", 5.0),
-        )
-        return DepthFrame(self.depth_m, self.stamp_s, self.position, self.rotation, intr)
+__all__ = [
+    "CAMERA_OFFSET_BODY_M",
+    "R_BODY_CAM",
+    "DecodeError",
+    "DepthCamera",
+    "DepthImage",
+    "DepthStreamer",
+    "InMemoryTruth",
+    "TruthDepthSource",
+    "TruthSample",
+    "TruthSink",
+    "ZenohTruth",
+    "ZenohTruthSubscriber",
+    "pose_provider",
+    "simulated_d435",
+]
 
 
 class TruthSink(Protocol):
@@ -227,9 +117,11 @@ class InMemoryTruth:
 
 
 class ZenohTruth:
-    """Publishes over Zenoh (peer mode, no multicast scouting, explicit endpoints only).
+    """Publishes over Zenoh, on a session opened by ``onboard.comm.zenoh_session.open_session``
+    (peer mode, no multicast scouting, explicit endpoints by default).
 
-    ``listen`` / ``connect``: Zenoh endpoints such as ``tcp/127.0.0.1:7447``.
+    ``listen`` / ``connect``: Zenoh endpoints such as ``tcp/127.0.0.1:7447``; or ``endpoints``
+    (a ``ZenohEndpoints``, e.g. for a router).
     """
 
     def __init__(
@@ -237,16 +129,12 @@ class ZenohTruth:
         prefix: str = "swarm/sim",
         listen: Sequence[str] = ("tcp/127.0.0.1:7447",),
         connect: Sequence[str] = (),
+        *,
+        endpoints: ZenohEndpoints | None = None,
     ) -> None:
-        import zenoh
-
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-        cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
         self.prefix = prefix.rstrip("/")
-        self._session = zenoh.open(cfg)
+        ep = endpoints or ZenohEndpoints(listen=tuple(listen), connect=tuple(connect))
+        self._session = open_session(ep)
         self._pubs: dict[str, Any] = {}
 
     def _put(self, key: str, payload: bytes) -> None:
@@ -380,120 +268,3 @@ class DepthStreamer:
                 delay = max(next_t - time.monotonic(), 0.0)
             if self._stop.wait(delay):
                 break
-
-
-# ---------------------------------------------------------------------------------------------
-# The consuming side: what the onboard service reads instead of a camera driver
-
-
-class TruthDepthSource:
-    """One vehicle's simulated frames as a depth source (``onboard.sensors.DepthSource``):
-    ``read`` returns the newest frame not returned before (an ``onboard.mapping.DepthFrame``),
-    or None when there is no new one."""
-
-    def __init__(self, latest: Callable[[], DepthImage | None]) -> None:
-        self._latest = latest
-        self._last_stamp = -math.inf
-        self._intrinsics: Any = None
-
-    @property
-    def intrinsics(self) -> Any:
-        if self._intrinsics is None:
-            from onboard.mapping.camera import CameraIntrinsics
-
-            return CameraIntrinsics()
-        return self._intrinsics
-
-    def read(self) -> Any:
-        img = self._latest()
-        if img is None or img.stamp_s <= self._last_stamp:
-            return None
-        self._last_stamp = img.stamp_s
-        frame = img.to_depth_frame()
-        self._intrinsics = frame.intrinsics
-        return frame
-
-    def close(self) -> None:
-        return None
-
-
-def pose_provider(
-    latest: Callable[[], TruthSample | None],
-) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
-    """A pose provider (stamp -> camera position, world_from_camera) from the latest true pose
-    (the stamp is not interpolated: the mock publishes poses faster than frames are taken)."""
-
-    def at(_stamp_s: float) -> tuple[np.ndarray, np.ndarray]:
-        s = latest()
-        if s is None:
-            raise LookupError("no pose received yet")
-        return s.camera_pose()
-
-    return at
-
-
-class ZenohTruthSubscriber:
-    """Subscribes to the poses and depth frames a ``ZenohTruth`` publishes; keeps the latest
-    of each per vehicle."""
-
-    def __init__(
-        self,
-        prefix: str = "swarm/sim",
-        connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
-        listen: Sequence[str] = (),
-    ) -> None:
-        import zenoh
-
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-        cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        self.prefix = prefix.rstrip("/")
-        self._lock = threading.Lock()
-        self._poses: dict[int, TruthSample] = {}
-        self._depth: dict[int, DepthImage] = {}
-        self.errors = 0
-        self._session = zenoh.open(cfg)
-        self._subs = [
-            self._session.declare_subscriber(f"{self.prefix}/*/pose", self._on_pose),
-            self._session.declare_subscriber(f"{self.prefix}/*/depth", self._on_depth),
-        ]
-
-    def _on_pose(self, sample: Any) -> None:
-        try:
-            s = TruthSample.from_bytes(sample.payload.to_bytes())
-        except (ValueError, KeyError, TypeError):
-            self.errors += 1
-            return
-        with self._lock:
-            self._poses[s.system_id] = s
-
-    def _on_depth(self, sample: Any) -> None:
-        try:
-            img = DepthImage.from_bytes(sample.payload.to_bytes())
-        except (ValueError, KeyError, TypeError, struct.error):
-            self.errors += 1
-            return
-        with self._lock:
-            self._depth[img.system_id] = img
-
-    def pose(self, system_id: int) -> TruthSample | None:
-        with self._lock:
-            return self._poses.get(system_id)
-
-    def depth_image(self, system_id: int) -> DepthImage | None:
-        with self._lock:
-            return self._depth.get(system_id)
-
-    def depth_source(self, system_id: int) -> TruthDepthSource:
-        return TruthDepthSource(lambda: self.depth_image(system_id))
-
-    def pose_provider(self, system_id: int) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
-        return pose_provider(lambda: self.pose(system_id))
-
-    def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
-        self._subs.clear()
-        self._session.close()
