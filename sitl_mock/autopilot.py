@@ -4,26 +4,38 @@ Pure logic (no sockets, no clocks: every method takes the simulated time ``t_s``
 The MAVLink layer turns messages into calls here and reports what it returns; each tick
 ``update`` turns the mode into the controller command row of ``sitl_mock.dynamics``.
 
-Behaviour modelled on PX4 v1.16 as seen from a companion computer:
+The specification is PX4 v1.16's code and what a real PX4 v1.16 (SITL, SIH quadrotor) did when
+observed (``sitl_mock/README.md`` has the conformance table, with sources):
 
-- boots into Hold, reports ready (pre-arm checks pass) after ``boot_time_s``;
-- arming is refused (temporarily rejected) while not ready, in Land / Return, and in Offboard
-  without a live setpoint stream; disarming in the air needs the force flag;
-- Offboard is accepted only after setpoints have streamed above ``offboard_min_rate_hz`` for
-  ``offboard_stream_min_s``; in Offboard, no setpoint for ``offboard_loss_timeout_s`` while
-  armed triggers the failsafe action (Hold, Land or Return);
-- Takeoff climbs to the takeoff altitude at the takeoff speed and switches to Hold by itself;
-  Land descends (faster high up), the land detector declares the landing, and the vehicle
-  disarms ``disarm_land_s`` later; after that the mode returns to the last mode the user chose
-  that is not Takeoff / Land / Return (e.g. Offboard, where arming then needs a stream again);
-- a vehicle armed on the ground that does not take off disarms after ``disarm_preflight_s``;
-- on the ground the motors idle until the setpoint asks to climb (PX4's takeoff trigger).
+- boots into Hold and reports ready (pre-arm checks pass) after ``boot_time_s``;
+- Offboard (and arming in it) is accepted once one setpoint younger than COM_OF_LOSS_T has
+  arrived (PX4's ``OffboardChecks``: ``offboard_control_mode`` newer than COM_OF_LOSS_T). PX4's
+  documentation asks clients to stream above 2 Hz for ~1 s first; that is advice, not a check,
+  and the code and the observation win. A stricter warm-up exists only as an explicit option;
+- in Offboard, armed, no setpoint for COM_OF_LOSS_T triggers the COM_OBL_RC_ACT action (PX4's
+  value codes, default 0 = Position mode; without RC input that mode descends at the landing
+  speed, as observed). The action is a *mode fallback*: the mode the user chose stays Offboard
+  (CURRENT_MODE's intended mode) and when setpoints come back the vehicle returns to Offboard
+  by itself (``failsafe.cpp: checkModeFallback``); choosing another mode ends it;
+- arming is refused while not ready, in Land / Return, and in Offboard without a live stream;
+  the force value 21196 changes nothing for arming over MAVLink (observed on v1.16); disarming
+  in the air needs the force flag;
+- arming and takeoff detection reset the home position;
+- Takeoff climbs to the takeoff altitude and switches to Hold by itself; Land descends (faster
+  high up), the land detector declares the landing after LNDMC_TRIG_TIME of ground contact and
+  the vehicle disarms COM_DISARM_LAND later; after that the mode returns to the last mode the
+  user chose that is not Takeoff / Land / Return (e.g. Offboard, where arming then needs a
+  stream again);
+- a vehicle armed on the ground that does not take off disarms after COM_DISARM_PRFLT;
+- on the ground the motors idle until the setpoint asks to climb (PX4's takeoff trigger);
+- status texts use PX4's wording ("Armed by external command", "Failsafe activated", ...).
 """
 
 from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -74,9 +86,10 @@ class Mode(enum.Enum):
 
 
 SUPPORTED_MODES = frozenset(
-    {Mode.POSCTL, Mode.TAKEOFF, Mode.HOLD, Mode.RTL, Mode.LAND, Mode.OFFBOARD}
+    {Mode.POSCTL, Mode.ALTCTL, Mode.TAKEOFF, Mode.HOLD, Mode.RTL, Mode.LAND, Mode.OFFBOARD}
 )
 AUTO_MODES = frozenset({Mode.TAKEOFF, Mode.HOLD, Mode.RTL, Mode.LAND, Mode.MISSION})
+MANUAL_INPUT_MODES = frozenset({Mode.POSCTL, Mode.ALTCTL})  # need RC (stick) input to be chosen
 # user choices that are not restored after landing and disarming
 _TRANSIENT_USER_MODES = frozenset({Mode.TAKEOFF, Mode.LAND, Mode.RTL})
 
@@ -114,15 +127,48 @@ class Severity(enum.IntEnum):
     DEBUG = 7
 
 
-LossAction = Literal["hold", "land", "rtl"]
+LossAction = Literal["position", "altitude", "rtl", "land", "hold", "disarm"]
+# COM_OBL_RC_ACT value codes (PX4 v1.16 commander parameters): the actions the mock can perform
+OFFBOARD_LOSS_ACTION_CODES: dict[str, int] = {
+    "position": 0,
+    "altitude": 1,
+    "rtl": 3,
+    "land": 4,
+    "hold": 5,
+    "disarm": 7,
+}
+# PX4 codes the mock does not perform (no attitude-only flight, no flight termination)
+OFFBOARD_LOSS_UNSUPPORTED_CODES: dict[int, str] = {2: "Stabilized", 6: "Terminate"}
+_FALLBACK_MODE: dict[str, Mode] = {
+    "position": Mode.POSCTL,
+    "altitude": Mode.ALTCTL,
+    "rtl": Mode.RTL,
+    "land": Mode.LAND,
+    "hold": Mode.HOLD,
+}
 MAX_TAKEOFF_ALT_M = 1000.0  # takeoff targets above this (relative to home) are denied
+ARMING_DENIED_TEXT = "Arming denied: Resolve system health failures first"  # observed on v1.16
+
+
+def offboard_loss_action_from_code(code: int) -> LossAction:
+    """The action of a COM_OBL_RC_ACT value; ValueError for codes the mock cannot perform."""
+    for name, c in OFFBOARD_LOSS_ACTION_CODES.items():
+        if c == code:
+            return name  # type: ignore[return-value]
+    if code in OFFBOARD_LOSS_UNSUPPORTED_CODES:
+        raise ValueError(
+            f"COM_OBL_RC_ACT {code} ({OFFBOARD_LOSS_UNSUPPORTED_CODES[code]}) is not supported "
+            "by the mock"
+        )
+    raise ValueError(f"COM_OBL_RC_ACT {code} is not a PX4 value (0-7)")
 
 
 @dataclass(frozen=True)
 class AutopilotParams:
-    """Flight-logic settings, named after the PX4 parameters they stand for."""
+    """Flight-logic settings, named after the PX4 parameters they stand for; defaults are PX4
+    v1.16's (multicopter)."""
 
-    boot_time_s: float = 5.0  # time until pre-arm checks pass
+    boot_time_s: float = 5.0  # time until pre-arm checks pass (observed ~5 s)
     takeoff_alt_m: float = 2.5  # MIS_TAKEOFF_ALT, above home
     takeoff_speed_m_s: float = 1.5  # MPC_TKO_SPEED
     takeoff_acceptance_m: float = 0.8  # NAV_MC_ALT_RAD
@@ -132,17 +178,21 @@ class AutopilotParams:
     land_alt2_m: float = 5.0  # MPC_LAND_ALT2
     auto_speed_m_s: float = 5.0  # MPC_XY_CRUISE
     auto_acc_m_s2: float = 3.0  # MPC_ACC_HOR
-    rtl_return_alt_m: float = 10.0  # RTL_RETURN_ALT (PX4's default is 60 m)
+    rtl_return_alt_m: float = 60.0  # RTL_RETURN_ALT
     offboard_loss_timeout_s: float = 1.0  # COM_OF_LOSS_T
-    offboard_loss_action: LossAction = "hold"  # COM_OBL_RC_ACT: 5 hold, 4 land, 2 return
-    offboard_stream_min_s: float = 1.0
-    offboard_min_rate_hz: float = 2.0
+    # COM_OBL_RC_ACT, by name (codes: OFFBOARD_LOSS_ACTION_CODES); PX4's default 0 = Position
+    offboard_loss_action: LossAction = "position"
+    # Not PX4 (v1.16 has no warm-up): an optional stricter rule for testing clients: Offboard
+    # and arming in it need setpoints for this long, with gaps below 1 / offboard_min_rate_hz.
+    # 0 (the default) = PX4's rule, one setpoint younger than COM_OF_LOSS_T.
+    offboard_stream_min_s: float = 0.0
+    offboard_min_rate_hz: float = 0.0
     disarm_land_s: float = 2.0  # COM_DISARM_LAND (<= 0: never)
     disarm_preflight_s: float = 10.0  # COM_DISARM_PRFLT (<= 0: never)
     spoolup_s: float = 1.0  # COM_SPOOLUP_TIME
-    land_detect_s: float = 0.5  # ground contact this long = landed
+    land_detect_s: float = 1.0  # LNDMC_TRIG_TIME: ground contact this long = landed
     takeoff_trigger_m: float = 0.2  # a setpoint this far above starts a takeoff
-    rc_present: bool = False  # without RC, Position mode is refused
+    rc_present: bool = False  # without RC, Position / Altitude mode cannot be chosen
     battery_hover_time_s: float = 1200.0  # full battery at hover thrust
     battery_min_arm_fraction: float = 0.1  # arming refused below this charge
 
@@ -155,28 +205,47 @@ class AutopilotParams:
             "auto_speed_m_s",
             "auto_acc_m_s2",
             "offboard_loss_timeout_s",
-            "offboard_min_rate_hz",
             "battery_hover_time_s",
             "takeoff_acceptance_m",
         ):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{name} must be a positive number")
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
         for name in (
             "boot_time_s",
             "offboard_stream_min_s",
+            "offboard_min_rate_hz",
             "spoolup_s",
             "land_detect_s",
             "takeoff_trigger_m",
             "rtl_return_alt_m",
+            "land_alt1_m",
+            "land_alt2_m",
         ):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be >= 0")
-        if self.offboard_loss_action not in ("hold", "land", "rtl"):
-            raise ValueError("offboard_loss_action must be hold, land or rtl")
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be >= 0, got {v!r}")
+        for name in ("disarm_land_s", "disarm_preflight_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise ValueError(f"{name} must be a number, got {v!r}")
+        if self.offboard_loss_action not in OFFBOARD_LOSS_ACTION_CODES:
+            raise ValueError(
+                f"offboard_loss_action must be one of {sorted(OFFBOARD_LOSS_ACTION_CODES)} "
+                f"(COM_OBL_RC_ACT {sorted(OFFBOARD_LOSS_ACTION_CODES.values())}), "
+                f"got {self.offboard_loss_action!r}"
+            )
+        if self.offboard_stream_min_s > 0.0 and self.offboard_min_rate_hz <= 0.0:
+            raise ValueError("offboard_stream_min_s > 0 needs offboard_min_rate_hz > 0")
+        if self.land_alt1_m < self.land_alt2_m:
+            raise ValueError("land_alt1_m must be >= land_alt2_m")
         if not 0.0 <= self.battery_min_arm_fraction < 1.0:
             raise ValueError("battery_min_arm_fraction must be in [0, 1)")
+
+    @property
+    def offboard_loss_action_code(self) -> int:
+        """COM_OBL_RC_ACT as PX4 encodes it."""
+        return OFFBOARD_LOSS_ACTION_CODES[self.offboard_loss_action]
 
 
 @dataclass
@@ -204,14 +273,25 @@ class OffboardSetpoint:
     yaw_rad: float = math.nan
     yaw_rate_rad_s: float = math.nan
 
-    def valid(self) -> bool:
-        """Every axis is controlled by a position, a velocity or an acceleration."""
-        have = ~(
-            np.isnan(self.position_m)
-            & np.isnan(self.velocity_m_s)
-            & np.isnan(self.acceleration_m_s2)
+    def controls_any(self) -> bool:
+        """At least one position, velocity or acceleration component is set: PX4 publishes
+        ``offboard_control_mode`` for it, so it keeps the offboard stream alive."""
+        return bool(
+            np.any(np.isfinite(self.position_m))
+            or np.any(np.isfinite(self.velocity_m_s))
+            or np.any(np.isfinite(self.acceleration_m_s2))
         )
-        return bool(np.all(have))
+
+    def valid(self) -> bool:
+        """PX4's position controller accepts it (``PositionControl::_inputValid``): every axis
+        has a position, velocity or acceleration, and x / y come in pairs for each of them.
+        Otherwise PX4 flies its "stop and wait" failsafe (zero velocity) while the stream
+        still counts as alive."""
+        p, v, a = self.position_m, self.velocity_m_s, self.acceleration_m_s2
+        fp, fv, fa = np.isfinite(p), np.isfinite(v), np.isfinite(a)
+        if not bool(np.all(fp | fv | fa)):
+            return False
+        return bool(fp[0] == fp[1] and fv[0] == fv[1] and fa[0] == fa[1])
 
 
 @dataclass
@@ -280,14 +360,15 @@ class _StreamMonitor:
 
 @dataclass
 class Autopilot:
-    """Flight logic of one vehicle. ``home_m``: ENU home (spawn point on the ground)."""
+    """Flight logic of one vehicle. ``home_m``: ENU home (spawn point on the ground; PX4 resets
+    it at arming and just after takeoff)."""
 
     params: AutopilotParams
     home_m: np.ndarray
     ground_z_m: float
     armed: bool = False
-    mode: Mode = Mode.HOLD
-    user_mode: Mode = Mode.HOLD  # last mode a command chose
+    mode: Mode = Mode.HOLD  # the mode flown (PX4's nav_state)
+    user_mode: Mode = Mode.HOLD  # the mode the user chose (PX4's user intended mode)
     persistent_user_mode: Mode = Mode.HOLD  # last user choice restored after disarming
     failsafe: str | None = None
     landed: bool = True
@@ -298,10 +379,15 @@ class Autopilot:
 
     def __post_init__(self) -> None:
         self.home_m = np.asarray(self.home_m, dtype=np.float64).reshape(3).copy()
+        self.home_updates = 0  # times the home position was (re)set
+        self.last_arm_denial = ""  # why the last arming was refused (the mock's words)
+        # every status event with its time (the MAVLink layer drains ``events`` to send them)
+        self.event_log: deque[tuple[float, StatusEvent]] = deque(maxlen=1000)
         self._t_s = 0.0
         self._est = Estimate(self.home_m.copy(), np.zeros(3), self.yaw0_rad, True)
         self._stream = _StreamMonitor()
-        self._setpoint: OffboardSetpoint | None = None
+        self._setpoint: OffboardSetpoint | None = None  # last one received
+        self._active_setpoint: OffboardSetpoint | None = None  # received while in Offboard
         self._t_arm = -math.inf
         self._airborne_since_arm = False
         self._ground_since: float | None = 0.0
@@ -324,12 +410,27 @@ class Autopilot:
     def booted(self, t_s: float) -> bool:
         return t_s >= self.params.boot_time_s
 
+    def prearm_ok(self, t_s: float) -> bool:
+        """The vehicle could be armed in its current mode now (SYS_STATUS's pre-arm bit)."""
+        return not self._arm_denial(t_s)
+
     def stream_live(self, t_s: float) -> bool:
+        """Offboard may be entered (and armed in): a setpoint younger than COM_OF_LOSS_T
+        (plus the optional non-PX4 warm-up rule)."""
         p = self.params
+        if self._stream.age(t_s) > p.offboard_loss_timeout_s:
+            return False
+        if p.offboard_stream_min_s <= 0.0:
+            return True
         return self._stream.live(t_s, 1.0 / p.offboard_min_rate_hz, p.offboard_stream_min_s)
+
+    def setpoint_age_s(self, t_s: float) -> float:
+        """Time since the last accepted offboard setpoint (inf if none)."""
+        return self._stream.age(t_s)
 
     @property
     def offboard_setpoint(self) -> OffboardSetpoint | None:
+        """The last offboard setpoint received (in any mode)."""
         return self._setpoint
 
     def landed_state(self) -> LandedState:
@@ -343,30 +444,38 @@ class Autopilot:
 
     # ---- inputs --------------------------------------------------------------------------
     def on_setpoint(self, t_s: float, sp: OffboardSetpoint) -> bool:
-        """An offboard setpoint arrived; False (and ignored) if it does not control every axis."""
-        if not sp.valid():
+        """An offboard setpoint arrived. False (and ignored, as PX4's "invalid") if it sets no
+        position, velocity or acceleration at all. As in PX4, it is flown only if it arrives
+        while in Offboard; before that it only keeps the stream alive."""
+        if not sp.controls_any():
             return False
-        self._stream.note(t_s, 1.0 / self.params.offboard_min_rate_hz)
+        p = self.params
+        gap = 1.0 / p.offboard_min_rate_hz if p.offboard_min_rate_hz > 0 else math.inf
+        self._stream.note(t_s, gap)
         self._setpoint = sp
+        if self.mode == Mode.OFFBOARD:
+            self._active_setpoint = sp
         return True
 
     def command_arm(self, t_s: float, arm: bool, force: bool = False) -> Result:
+        """ARM_DISARM. ``force`` only matters for disarming (in the air): PX4 v1.16 ignores the
+        force value for arming commands that arrive over MAVLink (observed)."""
         if arm:
             if self.armed:
                 return Result.ACCEPTED
-            if not force:
-                reason = self._arm_denial(t_s)
-                if reason:
-                    self._event(Severity.CRITICAL, f"Arming denied: {reason}")
-                    return Result.TEMPORARILY_REJECTED
-            self._set_armed(t_s, True, "command")
+            reason = self._arm_denial(t_s)
+            if reason:
+                self.last_arm_denial = reason
+                self._event(Severity.CRITICAL, ARMING_DENIED_TEXT)
+                return Result.TEMPORARILY_REJECTED
+            self._set_armed(t_s, True, "external command")
             return Result.ACCEPTED
         if not self.armed:
             return Result.ACCEPTED
         if not (self.landed or self._est.on_ground or force):
             self._event(Severity.CRITICAL, "Disarming denied: not landed")
             return Result.TEMPORARILY_REJECTED
-        self._set_armed(t_s, False, "forced" if force and not self.landed else "command")
+        self._set_armed(t_s, False, "external command")
         return Result.ACCEPTED
 
     def command_set_mode(self, t_s: float, mode: Mode | None) -> Result:
@@ -379,16 +488,21 @@ class Autopilot:
         if mode == Mode.OFFBOARD and not self.stream_live(t_s):
             self._event(Severity.CRITICAL, "Switching to Offboard is currently not possible")
             return Result.TEMPORARILY_REJECTED
-        if mode == Mode.POSCTL and not self.params.rc_present:
+        if mode in MANUAL_INPUT_MODES and not self.params.rc_present:
+            name = "Position" if mode == Mode.POSCTL else "Altitude"
             self._event(
                 Severity.CRITICAL,
-                "Switching to Position is currently not possible: no manual control input",
+                f"Switching to {name} is currently not possible: no manual control input",
             )
             return Result.TEMPORARILY_REJECTED
+        if mode == Mode.LAND:
+            return self.command_land(t_s)
+        if mode == Mode.RTL:
+            return self.command_rtl(t_s)
         self._user_choice(mode)
-        if mode != self.mode or self.failsafe is not None:
-            self._enter(t_s, mode)
         self.failsafe = None
+        if mode != self.mode:
+            self._enter(t_s, mode)
         return Result.ACCEPTED
 
     def command_takeoff(self, t_s: float, altitude_above_home_m: float | None) -> Result:
@@ -403,6 +517,8 @@ class Autopilot:
             if altitude_above_home_m < alt:
                 self._event(Severity.WARNING, f"Using minimum takeoff altitude: {alt:.2f} m")
             alt = max(alt, altitude_above_home_m)
+        else:
+            self._event(Severity.INFO, f"Using default takeoff altitude: {alt:.1f} m")
         self._takeoff_goal_z = self.home_m[2] + alt
         self._user_choice(Mode.TAKEOFF)
         self.failsafe = None
@@ -437,7 +553,7 @@ class Autopilot:
         self._t_s = t_s
         self._est = est
         p = self.params
-        # land detector
+        # land detector (takeoff is detected at once, a landing after LNDMC_TRIG_TIME)
         if est.on_ground:
             if self._ground_since is None:
                 self._ground_since = t_s
@@ -452,8 +568,10 @@ class Autopilot:
             self._landed_since = t_s
             if self.armed:
                 self._event(Severity.INFO, "Landing detected")
-        if not self.landed and self.armed:
+        if was_landed and not self.landed and self.armed:
             self._airborne_since_arm = True
+            self._event(Severity.INFO, "Takeoff detected")
+            self._set_home(est.position_m)  # PX4 resets home just after takeoff
         # battery
         if self.armed:
             use = max(est.thrust, 0.05) / self.hover_thrust
@@ -464,25 +582,29 @@ class Autopilot:
         if self.armed and self.landed:
             if self._airborne_since_arm:
                 if p.disarm_land_s > 0 and t_s - self._landed_since >= p.disarm_land_s:
-                    self._set_armed(t_s, False, "landed")
+                    self._set_armed(t_s, False, "landing")
             elif p.disarm_preflight_s > 0 and t_s - self._t_arm >= p.disarm_preflight_s:
-                self._set_armed(t_s, False, "no takeoff after arming")
-        # offboard loss
-        if (
-            self.armed
-            and self.mode == Mode.OFFBOARD
-            and self._stream.age(t_s) > p.offboard_loss_timeout_s
-        ):
-            action = {"hold": Mode.HOLD, "land": Mode.LAND, "rtl": Mode.RTL}[p.offboard_loss_action]
-            self._event(
-                Severity.CRITICAL,
-                f"Failsafe activated: offboard signal lost, {action.name.title()}",
-            )
-            self.failsafe = "offboard_loss"
-            self._enter(t_s, action)
+                self._set_armed(t_s, False, "auto preflight disarming")
+        # offboard loss: a mode fallback while the user's mode is Offboard and the stream is lost
+        if self.armed and self.user_mode == Mode.OFFBOARD:
+            lost = self._stream.age(t_s) > p.offboard_loss_timeout_s
+            if lost and self.failsafe is None:
+                self._offboard_lost(t_s)
+            elif not lost and self.failsafe == "offboard_loss":
+                self.failsafe = None  # the condition cleared: back to the user's mode
+                self._enter(t_s, Mode.OFFBOARD)
         self._command(t_s, dt, est, cmd_row)
 
     # ---- internals -----------------------------------------------------------------------
+    def _offboard_lost(self, t_s: float) -> None:
+        action = self.params.offboard_loss_action
+        self._event(Severity.CRITICAL, "Failsafe activated")
+        self.failsafe = "offboard_loss"
+        if action == "disarm":
+            self._set_armed(t_s, False, "failsafe")
+            return
+        self._enter(t_s, _FALLBACK_MODE[action])
+
     def _arm_denial(self, t_s: float) -> str:
         if not self.booted(t_s):
             return "system not ready (pre-arm checks)"
@@ -492,22 +614,32 @@ class Autopilot:
             return "offboard signal lost"
         if self.mode in (Mode.LAND, Mode.RTL):
             return f"not possible in {self.mode.name.title()} mode"
+        if self.mode in MANUAL_INPUT_MODES and not self.params.rc_present:
+            return "no manual control input"
         return ""
+
+    def _set_home(self, position_m: np.ndarray) -> None:
+        self.home_m = np.asarray(position_m, dtype=np.float64).reshape(3).copy()
+        self.home_updates += 1
 
     def _set_armed(self, t_s: float, armed: bool, reason: str) -> None:
         self.armed = armed
         if armed:
             self._t_arm = t_s
             self._airborne_since_arm = False
+            self._set_home(self._est.position_m)  # PX4 sets home at arming
             self._event(Severity.INFO, f"Armed by {reason}")
-            if self.mode in (Mode.HOLD, Mode.POSCTL):
+            if self.mode in (Mode.HOLD, Mode.POSCTL, Mode.ALTCTL):
                 self._enter(t_s, self.mode)
-        else:
-            self._event(Severity.INFO, f"Disarmed by {reason}")
-            self.failsafe = None
-            if self.user_mode in _TRANSIENT_USER_MODES or self.mode in _TRANSIENT_USER_MODES:
-                self.user_mode = self.persistent_user_mode
-                self._enter(t_s, self.persistent_user_mode)
+            return
+        self._event(Severity.INFO, f"Disarmed by {reason}")
+        self.failsafe = None
+        target = (
+            self.persistent_user_mode if self.user_mode in _TRANSIENT_USER_MODES else self.user_mode
+        )
+        self.user_mode = target
+        if self.mode != target:
+            self._enter(t_s, target)
 
     def _user_choice(self, mode: Mode) -> None:
         self.user_mode = mode
@@ -525,12 +657,12 @@ class Autopilot:
 
     def _enter(self, t_s: float, mode: Mode) -> None:
         """Switch to ``mode`` and set up its targets from the current estimate."""
-        prev = self.mode
         self.mode = mode
         e = self._est
         self._hold_yaw = e.yaw_rad
         self._ramp = None
-        if mode in (Mode.HOLD, Mode.POSCTL):
+        self._active_setpoint = None
+        if mode in (Mode.HOLD, Mode.POSCTL, Mode.ALTCTL, Mode.OFFBOARD):
             self._hold_target = self._stop_point()
         elif mode == Mode.TAKEOFF:
             start = e.position_m.copy()
@@ -541,6 +673,8 @@ class Autopilot:
             )
         elif mode == Mode.LAND:
             self._land_xy = self._stop_point()[:2]
+            if self.armed and not self.landed:
+                self._event(Severity.INFO, "Landing at current position")
         elif mode == Mode.RTL:
             start = self._stop_point()
             goal = start.copy()
@@ -549,14 +683,12 @@ class Autopilot:
             self._ramp = _Ramp(
                 e.position_m.copy(), goal, self.params.auto_speed_m_s, self.params.auto_acc_m_s2
             )
-        if mode != prev:
-            self._event(Severity.INFO, f"Mode: {mode.name.title()}")
 
     def _land_speed(self, height_m: float) -> float:
         p = self.params
         if height_m >= p.land_alt1_m:
             return p.land_speed_high_m_s
-        if height_m <= p.land_alt2_m:
+        if height_m <= p.land_alt2_m or p.land_alt1_m <= p.land_alt2_m:
             return p.land_speed_m_s
         w = (height_m - p.land_alt2_m) / (p.land_alt1_m - p.land_alt2_m)
         return p.land_speed_m_s + w * (p.land_speed_high_m_s - p.land_speed_m_s)
@@ -569,10 +701,21 @@ class Autopilot:
             return
         spooling = t_s - self._t_arm < self.params.spoolup_s
         mode = self.mode
-        if mode in (Mode.HOLD, Mode.POSCTL):
-            if self._hold_target is None:
-                self._hold_target = self._stop_point()
+        if self._hold_target is None:
+            self._hold_target = self._stop_point()
+        if mode == Mode.HOLD:
             c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+        elif mode in MANUAL_INPUT_MODES:
+            if self.params.rc_present:  # sticks centred: hold (Altitude: hold the height only)
+                if mode == Mode.POSCTL:
+                    c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+                else:
+                    c[dyn.C_VEL : dyn.C_VEL + 2] = 0.0
+                    c[dyn.C_POS + 2] = self._hold_target[2]
+            else:
+                # observed on PX4 v1.16 SIH without RC: the Position-mode fallback of the
+                # offboard failsafe descends at about MPC_LAND_SPEED
+                c[dyn.C_VEL : dyn.C_VEL + 3] = (0.0, 0.0, -self.params.land_speed_m_s)
         elif mode == Mode.TAKEOFF:
             if self._ramp is None:
                 self._enter(t_s, Mode.TAKEOFF)
@@ -586,11 +729,10 @@ class Autopilot:
                 self._ramp.done
                 and abs(est.position_m[2] - goal_z) < self.params.takeoff_acceptance_m
             ):
-                self._event(Severity.INFO, "Takeoff complete")
-                self.mode = Mode.HOLD
+                self.mode = Mode.HOLD  # PX4 switches to Hold (Loiter) by itself
+                self._user_choice(Mode.HOLD)
                 self._hold_target = self._ramp.goal.copy()
                 self._ramp = None
-                self._event(Severity.INFO, "Mode: Hold")
         elif mode == Mode.LAND or (mode == Mode.RTL and self._rtl_phase == "land"):
             if self._land_xy is None:
                 self._land_xy = est.position_m[:2].copy()
@@ -622,11 +764,16 @@ class Autopilot:
                     self._rtl_phase = "land"
                     self._land_xy = self.home_m[:2].copy()
         elif mode == Mode.OFFBOARD:
-            sp = self._setpoint
+            sp = self._active_setpoint
             if sp is None:
-                if self._hold_target is None:
-                    self._hold_target = self._stop_point()
+                # no setpoint since Offboard began: PX4 keeps the last trajectory setpoint
+                # of the previous mode; the mock holds where Offboard began
                 c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+            elif not sp.valid():
+                # PX4's position controller rejects it and stops: "Failsafe: stop and wait"
+                c[dyn.C_VEL : dyn.C_VEL + 3] = 0.0
+                self._hold_yaw = est.yaw_rad
+                c[dyn.C_YAW] = self._hold_yaw
             else:
                 c[dyn.C_POS : dyn.C_POS + 3] = sp.position_m
                 c[dyn.C_VEL : dyn.C_VEL + 3] = sp.velocity_m_s
@@ -658,4 +805,6 @@ class Autopilot:
         return math.isnan(pz) and math.isnan(vz) and not math.isnan(az) and az > 0.5
 
     def _event(self, severity: Severity, text: str) -> None:
-        self.events.append(StatusEvent(severity, text))
+        ev = StatusEvent(severity, text)
+        self.events.append(ev)
+        self.event_log.append((self._t_s, ev))

@@ -2,7 +2,10 @@
 tests and the benchmark use to talk to the mock (or to a real PX4's API link).
 
 It binds ``host:port`` (as MAVSDK's ``udpin://`` does), learns the vehicle's address from the
-first valid message and sends there. Every wait has a deadline; nothing blocks forever.
+first valid message and sends there. Every wait has a deadline; nothing blocks forever. It speaks
+the mock's dialect (``sitl_mock.px4_dialect``: ``development`` plus PROTOCOL_VERSION and
+LINK_NODE_STATUS), so it decodes everything a PX4 v1.16 sends. It sends no heartbeat by itself:
+``send_heartbeat()`` announces it (as a GCS by default, which PX4 needs to send STATUSTEXT).
 """
 
 from __future__ import annotations
@@ -14,9 +17,8 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
-from pymavlink.dialects.v20 import common as mavlink
-
 from sitl_mock.mavlink_io import signing_timestamp_now
+from sitl_mock.px4_dialect import mavlink, new_mavlink
 
 
 class MavClient:
@@ -38,8 +40,7 @@ class MavClient:
         sock.setblocking(False)
         self.sock = sock
         self.port = sock.getsockname()[1]
-        self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
-        self.mav.robust_parsing = True
+        self.mav = new_mavlink(system_id, component_id)
         if signing_key is not None:
             self.mav.signing.secret_key = signing_key
             self.mav.signing.sign_outgoing = True
@@ -51,7 +52,8 @@ class MavClient:
         self.bad = 0
         self.record = set(record)
         self.recorded: list[tuple[float, Any]] = []  # (monotonic wall time, message)
-        self.statustexts: list[str] = []
+        self.statustexts: list[str] = []  # whole texts (chunked ones reassembled)
+        self._chunks: dict[int, list[str]] = {}
         self._pending: deque[Any] = deque(maxlen=20000)  # received, not yet passed by wait()
 
     def close(self) -> None:
@@ -101,11 +103,21 @@ class MavClient:
             if t in self.record:
                 self.recorded.append((now, m))
             if t == "STATUSTEXT":
-                txt = m.text if isinstance(m.text, str) else m.text.decode(errors="replace")
-                self.statustexts.append(txt)
+                self._statustext(m)
             good.append(m)
         self._pending.extend(good)
         return good
+
+    def _statustext(self, m: Any) -> None:
+        txt = m.text if isinstance(m.text, str) else m.text.decode(errors="replace")
+        if m.id == 0:
+            self.statustexts.append(txt)
+            return
+        parts = self._chunks.setdefault(m.id, [])
+        parts.append(txt)
+        if len(txt) < 50:  # the last chunk of a long text is shorter than a whole one
+            self.statustexts.append("".join(parts))
+            del self._chunks[m.id]
 
     def discard_pending(self) -> None:
         """Forget what arrived so far: the next ``wait`` looks only at newer messages."""
@@ -167,6 +179,11 @@ class MavClient:
         if dest is None:
             raise RuntimeError("no vehicle address yet: call connect() first")
         self.sock.sendto(data, dest)
+
+    def send_heartbeat(self, gcs: bool = True) -> None:
+        """One HEARTBEAT: a ground station's (MAV_TYPE_GCS) or an onboard controller's."""
+        kind = mavlink.MAV_TYPE_GCS if gcs else mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+        self.send(self.mav.heartbeat_encode(kind, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
 
     def command_long(
         self,

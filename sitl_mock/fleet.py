@@ -23,6 +23,7 @@ from typing import Any, Literal
 import numpy as np
 
 from sitl_mock import dynamics as dyn
+from sitl_mock import telemetry as tm
 from sitl_mock.autopilot import Autopilot, AutopilotParams, Estimate, Severity
 from sitl_mock.frames import quaternion_from_matrix
 from sitl_mock.mavlink_io import SigningConfig, VehicleLink, VehicleView, message_id_by_name
@@ -38,7 +39,10 @@ DEFAULT_ALT_M = 488.0
 
 @dataclass(frozen=True)
 class SigningSpec:
-    """Signing of one vehicle (``system_id``) or of all (None): 64 hex digits of key."""
+    """Signing of one vehicle (``system_id``) or of all (None): 64 hex digits of key.
+
+    PX4 v1.16 has no MAVLink signing; this option imitates PX4 v1.17+ and is off unless given.
+    """
 
     key_hex: str
     require: bool = True
@@ -78,8 +82,10 @@ class FleetConfig:
     local_origin: Literal["spawn", "world"] = "spawn"
     dynamics: dyn.DynamicsParams = field(default_factory=dyn.DynamicsParams)
     autopilot: AutopilotParams = field(default_factory=AutopilotParams)
+    # MAVLink signing imitates PX4 v1.17+ (v1.16 has none): off unless keys are given here, and
+    # SETUP_SIGNING is ignored, as by v1.16, unless accept_setup_signing
     signing: tuple[SigningSpec, ...] = ()
-    accept_setup_signing: bool = True
+    accept_setup_signing: bool = False
     stream_rates_hz: tuple[tuple[str, float], ...] = ()  # (message name, Hz) overrides
     duplicate_mode_ack: bool = True
     batch_datagrams: bool = True
@@ -189,6 +195,8 @@ class Fleet:
             np.zeros((n, 1, dyn.NOISE_PER_SUBSTEP)),
         )
         self._rngs = [np.random.default_rng([cfg.seed, i]) for i in range(n)]
+        self._tel = np.zeros((n, tm.NT))
+        self._geo = np.array([cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m])
         self.t_s = 0.0
         self.dt_s = cfg.speedup / cfg.tick_hz
         self._nsub = dyn.substeps(self.dt_s, cfg.dynamics)
@@ -226,6 +234,10 @@ class Fleet:
             )
             self.autopilots.append(ap)
             self.links.append(link)
+        self._origins = np.array([link.origin_enu for link in self.links]).reshape(n, 3)
+        # compile (or load) the telemetry kernel now, not in the first tick
+        tm.telemetry_fleet(self.state, self.att, self._origins, self.ground_z, self._geo, self._tel)
+        self.loop_error: BaseException | None = None  # what stopped the background loop
         self.collision_counts = np.zeros(n, dtype=np.int64)
         self.collisions: list[CollisionEvent] = []
         self._in_contact_obstacle = np.zeros(n, dtype=bool)
@@ -337,7 +349,8 @@ class Fleet:
     def _run_guarded(self) -> None:
         try:
             self.run()
-        except Exception:  # pragma: no cover - logged, the fleet is dead
+        except Exception as e:  # logged and kept: the fleet is dead, tests check loop_error
+            self.loop_error = e
             log.exception("SITL fleet loop failed")
 
     def run(self, duration_s: float | None = None) -> FleetStats:
@@ -404,6 +417,8 @@ class Fleet:
         dyn.attitude_fleet(s, self._prm, self._r_prev, self.dt_s, self.att)
         self.t_s = t = t + self.dt_s
         self._check_collisions(t)
+        tm.telemetry_fleet(s, self.att, self._origins, self.ground_z, self._geo, self._tel)
+        rows = self._tel.tolist()
         for i, link in enumerate(self.links):
             link.tick(
                 VehicleView(
@@ -416,6 +431,7 @@ class Fleet:
                     link.geo_ref,
                     float(self.ground_z[i]),
                     self._f_max,
+                    rows[i],
                 )
             )
         if t + 1e-9 >= self._next_truth:

@@ -1,19 +1,27 @@
-"""The API link of one mock vehicle: MAVLink 2 over UDP, as PX4 presents it to a companion.
+"""The API link of one mock vehicle: MAVLink 2 over UDP, as PX4 v1.16 presents it to a companion.
 
 NED lives here and only here: incoming setpoints are resolved into ENU by
-``setpoint_from_local_ned`` and outgoing telemetry is converted with ``sitl_mock.frames``.
+``parse_position_target_local_ned`` and outgoing telemetry comes from ``sitl_mock.telemetry``
+(already NED / FRD).
 
 - Socket: bound to ``(host, local_port)`` (PX4: 14580 + i); telemetry goes to the partner,
   initially ``(host, client_port)`` (PX4: 14540 + i), then whoever last sent a valid message
   (PX4's UDP behaviour, so MAVSDK's ``udpin://`` and pymavlink's ``udpin:`` both work).
-- Each datagram is parsed on its own (a garbage datagram cannot swallow the next one); bad
-  bytes, bad CRCs, unknown messages and malformed fields are counted and dropped.
-- Signing (optional, per vehicle): outgoing messages are signed with the key; when signing is
-  required, unsigned or wrongly signed messages are dropped (only RADIO_STATUS may be
-  unsigned, as the MAVLink signing rules allow), so unsigned commands are never executed or
-  acknowledged.
-- Streams at PX4's observed rates (simulated time), changeable with SET_MESSAGE_INTERVAL;
-  messages due in the same tick share a datagram, as PX4 packs them.
+- Dialect: ``development`` (+ PROTOCOL_VERSION, LINK_NODE_STATUS), see ``sitl_mock.px4_dialect``.
+- Each datagram is parsed on its own (a garbage datagram cannot swallow the next one). Three
+  counters keep failures apart: ``rx_bad`` (bytes that are not a MAVLink message: bad CRC,
+  truncated, unknown framing), ``rx_malformed`` (well-formed messages whose content is refused:
+  NaN parameters, unsupported frames, ...; answered as PX4 answers them) and
+  ``handler_errors`` (an exception in the mock's own handling: a bug, logged at error level with
+  its traceback; the tests fail on any).
+- Streams at the rates a real PX4 v1.16 sends on its onboard API link (``PX4_STREAM_RATES_HZ``,
+  simulated time), changeable with SET_MESSAGE_INTERVAL; messages due in the same tick share a
+  datagram, as PX4 packs them.
+- STATUSTEXT only once the link has heard a GCS heartbeat (MAV_TYPE_GCS), as PX4 v1.16 does.
+- Signing: PX4 v1.16 has none (its receiver ignores SETUP_SIGNING; observed). Signing here is an
+  explicit option imitating PX4 v1.17+, off by default: outgoing messages are signed with the
+  key; when signing is required, unsigned or wrongly signed messages are dropped (only
+  RADIO_STATUS may be unsigned, as the MAVLink signing rules allow).
 """
 
 from __future__ import annotations
@@ -25,31 +33,40 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
-from functools import cached_property
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink
 
 from sitl_mock import dynamics as dyn
+from sitl_mock import telemetry as tm
 from sitl_mock.autopilot import (
     AUTO_MODES,
+    OFFBOARD_LOSS_ACTION_CODES,
     Autopilot,
     Mode,
     OffboardSetpoint,
     Result,
+    Severity,
     StatusEvent,
+    offboard_loss_action_from_code,
 )
 from sitl_mock.frames import (
     enu_ned,
-    euler_zyx,
     geodetic_from_enu,
     quaternion_from_matrix,
     rotation_ned_frd,
     yaw_enu_ned,
 )
+from sitl_mock.px4_dialect import (
+    MessageEncoder,
+    frame,
+    mavlink,
+    message_class,
+    new_mavlink,
+)
+from sitl_mock.px4_dialect import message_id_by_name as message_id_by_name
 
 log = logging.getLogger("sitl_mock")
 
@@ -62,6 +79,7 @@ CMD_COMPONENT_ARM_DISARM = 400
 CMD_GET_MESSAGE_INTERVAL = 510
 CMD_SET_MESSAGE_INTERVAL = 511
 CMD_REQUEST_MESSAGE = 512
+CMD_REQUEST_PROTOCOL_VERSION = 519
 CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
 ARM_FORCE_MAGIC = 21196
 
@@ -72,6 +90,8 @@ IGNORE_AX, IGNORE_AY, IGNORE_AZ = 64, 128, 256
 FORCE_SETPOINT = 512
 IGNORE_YAW = 1024
 IGNORE_YAW_RATE = 2048
+IGNORE_VELOCITY = IGNORE_VX | IGNORE_VY | IGNORE_VZ
+IGNORE_ACCELERATION = IGNORE_AX | IGNORE_AY | IGNORE_AZ
 
 FRAME_LOCAL_NED = 1
 FRAME_LOCAL_OFFSET_NED = 7
@@ -79,9 +99,14 @@ FRAME_BODY_NED = 8
 FRAME_BODY_OFFSET_NED = 9
 FRAME_BODY_FRD = 12
 
+# HEARTBEAT base_mode bits per mode besides CUSTOM_MODE_ENABLED (1), as a real PX4 v1.16 sent
+# them (REFERENCE_NOTES section 5: Hold 29 / armed 157, Offboard 17 / armed 145, Land 157) and,
+# for the manual modes, as PX4's mavlink_main.cpp sets them (Position: manual input, stabilize,
+# guided; Altitude: manual input, stabilize).
 PX4_BASE_MODE_AUTO = 16 | 8 | 4  # stabilize, guided, auto
 PX4_BASE_MODE_OFFBOARD = 16
-PX4_BASE_MODE_POSCTL = 64 | 16
+PX4_BASE_MODE_POSCTL = 64 | 16 | 8
+PX4_BASE_MODE_ALTCTL = 64 | 16
 
 SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
@@ -97,36 +122,67 @@ SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
     | mavlink.MAV_SYS_STATUS_AHRS
     | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+    | mavlink.MAV_SYS_STATUS_SENSOR_LASER_POSITION
 )
-PREARM = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+PREARM = mavlink.MAV_SYS_STATUS_PREARM_CHECK  # in the health field only, as PX4 reports it
 RC_RECEIVER = mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
 
-# Default stream rates [Hz, simulated time]: what PX4 v1.16 SITL sends on its API link.
+# AUTOPILOT_VERSION.capabilities of a real PX4 v1.16 (observed: 59647): MISSION_FLOAT,
+# PARAM_FLOAT, MISSION_INT, COMMAND_INT, PARAM_ENCODE_BYTEWISE, FTP, SET_ATTITUDE_TARGET,
+# SET_POSITION_TARGET_LOCAL_NED, FLIGHT_TERMINATION, MAVLINK2, MISSION_FENCE, MISSION_RALLY.
+PX4_CAPABILITIES = 0xE8FF
+PX4_FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0, official release
+
+_ID = message_id_by_name
+# Default stream rates [Hz, simulated time]: what a real PX4 v1.16 (SITL, SIH) sent on its API
+# (onboard) link while armed in Offboard (REFERENCE_NOTES section 5; the onboard profile of
+# mavlink_main.cpp lists the same streams, some sent only when their data exists).
 PX4_STREAM_RATES_HZ: dict[int, float] = {
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: 100.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 50.0,
-    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 50.0,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 50.0,
-    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
-    mavlink.MAVLINK_MSG_ID_ODOMETRY: 30.0,
-    mavlink.MAVLINK_MSG_ID_TIMESYNC: 10.0,
-    mavlink.MAVLINK_MSG_ID_ALTITUDE: 10.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 10.0,
-    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 10.0,
-    mavlink.MAVLINK_MSG_ID_VFR_HUD: 10.0,
-    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 8.0,
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 5.0,
-    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
-    mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
-    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
-    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    _ID("ATTITUDE"): 100.0,
+    _ID("ATTITUDE_QUATERNION"): 50.0,
+    _ID("HIGHRES_IMU"): 50.0,
+    _ID("GLOBAL_POSITION_INT"): 50.0,
+    _ID("LOCAL_POSITION_NED"): 30.0,
+    _ID("ODOMETRY"): 30.0,
+    _ID("TIMESYNC"): 10.0,
+    _ID("ALTITUDE"): 10.0,
+    _ID("DISTANCE_SENSOR"): 10.0,
+    _ID("ATTITUDE_TARGET"): 10.0,
+    _ID("POSITION_TARGET_LOCAL_NED"): 10.0,
+    _ID("SERVO_OUTPUT_RAW"): 10.0,
+    _ID("VFR_HUD"): 10.0,
+    _ID("GPS_RAW_INT"): 8.0,
+    _ID("SYS_STATUS"): 5.0,
+    _ID("EXTENDED_SYS_STATE"): 5.0,
+    _ID("HEARTBEAT"): 1.0,
+    _ID("MISSION_CURRENT"): 1.0,
+    _ID("ESTIMATOR_STATUS"): 1.0,
+    _ID("SYSTEM_TIME"): 1.0,
+    _ID("PING"): 1.0,
+    _ID("SCALED_PRESSURE"): 1.0,
+    _ID("LINK_NODE_STATUS"): 1.0,
+    _ID("BATTERY_STATUS"): 0.5,
+    _ID("CURRENT_MODE"): 0.5,
+    _ID("HOME_POSITION"): 0.5,
+    _ID("VIBRATION"): 0.5,
 }
-# one-off messages REQUEST_MESSAGE can ask for besides the streams
-_REQUESTABLE_EXTRA = (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,)
+# one-off messages (REQUEST_MESSAGE and their own commands), never streamed
+ONE_SHOT_MESSAGES = frozenset({_ID("AUTOPILOT_VERSION"), _ID("PROTOCOL_VERSION")})
+
+# MAV_STANDARD_MODE of each PX4 mode (PX4's standard-mode mapping; the others are 0)
+_STANDARD_MODE = {
+    Mode.POSCTL: mavlink.MAV_STANDARD_MODE_POSITION_HOLD,
+    Mode.ALTCTL: mavlink.MAV_STANDARD_MODE_ALTITUDE_HOLD,
+    Mode.RTL: mavlink.MAV_STANDARD_MODE_SAFE_RECOVERY,
+    Mode.MISSION: mavlink.MAV_STANDARD_MODE_MISSION,
+    Mode.LAND: mavlink.MAV_STANDARD_MODE_LAND,
+    Mode.TAKEOFF: mavlink.MAV_STANDARD_MODE_TAKEOFF,
+}
 
 MAX_DATAGRAM_BYTES = 1200
+STATUSTEXT_LEN = 50
 _SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01T00:00:00Z
+_ESTIMATOR_FLAGS = 1 | 2 | 4 | 8 | 16 | 32 | 64 | 256 | 512  # att, vel, pos (rel/abs/agl), pred
 
 
 def signing_timestamp_now() -> int:
@@ -134,16 +190,92 @@ def signing_timestamp_now() -> int:
     return int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000)
 
 
-def message_id_by_name(name: str) -> int:
-    """MAVLINK_MSG_ID of a message name such as ``"ATTITUDE"``."""
-    try:
-        return int(getattr(mavlink, f"MAVLINK_MSG_ID_{name.upper()}"))
-    except AttributeError as e:
-        raise ValueError(f"unknown MAVLink message {name!r}") from e
-
-
 # ---------------------------------------------------------------------------------------------
-# Setpoints: MAVLink NED -> ENU world
+# Setpoints: MAVLink NED -> ENU world, as PX4 v1.16's mavlink_receiver.cpp parses them
+
+
+@dataclass(frozen=True)
+class ParsedSetpoint:
+    """A SET_POSITION_TARGET_LOCAL_NED after PX4's parsing: the setpoint, or why it is ignored
+    (``error``: PX4's status text)."""
+
+    setpoint: OffboardSetpoint | None
+    error: str = ""
+
+
+def _rot_z(psi: float) -> np.ndarray:
+    c, s = math.cos(psi), math.sin(psi)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def parse_position_target_local_ned(
+    type_mask: int,
+    frame_id: int,
+    pos_ned: Sequence[float],
+    vel_ned: Sequence[float],
+    acc_ned: Sequence[float],
+    yaw_ned: float,
+    yaw_rate_ned: float,
+    origin_enu: np.ndarray,
+    r_ned_frd: np.ndarray,
+) -> ParsedSetpoint:
+    """Resolve a SET_POSITION_TARGET_LOCAL_NED as PX4 v1.16 does
+    (``MavlinkReceiver::handle_message_set_position_target_local_ned``).
+
+    - MAV_FRAME_LOCAL_NED (1): each component whose ignore bit is clear counts (a non-finite
+      value counts as not set); positions are relative to the local origin ``origin_enu``.
+    - MAV_FRAME_BODY_NED (8): positions are never used; the velocity is used only as a whole
+      vector (any of its three ignore bits drops all three) and turned by the heading; the
+      acceleration likewise, turned by the whole attitude ``r_ned_frd`` (FRD body -> NED).
+    - Every other frame (7 LOCAL_OFFSET_NED, 9 BODY_OFFSET_NED, ...): ignored, "coordinate
+      frame N unsupported".
+    - FORCE with an acceleration: ignored, "force not supported".
+    - Nothing set (no position, velocity or acceleration component): ignored, "invalid".
+    Yaw and yaw rate are absolute in every frame; a NED yaw rate (clockwise) becomes an ENU one.
+    Setpoints that leave an axis uncontrolled are *not* refused here: they keep the stream
+    alive, and PX4's position controller then stops (``OffboardSetpoint.valid``).
+    """
+    name = "SET_POSITION_TARGET_LOCAL_NED"
+
+    def comp(values: Sequence[float], bits: tuple[int, int, int]) -> np.ndarray:
+        out = np.full(3, np.nan)
+        for k in range(3):
+            v = float(values[k])
+            if not (type_mask & bits[k]) and math.isfinite(v):
+                out[k] = v
+        return out
+
+    if frame_id == FRAME_LOCAL_NED:
+        p = comp(pos_ned, (IGNORE_PX, IGNORE_PY, IGNORE_PZ))
+        v = comp(vel_ned, (IGNORE_VX, IGNORE_VY, IGNORE_VZ))
+        a = comp(acc_ned, (IGNORE_AX, IGNORE_AY, IGNORE_AZ))
+    elif frame_id == FRAME_BODY_NED:
+        p = np.full(3, np.nan)
+        v = np.full(3, np.nan)
+        a = np.full(3, np.nan)
+        r = np.asarray(r_ned_frd, dtype=np.float64)
+        vb = np.array([float(x) for x in vel_ned[:3]])
+        ab = np.array([float(x) for x in acc_ned[:3]])
+        # a non-finite component spoils the rotated vector: the mock treats it as not set
+        if not type_mask & IGNORE_VELOCITY and np.all(np.isfinite(vb)):
+            v = _rot_z(math.atan2(r[1, 0], r[0, 0])) @ vb
+        if not type_mask & IGNORE_ACCELERATION and np.all(np.isfinite(ab)):
+            a = r @ ab
+    else:
+        return ParsedSetpoint(None, f"{name} coordinate frame {frame_id} unsupported")
+    has_acc = bool(np.any(np.isfinite(a)))
+    if has_acc and type_mask & FORCE_SETPOINT:
+        return ParsedSetpoint(None, f"{name} force not supported")
+    if not (np.any(np.isfinite(p)) or np.any(np.isfinite(v)) or has_acc):
+        return ParsedSetpoint(None, f"{name} invalid")
+    yaw = math.nan
+    yaw_rate = math.nan
+    if not (type_mask & IGNORE_YAW) and math.isfinite(yaw_ned):
+        yaw = yaw_enu_ned(yaw_ned)
+    if not (type_mask & IGNORE_YAW_RATE) and math.isfinite(yaw_rate_ned):
+        yaw_rate = -yaw_rate_ned
+    pos_enu = np.asarray(origin_enu, dtype=np.float64).reshape(3) + enu_ned(p)
+    return ParsedSetpoint(OffboardSetpoint(pos_enu, enu_ned(v), enu_ned(a), yaw, yaw_rate))
 
 
 def setpoint_from_local_ned(
@@ -157,62 +289,25 @@ def setpoint_from_local_ned(
     origin_enu: np.ndarray,
     position_enu: np.ndarray,
     yaw_enu: float,
+    r_ned_frd: np.ndarray | None = None,
 ) -> OffboardSetpoint | None:
-    """Resolve a SET_POSITION_TARGET_LOCAL_NED into an absolute ENU setpoint.
-
-    A component counts when its ignore bit is clear and its value finite. Frames:
-    LOCAL_NED (positions relative to the vehicle's local origin ``origin_enu``), LOCAL_OFFSET_NED
-    (positions relative to the current ``position_enu``), BODY_NED / BODY_OFFSET_NED (x forward,
-    y right, z down, rotated by the current heading; positions relative to the current
-    position). With the FORCE bit set, accelerations are ignored (forces are not supported).
-    Yaw is absolute in every frame; a NED yaw rate (clockwise) becomes an ENU rate
-    (counter-clockwise). Returns None for an unsupported frame.
-    """
-    if frame not in (
-        FRAME_LOCAL_NED,
-        FRAME_LOCAL_OFFSET_NED,
-        FRAME_BODY_NED,
-        FRAME_BODY_OFFSET_NED,
-    ):
-        return None
-
-    def pick(values: tuple[float, float, float], bits: tuple[int, int, int]) -> np.ndarray:
-        out = np.full(3, np.nan)
-        for k in range(3):
-            v = float(values[k])
-            if not (type_mask & bits[k]) and math.isfinite(v):
-                out[k] = v
-        return out
-
-    p = pick(pos_ned, (IGNORE_PX, IGNORE_PY, IGNORE_PZ))
-    v = pick(vel_ned, (IGNORE_VX, IGNORE_VY, IGNORE_VZ))
-    a = pick(acc_ned, (IGNORE_AX, IGNORE_AY, IGNORE_AZ))
-    if type_mask & FORCE_SETPOINT:
-        a[:] = np.nan
-    if frame in (FRAME_BODY_NED, FRAME_BODY_OFFSET_NED):
-        psi = yaw_enu_ned(yaw_enu)  # heading in NED
-        c, s = math.cos(psi), math.sin(psi)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # body (FRD-level) -> NED
-        p, v, a = rot @ p, rot @ v, rot @ a  # NaN in x or y spreads to both, as it should
-    if frame == FRAME_LOCAL_NED:
-        pos_enu = origin_enu + enu_ned(p)
-    else:
-        pos_enu = position_enu + enu_ned(p)
-    yaw = math.nan
-    yaw_rate = math.nan
-    if not (type_mask & IGNORE_YAW) and math.isfinite(yaw_ned):
-        yaw = yaw_enu_ned(yaw_ned)
-    if not (type_mask & IGNORE_YAW_RATE) and math.isfinite(yaw_rate_ned):
-        yaw_rate = -yaw_rate_ned
-    return OffboardSetpoint(pos_enu, enu_ned(v), enu_ned(a), yaw, yaw_rate)
+    """``parse_position_target_local_ned`` returning only the setpoint (None when PX4 ignores
+    the message). ``r_ned_frd`` defaults to a level attitude with heading ``yaw_enu``;
+    ``position_enu`` is unused since PX4 v1.16 refuses the offset frames (kept for callers)."""
+    del position_enu
+    r = _rot_z(yaw_enu_ned(yaw_enu)) if r_ned_frd is None else r_ned_frd
+    return parse_position_target_local_ned(
+        type_mask, frame, pos_ned, vel_ned, acc_ned, yaw_ned, yaw_rate_ned, origin_enu, r
+    ).setpoint
 
 
 # ---------------------------------------------------------------------------------------------
-# Per-tick view of a vehicle, with the MAVLink quantities derived on demand
+# Per-tick view of a vehicle
 
 
 class VehicleView:
-    """One vehicle at one tick: rows of the fleet arrays plus derived NED quantities."""
+    """One vehicle at one tick: rows of the fleet arrays plus the derived MAVLink quantities
+    (``tel``: a row of ``sitl_mock.telemetry``, as a list of floats; computed if not given)."""
 
     def __init__(
         self,
@@ -225,6 +320,7 @@ class VehicleView:
         geo_ref: tuple[float, float, float],
         ground_z: float,
         f_max: float,
+        tel: list[float] | None = None,
     ) -> None:
         self.t_s = t_s
         self.s = state
@@ -235,68 +331,79 @@ class VehicleView:
         self.geo_ref = geo_ref
         self.ground_z = ground_z
         self.f_max = f_max
+        if tel is None:
+            out = np.empty((1, tm.NT))
+            tm.telemetry_fleet(
+                state.reshape(1, dyn.NS),
+                att.reshape(1, dyn.NA),
+                np.asarray(origin_enu, dtype=np.float64).reshape(1, 3),
+                np.array([float(ground_z)]),
+                np.array(geo_ref, dtype=np.float64),
+                out,
+            )
+            tel = out[0].tolist()
+        self.tel = tel
+        self.boot_ms = int(t_s * 1000.0) & 0xFFFFFFFF
+        self.usec = int(t_s * 1e6)
 
     @property
-    def boot_ms(self) -> int:
-        return int(self.t_s * 1000.0) & 0xFFFFFFFF
-
-    @property
-    def usec(self) -> int:
-        return int(self.t_s * 1e6)
-
-    @cached_property
     def est_enu(self) -> np.ndarray:
         return self.s[dyn.S_P : dyn.S_P + 3] + self.s[dyn.S_E : dyn.S_E + 3]
 
-    @cached_property
+    @property
     def vel_enu(self) -> np.ndarray:
         return self.s[dyn.S_V : dyn.S_V + 3].copy()
 
-    @cached_property
-    def pos_ned(self) -> np.ndarray:
-        return enu_ned(self.est_enu - self.origin_enu)
+    @property
+    def pos_ned(self) -> tuple[float, float, float]:
+        t = self.tel
+        return t[tm.T_PN], t[tm.T_PN + 1], t[tm.T_PN + 2]
 
-    @cached_property
-    def vel_ned(self) -> np.ndarray:
-        return enu_ned(self.vel_enu)
+    @property
+    def vel_ned(self) -> tuple[float, float, float]:
+        t = self.tel
+        return t[tm.T_VN], t[tm.T_VN + 1], t[tm.T_VN + 2]
 
-    @cached_property
+    @property
     def r_ned_frd(self) -> np.ndarray:
         return rotation_ned_frd(self.att[dyn.A_R : dyn.A_R + 9].reshape(3, 3))
 
-    @cached_property
+    @property
     def euler(self) -> tuple[float, float, float]:
-        return euler_zyx(self.r_ned_frd)
+        t = self.tel
+        return t[tm.T_ROLL], t[tm.T_PITCH], t[tm.T_YAW]
 
-    @cached_property
+    @property
     def quaternion(self) -> tuple[float, float, float, float]:
-        return quaternion_from_matrix(self.r_ned_frd)
+        t = self.tel
+        return t[tm.T_Q], t[tm.T_Q + 1], t[tm.T_Q + 2], t[tm.T_Q + 3]
 
-    @cached_property
-    def rates_frd(self) -> np.ndarray:
-        w = self.att[dyn.A_OMEGA : dyn.A_OMEGA + 3]
-        return np.array([w[0], -w[1], -w[2]])
+    @property
+    def rates_frd(self) -> tuple[float, float, float]:
+        t = self.tel
+        return t[tm.T_W], t[tm.T_W + 1], t[tm.T_W + 2]
 
-    @cached_property
-    def specific_force_frd(self) -> np.ndarray:
-        f = self.att[dyn.A_SPECIFIC : dyn.A_SPECIFIC + 3]
-        return np.array([f[0], -f[1], -f[2]])
+    @property
+    def specific_force_frd(self) -> tuple[float, float, float]:
+        t = self.tel
+        return t[tm.T_F], t[tm.T_F + 1], t[tm.T_F + 2]
 
-    @cached_property
+    @property
     def geodetic(self) -> tuple[float, float, float]:
-        return geodetic_from_enu(self.est_enu, *self.geo_ref)
+        t = self.tel
+        return t[tm.T_LAT], t[tm.T_LON], t[tm.T_ALT]
 
-    @cached_property
+    @property
     def home_geodetic(self) -> tuple[float, float, float]:
         return geodetic_from_enu(self.home_enu, *self.geo_ref)
 
     @property
     def relative_alt_m(self) -> float:
-        return float(self.est_enu[2] - self.home_enu[2])
+        return float(self.tel[tm.T_ALT] - self.geo_ref[2] - self.home_enu[2])
 
     @property
     def heading_deg(self) -> float:
-        return math.degrees(self.euler[2]) % 360.0
+        return math.degrees(self.tel[tm.T_YAW]) % 360.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -305,7 +412,8 @@ class VehicleView:
 
 @dataclass(frozen=True)
 class SigningConfig:
-    """MAVLink 2 signing of one vehicle: 32-byte key; ``require``: refuse unsigned messages."""
+    """MAVLink 2 signing of one vehicle (imitates PX4 v1.17+; PX4 v1.16 has none): 32-byte key;
+    ``require``: refuse unsigned messages."""
 
     key: bytes
     require: bool = True
@@ -319,15 +427,19 @@ class SigningConfig:
 class LinkStats:
     rx_datagrams: int = 0
     rx_messages: int = 0
-    rx_bad: int = 0
+    rx_bad: int = 0  # not a decodable MAVLink message
+    rx_malformed: int = 0  # decoded, content refused (answered as PX4 answers it)
     rx_rejected_unsigned: int = 0
-    rx_ignored: int = 0
+    rx_ignored: int = 0  # not for this vehicle, or not handled by the mock
+    handler_errors: int = 0  # exceptions in the mock's handlers (bugs)
     tx_messages: int = 0
     tx_datagrams: int = 0
     tx_bytes: int = 0
     setpoints: int = 0
-    setpoints_malformed: int = 0
+    setpoints_malformed: int = 0  # setpoints PX4 ignores (unsupported frame, FORCE, nothing set)
     commands: int = 0
+    statustexts_suppressed: int = 0  # not sent: no GCS heartbeat heard on this link
+    tx_by_message: dict[str, int] = field(default_factory=dict)
 
 
 # PX4 parameters exposed through the parameter protocol: name -> (AutopilotParams field, int?)
@@ -342,9 +454,8 @@ _PARAMS: dict[str, tuple[str, bool]] = {
     "COM_DISARM_LAND": ("disarm_land_s", False),
     "COM_DISARM_PRFLT": ("disarm_preflight_s", False),
     "COM_SPOOLUP_TIME": ("spoolup_s", False),
+    "LNDMC_TRIG_TIME": ("land_detect_s", False),
 }
-_LOSS_ACTION_CODE = {"hold": 5, "land": 4, "rtl": 2}
-_LOSS_ACTION_FROM_CODE = {0: "hold", 5: "hold", 4: "land", 2: "rtl"}
 
 
 def _float_bits_of_int(v: int) -> float:
@@ -354,6 +465,63 @@ def _float_bits_of_int(v: int) -> float:
 
 def _int_of_float_bits(f: float) -> int:
     return int(struct.unpack("<i", struct.pack("<f", float(f)))[0])
+
+
+def _text(field_value: Any) -> str:
+    """A MAVLink char[] field as text (pymavlink gives str or bytes)."""
+    if isinstance(field_value, bytes):
+        field_value = field_value.decode("utf-8", errors="replace")
+    return str(field_value).split("\x00", 1)[0]
+
+
+_ENCODER_CACHE: dict[int, MessageEncoder] = {}
+
+
+def _enc(name: str) -> MessageEncoder:
+    mid = message_id_by_name(name)
+    e = _ENCODER_CACHE.get(mid)
+    if e is None:
+        e = _ENCODER_CACHE[mid] = MessageEncoder(message_class(mid))
+    return e
+
+
+E_HEARTBEAT = _enc("HEARTBEAT")
+E_SYS_STATUS = _enc("SYS_STATUS")
+E_ATTITUDE = _enc("ATTITUDE")
+E_ATTITUDE_QUATERNION = _enc("ATTITUDE_QUATERNION")
+E_HIGHRES_IMU = _enc("HIGHRES_IMU")
+E_GLOBAL_POSITION_INT = _enc("GLOBAL_POSITION_INT")
+E_LOCAL_POSITION_NED = _enc("LOCAL_POSITION_NED")
+E_ODOMETRY = _enc("ODOMETRY")
+E_TIMESYNC = _enc("TIMESYNC")
+E_ALTITUDE = _enc("ALTITUDE")
+E_DISTANCE_SENSOR = _enc("DISTANCE_SENSOR")
+E_ATTITUDE_TARGET = _enc("ATTITUDE_TARGET")
+E_POSITION_TARGET_LOCAL_NED = _enc("POSITION_TARGET_LOCAL_NED")
+E_SERVO_OUTPUT_RAW = _enc("SERVO_OUTPUT_RAW")
+E_VFR_HUD = _enc("VFR_HUD")
+E_GPS_RAW_INT = _enc("GPS_RAW_INT")
+E_EXTENDED_SYS_STATE = _enc("EXTENDED_SYS_STATE")
+E_MISSION_CURRENT = _enc("MISSION_CURRENT")
+E_ESTIMATOR_STATUS = _enc("ESTIMATOR_STATUS")
+E_SYSTEM_TIME = _enc("SYSTEM_TIME")
+E_PING = _enc("PING")
+E_SCALED_PRESSURE = _enc("SCALED_PRESSURE")
+E_LINK_NODE_STATUS = _enc("LINK_NODE_STATUS")
+E_BATTERY_STATUS = _enc("BATTERY_STATUS")
+E_CURRENT_MODE = _enc("CURRENT_MODE")
+E_HOME_POSITION = _enc("HOME_POSITION")
+E_VIBRATION = _enc("VIBRATION")
+E_AUTOPILOT_VERSION = _enc("AUTOPILOT_VERSION")
+E_PROTOCOL_VERSION = _enc("PROTOCOL_VERSION")
+E_COMMAND_ACK = _enc("COMMAND_ACK")
+E_STATUSTEXT = _enc("STATUSTEXT")
+E_PARAM_VALUE = _enc("PARAM_VALUE")
+E_PARAM_ERROR = _enc("PARAM_ERROR")
+E_MESSAGE_INTERVAL = _enc("MESSAGE_INTERVAL")
+
+_NAN21 = [math.nan] + [0.0] * 20
+_ZERO4 = [0.0, 0.0, 0.0, 0.0]
 
 
 class VehicleLink:
@@ -370,7 +538,7 @@ class VehicleLink:
         home_enu: np.ndarray,
         geo_ref: tuple[float, float, float],
         signing: SigningConfig | None = None,
-        accept_setup_signing: bool = True,
+        accept_setup_signing: bool = False,
         stream_rates_hz: dict[int, float] | None = None,
         duplicate_mode_ack: bool = True,
         batch_datagrams: bool = True,
@@ -382,14 +550,14 @@ class VehicleLink:
         self.local_port = int(local_port)
         self.partner: tuple[str, int] = (host, self.client_port)
         self.origin_enu = np.asarray(origin_enu, dtype=np.float64).reshape(3)
-        self.home_enu = np.asarray(home_enu, dtype=np.float64).reshape(3)
+        # the autopilot owns the home position (PX4 resets it at arming and after takeoff)
+        self.ap.home_m = np.asarray(home_enu, dtype=np.float64).reshape(3).copy()
         self.geo_ref = geo_ref
         self.accept_setup_signing = accept_setup_signing
         self.duplicate_mode_ack = duplicate_mode_ack
         self.batch_datagrams = batch_datagrams
         self.stats = LinkStats()
-        self.mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
-        self.mav.robust_parsing = True
+        self.mav = new_mavlink(self.system_id, 1)
         self.mav.check_signature = self._check_signature
         self.signing: SigningConfig | None = None
         if signing is not None:
@@ -402,32 +570,59 @@ class VehicleLink:
             m: (1.0 / r if r > 0 else math.inf) for m, r in rates.items()
         }
         self._next_due: dict[int, float] = {m: 0.0 for m in self.intervals_s}
+        self._next_any_due = 0.0
         self._out: list[bytes] = []
         self._deferred: list[Callable[[], None]] = []
-        self._encoders: dict[int, Callable[[VehicleView], Any]] = {
-            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
-            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
-            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
-            mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self._attitude_quaternion,
-            mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: self._highres_imu,
-            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position_int,
-            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
-            mavlink.MAVLINK_MSG_ID_ODOMETRY: self._odometry,
-            mavlink.MAVLINK_MSG_ID_TIMESYNC: self._timesync_request,
-            mavlink.MAVLINK_MSG_ID_ALTITUDE: self._altitude,
-            mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: self._attitude_target,
-            mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: self._position_target,
-            mavlink.MAVLINK_MSG_ID_VFR_HUD: self._vfr_hud,
-            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw_int,
-            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
-            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
-            mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: self._battery_status,
-            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
-            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+        self._encoders: dict[int, Callable[[VehicleView], None]] = {
+            E_HEARTBEAT.msg_id: self._heartbeat,
+            E_SYS_STATUS.msg_id: self._sys_status,
+            E_ATTITUDE.msg_id: self._attitude,
+            E_ATTITUDE_QUATERNION.msg_id: self._attitude_quaternion,
+            E_HIGHRES_IMU.msg_id: self._highres_imu,
+            E_GLOBAL_POSITION_INT.msg_id: self._global_position_int,
+            E_LOCAL_POSITION_NED.msg_id: self._local_position_ned,
+            E_ODOMETRY.msg_id: self._odometry,
+            E_TIMESYNC.msg_id: self._timesync_request,
+            E_ALTITUDE.msg_id: self._altitude,
+            E_DISTANCE_SENSOR.msg_id: self._distance_sensor,
+            E_ATTITUDE_TARGET.msg_id: self._attitude_target,
+            E_POSITION_TARGET_LOCAL_NED.msg_id: self._position_target,
+            E_SERVO_OUTPUT_RAW.msg_id: self._servo_output_raw,
+            E_VFR_HUD.msg_id: self._vfr_hud,
+            E_GPS_RAW_INT.msg_id: self._gps_raw_int,
+            E_EXTENDED_SYS_STATE.msg_id: self._extended_sys_state,
+            E_MISSION_CURRENT.msg_id: self._mission_current,
+            E_ESTIMATOR_STATUS.msg_id: self._estimator_status,
+            E_SYSTEM_TIME.msg_id: self._system_time,
+            E_PING.msg_id: self._ping_request,
+            E_SCALED_PRESSURE.msg_id: self._scaled_pressure,
+            E_LINK_NODE_STATUS.msg_id: self._link_node_status,
+            E_BATTERY_STATUS.msg_id: self._battery_status,
+            E_CURRENT_MODE.msg_id: self._current_mode,
+            E_HOME_POSITION.msg_id: self._home_position,
+            E_VIBRATION.msg_id: self._vibration,
+            E_AUTOPILOT_VERSION.msg_id: self._autopilot_version,
+            E_PROTOCOL_VERSION.msg_id: self._protocol_version,
         }
+        missing = set(self.intervals_s) - set(self._encoders)
+        if missing:
+            raise ValueError(f"no encoder for streams {sorted(missing)}")
         self.sock: socket.socket | None = None
         self.view: VehicleView | None = None
-        self.gcs_heartbeats = 0
+        # called with every frame the link emits, socket or not (tests, recorders)
+        self.tap: Callable[[bytes], None] | None = None
+        self.gcs_heartbeats = 0  # HEARTBEATs of type MAV_TYPE_GCS heard
+        self.gcs_seen = False  # STATUSTEXT is sent once a GCS heartbeat was heard
+        self._ping_seq = 0
+        self._statustext_id = 0
+        self._lns_last: tuple[float, int, int] | None = None  # (t, tx bytes, rx bytes)
+        self._lns_rates = (0, 0)
+        self.rx_bytes = 0
+
+    @property
+    def home_enu(self) -> np.ndarray:
+        """The vehicle's home (ENU), owned by the autopilot."""
+        return self.ap.home_m
 
     # ---- socket --------------------------------------------------------------------------
     def open(self) -> None:
@@ -451,7 +646,7 @@ class VehicleLink:
         """Where the vehicle listens."""
         return self.host, self.local_port
 
-    # ---- signing -------------------------------------------------------------------------
+    # ---- signing (imitates PX4 v1.17+) ---------------------------------------------------
     def set_signing(self, cfg: SigningConfig | None) -> None:
         self.signing = cfg
         sg = self.mav.signing
@@ -521,6 +716,7 @@ class VehicleLink:
         """Parse one datagram on its own and handle its messages."""
         st = self.stats
         st.rx_datagrams += 1
+        self.rx_bytes += len(data)
         mav = self.mav
         mav.buf = bytearray()
         mav.buf_index = 0
@@ -528,13 +724,17 @@ class VehicleLink:
         rejected_before = mav.signing.reject_count
         try:
             msgs = mav.parse_buffer(data) or []
-        except Exception:  # noqa: BLE001 - a parser failure must never stop the vehicle
+        except mavlink.MAVError:  # robust parsing turns these into BAD_DATA; count it anyway
             msgs = []
             st.rx_bad += 1
         st.rx_rejected_unsigned += mav.signing.reject_count - rejected_before
         for msg in msgs:
-            if msg.get_type() == "BAD_DATA" or msg.get_type().startswith("UNKNOWN"):
+            mtype = msg.get_type()
+            if mtype == "BAD_DATA":
                 st.rx_bad += 1
+                continue
+            if mtype.startswith("UNKNOWN"):  # a message id outside the dialect
+                st.rx_ignored += 1
                 continue
             st.rx_messages += 1
             if addr != self.partner:
@@ -542,14 +742,15 @@ class VehicleLink:
                 self.partner = (addr[0], addr[1])
             try:
                 self.handle(msg)
-            except Exception:  # noqa: BLE001 - malformed content must never stop the vehicle
-                st.rx_bad += 1
-                log.debug(
-                    "vehicle %d: failed to handle %s", self.system_id, msg.get_type(), exc_info=True
-                )
+            except Exception:
+                # a bug in the mock, never "bad input": counted apart, logged with traceback
+                st.handler_errors += 1
+                log.exception("vehicle %d: handling %s failed", self.system_id, mtype)
 
     def handle(self, msg: Any) -> None:
+        """Act on one decoded message (exceptions propagate: they are bugs)."""
         mid = msg.get_msgId()
+        st = self.stats
         if mid == mavlink.MAVLINK_MSG_ID_COMMAND_LONG:
             if self._for_me(msg.target_system, msg.target_component):
                 p = (
@@ -563,7 +764,7 @@ class VehicleLink:
                 )
                 self._command(msg.command, p, msg.get_srcSystem(), msg.get_srcComponent())
             else:
-                self.stats.rx_ignored += 1
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_COMMAND_INT:
             if self._for_me(msg.target_system, msg.target_component):
                 p = (
@@ -577,44 +778,49 @@ class VehicleLink:
                 )
                 self._command(msg.command, p, msg.get_srcSystem(), msg.get_srcComponent())
             else:
-                self.stats.rx_ignored += 1
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED:
             if self._for_me(msg.target_system, msg.target_component):
                 self._setpoint(msg)
             else:
-                self.stats.rx_ignored += 1
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_SET_MODE:
             if msg.target_system == self.system_id:
                 self._set_mode_message(msg)
+            else:
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_TIMESYNC:
             if msg.tc1 == 0:
-                self._queue(self.mav.timesync_encode(self._now_ns(), msg.ts1))
+                self._emit(E_TIMESYNC, (self._now_ns(), msg.ts1))
+        elif mid == mavlink.MAVLINK_MSG_ID_PING:
+            if msg.target_system == 0 and msg.target_component == 0:  # a request: answer it
+                self._emit(
+                    E_PING, (msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent())
+                )
         elif mid == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-            self.gcs_heartbeats += 1
+            if msg.type == mavlink.MAV_TYPE_GCS:
+                self.gcs_heartbeats += 1
+                self.gcs_seen = True
         elif mid == mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST:
             if self._for_me(msg.target_system, msg.target_component):
                 for i, name in enumerate(_PARAMS):
-                    self._queue(self._param_value(name, i))
+                    self._param_value(name, i)
+            else:
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ:
             if self._for_me(msg.target_system, msg.target_component):
                 self._param_read(msg)
+            else:
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_PARAM_SET:
             if self._for_me(msg.target_system, msg.target_component):
                 self._param_set(msg)
+            else:
+                st.rx_ignored += 1
         elif mid == mavlink.MAVLINK_MSG_ID_SETUP_SIGNING:
-            if self.accept_setup_signing and self._for_me(msg.target_system, msg.target_component):
-                key = bytes(msg.secret_key)
-                if key == bytes(32):
-                    self.set_signing(None)
-                    log.warning("vehicle %d: signing disabled by SETUP_SIGNING", self.system_id)
-                else:
-                    self.set_signing(SigningConfig(key, require=True))
-                    self.mav.signing.timestamp = max(
-                        self.mav.signing.timestamp, int(msg.initial_timestamp)
-                    )
-                    log.warning("vehicle %d: signing key set by SETUP_SIGNING", self.system_id)
+            self._setup_signing(msg)
         else:
-            self.stats.rx_ignored += 1
+            st.rx_ignored += 1
 
     def _for_me(self, target_system: int, target_component: int) -> bool:
         return target_system in (0, self.system_id) and target_component in (0, 1)
@@ -625,6 +831,24 @@ class VehicleLink:
     @property
     def _t(self) -> float:
         return self.view.t_s if self.view is not None else 0.0
+
+    def _setup_signing(self, msg: Any) -> None:
+        if not self.accept_setup_signing:
+            # PX4 v1.16's receiver has no signing: the message changes nothing (observed)
+            self.stats.rx_ignored += 1
+            log.info("vehicle %d: SETUP_SIGNING ignored (PX4 v1.16 has no signing)", self.system_id)
+            return
+        if not self._for_me(msg.target_system, msg.target_component):
+            self.stats.rx_ignored += 1
+            return
+        key = bytes(msg.secret_key)
+        if key == bytes(32):
+            self.set_signing(None)
+            log.warning("vehicle %d: signing disabled by SETUP_SIGNING", self.system_id)
+        else:
+            self.set_signing(SigningConfig(key, require=True))
+            self.mav.signing.timestamp = max(self.mav.signing.timestamp, int(msg.initial_timestamp))
+            log.warning("vehicle %d: signing key set by SETUP_SIGNING", self.system_id)
 
     # ---- commands ------------------------------------------------------------------------
     def _command(
@@ -643,6 +867,7 @@ class VehicleLink:
             action = p[0]
             if action not in (0.0, 1.0):
                 result = Result.DENIED
+                self.stats.rx_malformed += 1
             else:
                 force = math.isfinite(p[1]) and int(round(p[1])) == ARM_FORCE_MAGIC
                 result = ap.command_arm(t, action == 1.0, force)
@@ -659,25 +884,30 @@ class VehicleLink:
         elif command == CMD_SET_MESSAGE_INTERVAL:
             result = self._set_interval(p[0], p[1])
         elif command == CMD_GET_MESSAGE_INTERVAL:
-            mid = int(p[0]) if math.isfinite(p[0]) else -1
+            mid = int(p[0]) if math.isfinite(p[0]) and abs(p[0]) < 2**24 else -1
             if mid in self._encoders:
                 iv = self.intervals_s.get(mid, math.inf)
                 us = -1 if not math.isfinite(iv) else int(round(iv * 1e6))
                 result = Result.ACCEPTED
-                after.append(lambda: self._queue(self.mav.message_interval_encode(mid, us)))
+                after.append(lambda: self._emit(E_MESSAGE_INTERVAL, (mid, us)))
             else:
                 result = Result.DENIED
+                self.stats.rx_malformed += 1
         elif command == CMD_REQUEST_MESSAGE:
-            mid = int(p[0]) if math.isfinite(p[0]) else -1
+            mid = int(p[0]) if math.isfinite(p[0]) and abs(p[0]) < 2**24 else -1
             if mid in self._encoders and self.view is not None:
                 result = Result.ACCEPTED
                 view = self.view
-                after.append(lambda: self._queue(self._encoders[mid](view)))
+                after.append(lambda: self._encoders[mid](view))
             else:
                 result = Result.DENIED
+                self.stats.rx_malformed += 1
         elif command == CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             result = Result.ACCEPTED
-            after.append(lambda: self._queue(self._autopilot_version(None)))
+            after.append(lambda: self._autopilot_version(None))
+        elif command == CMD_REQUEST_PROTOCOL_VERSION:
+            result = Result.ACCEPTED
+            after.append(lambda: self._protocol_version(None))
         else:
             result = Result.UNSUPPORTED
         self._ack(command, int(result), src_sys, src_comp)
@@ -690,8 +920,8 @@ class VehicleLink:
     def _set_mode(self, base_mode: float, main: float, sub: float) -> int:
         if not (math.isfinite(base_mode) and int(base_mode) & 1):
             return Result.DENIED  # only PX4 custom modes are supported
-        mm = int(main) if math.isfinite(main) else -1
-        sm = int(sub) if math.isfinite(sub) else 0
+        mm = int(main) if math.isfinite(main) and 0 <= main < 256 else -1
+        sm = int(sub) if math.isfinite(sub) and 0 <= sub < 256 else 0
         return self.ap.command_set_mode(self._t, Mode.from_main_sub(mm, sm))
 
     def _set_mode_message(self, msg: Any) -> None:
@@ -703,10 +933,12 @@ class VehicleLink:
         self._drain_events()
 
     def _set_interval(self, msg_id: float, interval_us: float) -> int:
-        if not (math.isfinite(msg_id) and math.isfinite(interval_us)):
+        if not (math.isfinite(msg_id) and math.isfinite(interval_us) and 0 <= msg_id < 2**24):
+            self.stats.rx_malformed += 1
             return Result.DENIED
         mid = int(msg_id)
-        if mid not in self._encoders or mid == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+        if mid not in self._encoders or mid in ONE_SHOT_MESSAGES:
+            self.stats.rx_malformed += 1
             return Result.DENIED
         if interval_us < 0:
             self.intervals_s[mid] = math.inf
@@ -716,10 +948,11 @@ class VehicleLink:
         else:
             self.intervals_s[mid] = interval_us * 1e-6
         self._next_due[mid] = self._t
+        self._next_any_due = min(self._next_any_due, self._t)
         return Result.ACCEPTED
 
     def _ack(self, command: int, result: int, src_sys: int, src_comp: int) -> None:
-        self._queue(self.mav.command_ack_encode(command, result, 0, 0, src_sys, src_comp))
+        self._emit(E_COMMAND_ACK, (command, result, 0, 0, src_sys, src_comp))
 
     @property
     def home_amsl_m(self) -> float:
@@ -729,9 +962,11 @@ class VehicleLink:
     def _setpoint(self, msg: Any) -> None:
         st = self.stats
         view = self.view
-        pos = view.est_enu if view is not None else self.home_enu
-        yaw = float(view.s[dyn.S_YAW]) if view is not None else 0.0
-        sp = setpoint_from_local_ned(
+        if view is not None:
+            r = view.r_ned_frd
+        else:
+            r = _rot_z(yaw_enu_ned(self.ap.yaw0_rad))
+        parsed = parse_position_target_local_ned(
             int(msg.type_mask),
             int(msg.coordinate_frame),
             (msg.x, msg.y, msg.z),
@@ -740,75 +975,105 @@ class VehicleLink:
             msg.yaw,
             msg.yaw_rate,
             self.origin_enu,
-            pos,
-            yaw,
+            r,
         )
-        if sp is None or not self.ap.on_setpoint(self._t, sp):
+        if parsed.setpoint is None or not self.ap.on_setpoint(self._t, parsed.setpoint):
             st.setpoints_malformed += 1
+            st.rx_malformed += 1
+            self.statustext(int(Severity.CRITICAL), parsed.error or "setpoint refused")
             return
         st.setpoints += 1
 
     # ---- parameters ----------------------------------------------------------------------
-    def _param_value(self, name: str, index: int) -> Any:
-        field, is_int = _PARAMS[name]
-        value = getattr(self.ap.params, field)
+    def _param_value(self, name: str, index: int) -> None:
+        fname, is_int = _PARAMS[name]
+        value = getattr(self.ap.params, fname)
         if is_int:
-            code = _LOSS_ACTION_CODE[value] if field == "offboard_loss_action" else int(value)
-            return self.mav.param_value_encode(
+            code = (
+                OFFBOARD_LOSS_ACTION_CODES[value] if fname == "offboard_loss_action" else int(value)
+            )
+            args: tuple[Any, ...] = (
                 name.encode(),
                 _float_bits_of_int(code),
                 mavlink.MAV_PARAM_TYPE_INT32,
                 len(_PARAMS),
                 index,
             )
-        return self.mav.param_value_encode(
-            name.encode(), float(value), mavlink.MAV_PARAM_TYPE_REAL32, len(_PARAMS), index
-        )
+        else:
+            args = (name.encode(), float(value), mavlink.MAV_PARAM_TYPE_REAL32, len(_PARAMS), index)
+        self._emit(E_PARAM_VALUE, args)
 
     def _param_read(self, msg: Any) -> None:
         names = list(_PARAMS)
-        pid = (
-            msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
-        )
-        pid = pid.rstrip("\x00")
+        pid = _text(msg.param_id)
         if msg.param_index >= 0:
             if msg.param_index < len(names):
-                self._queue(self._param_value(names[msg.param_index], msg.param_index))
+                self._param_value(names[msg.param_index], msg.param_index)
+            else:
+                self._param_error(msg, pid, mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)
         elif pid in _PARAMS:
-            self._queue(self._param_value(pid, names.index(pid)))
+            self._param_value(pid, names.index(pid))
+        else:
+            self._param_error(msg, pid, mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)
+
+    def _param_error(self, msg: Any, pid: str, error: int, index: int = -1) -> None:
+        self._emit(
+            E_PARAM_ERROR,
+            (
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+                pid.encode()[:16],
+                index,
+                error,
+            ),
+        )
 
     def _param_set(self, msg: Any) -> None:
-        pid = (
-            msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
-        )
-        pid = pid.rstrip("\x00")
+        """PARAM_SET: applied and echoed (PARAM_VALUE); a value the mock cannot honour is
+        answered with PARAM_ERROR, the PARAM_VALUE in force and a status text, never silently
+        dropped."""
+        pid = _text(msg.param_id)
         if pid not in _PARAMS:
+            self.stats.rx_malformed += 1
+            self._param_error(msg, pid, mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)
             return
-        field, is_int = _PARAMS[pid]
+        index = list(_PARAMS).index(pid)
+        fname, is_int = _PARAMS[pid]
         value: Any
+        problem = ""
         if is_int:
-            code = (
-                _int_of_float_bits(msg.param_value)
-                if msg.param_type == mavlink.MAV_PARAM_TYPE_INT32
-                else int(round(msg.param_value))
-            )
-            value = _LOSS_ACTION_FROM_CODE.get(code)
+            # PX4 copies the four bytes whatever param_type says (bytewise encoding)
+            code = _int_of_float_bits(msg.param_value)
+            try:
+                value = offboard_loss_action_from_code(code)
+            except ValueError as e:
+                problem = str(e)
         else:
             value = float(msg.param_value)
-        if value is not None:
+            if msg.param_type != mavlink.MAV_PARAM_TYPE_REAL32:
+                problem = f"{pid} is a float parameter (param_type {msg.param_type} given)"
+        if not problem:
             try:
-                self.ap.params = dataclasses.replace(self.ap.params, **{field: value})
-            except (ValueError, TypeError):
-                pass  # invalid: keep the value; the reply tells the sender what is in force
-        self._queue(self._param_value(pid, list(_PARAMS).index(pid)))
+                self.ap.params = dataclasses.replace(self.ap.params, **{fname: value})
+            except (ValueError, TypeError) as e:
+                problem = f"{pid}: {e}"
+        if problem:
+            self.stats.rx_malformed += 1
+            log.warning("vehicle %d: PARAM_SET refused: %s", self.system_id, problem)
+            self._param_error(msg, pid, mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE, index)
+            self.statustext(int(Severity.ERROR), f"{pid}: value not supported")
+        self._param_value(pid, index)
 
     # ---- outgoing ------------------------------------------------------------------------
-    def _queue(self, msg: Any) -> None:
-        mav = self.mav
-        buf = msg.pack(mav)
-        mav.seq = (mav.seq + 1) % 256
+    def _emit(self, enc: MessageEncoder, args: Sequence[Any]) -> None:
+        buf = frame(self.mav, enc, args)
         self._out.append(buf)
-        self.stats.tx_messages += 1
+        if self.tap is not None:
+            self.tap(buf)
+        st = self.stats
+        st.tx_messages += 1
+        by = st.tx_by_message
+        by[enc.name] = by.get(enc.name, 0) + 1
 
     def flush(self) -> None:
         """Send everything queued, several messages per datagram."""
@@ -837,7 +1102,19 @@ class VehicleLink:
             self.stats.tx_bytes += len(c)
 
     def statustext(self, severity: int, text: str) -> None:
-        self._queue(self.mav.statustext_encode(int(severity), text.encode()[:50]))
+        """A STATUSTEXT (split into 50-byte chunks with an id, as PX4 does for long texts),
+        sent only once the link has heard a GCS heartbeat, as PX4 v1.16 does."""
+        if not self.gcs_seen:
+            self.stats.statustexts_suppressed += 1
+            return
+        raw = text.encode("utf-8", errors="replace")
+        if len(raw) <= STATUSTEXT_LEN:
+            self._emit(E_STATUSTEXT, (int(severity), raw, 0, 0))
+            return
+        self._statustext_id = self._statustext_id % 65535 + 1
+        chunks = [raw[i : i + STATUSTEXT_LEN] for i in range(0, len(raw), STATUSTEXT_LEN)]
+        for k, chunk in enumerate(chunks):
+            self._emit(E_STATUSTEXT, (int(severity), chunk, self._statustext_id, k))
 
     def _drain_events(self) -> None:
         for ev in self.ap.drain_events():
@@ -854,23 +1131,34 @@ class VehicleLink:
         if self.signing is not None:
             sg = self.mav.signing
             sg.timestamp = max(sg.timestamp, signing_timestamp_now())
-        for f in self._deferred:
-            f()
-        self._deferred.clear()
-        self._drain_events()
+        if self._deferred:
+            for f in self._deferred:
+                f()
+            self._deferred.clear()
+        if self.ap.events:
+            self._drain_events()
         t = view.t_s
-        for mid, interval in self.intervals_s.items():
-            if not math.isfinite(interval):
-                continue
-            due = self._next_due[mid]
-            if t + 1e-9 >= due:
-                self._queue(self._encoders[mid](view))
-                nxt = due + interval
-                self._next_due[mid] = nxt if nxt > t else t + interval
+        if t + 1e-9 >= self._next_any_due:
+            next_any = math.inf
+            nd = self._next_due
+            enc = self._encoders
+            for mid, interval in self.intervals_s.items():
+                if interval == math.inf:
+                    continue
+                due = nd[mid]
+                if t + 1e-9 >= due:
+                    enc[mid](view)
+                    due += interval
+                    if due <= t:
+                        due = t + interval
+                    nd[mid] = due
+                if due < next_any:
+                    next_any = due
+            self._next_any_due = next_any
         self.flush()
 
-    # ---- encoders ------------------------------------------------------------------------
-    def _heartbeat(self, v: VehicleView) -> Any:
+    # ---- encoders (each emits one message from the view) ---------------------------------
+    def _heartbeat(self, v: VehicleView) -> None:
         ap = self.ap
         mode = ap.mode
         base = 1
@@ -880,19 +1168,31 @@ class VehicleLink:
             base |= PX4_BASE_MODE_OFFBOARD
         elif mode == Mode.POSCTL:
             base |= PX4_BASE_MODE_POSCTL
+        elif mode == Mode.ALTCTL:
+            base |= PX4_BASE_MODE_ALTCTL
         if ap.armed:
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
             status = mavlink.MAV_STATE_CRITICAL if ap.failsafe else mavlink.MAV_STATE_ACTIVE
-        else:
+        elif ap.prearm_ok(v.t_s):
             status = mavlink.MAV_STATE_STANDBY
-        return self.mav.heartbeat_encode(
-            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, mode.custom_mode, status, 3
+        else:  # observed: 0 after the auto-disarm in Offboard, where arming is refused
+            status = mavlink.MAV_STATE_UNINIT
+        self._emit(
+            E_HEARTBEAT,
+            (
+                mavlink.MAV_TYPE_QUADROTOR,
+                mavlink.MAV_AUTOPILOT_PX4,
+                base,
+                mode.custom_mode,
+                status,
+                3,
+            ),
         )
 
-    def _sys_status(self, v: VehicleView) -> Any:
+    def _sys_status(self, v: VehicleView) -> None:
         ap = self.ap
-        present = SENSORS | PREARM | (RC_RECEIVER if ap.params.rc_present else 0)
-        health = present & ~PREARM
+        present = SENSORS | (RC_RECEIVER if ap.params.rc_present else 0)
+        health = present
         if not ap.booted(v.t_s):
             health &= ~(
                 mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
@@ -901,132 +1201,197 @@ class VehicleLink:
                 | mavlink.MAV_SYS_STATUS_SENSOR_GPS
                 | mavlink.MAV_SYS_STATUS_AHRS
             )
-        if ap.ready(v.t_s):
+        if ap.prearm_ok(v.t_s):
             health |= PREARM
         volt_mv, current_ca = self._battery_electrics(v)
-        return self.mav.sys_status_encode(
-            present,
-            present,
-            health,
-            250,
-            volt_mv,
-            current_ca,
-            int(round(ap.battery_fraction * 100)),
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
+        self._emit(
+            E_SYS_STATUS,
+            (
+                present,
+                present,
+                health,
+                250,
+                volt_mv,
+                current_ca,
+                int(round(ap.battery_fraction * 100)),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            ),
         )
 
     def _battery_electrics(self, v: VehicleView) -> tuple[int, int]:
         frac = self.ap.battery_fraction
         volt = 4 * (3.5 + 0.7 * frac)
-        thrust = float(v.att[dyn.A_THRUST]) if self.ap.armed else 0.0
+        thrust = v.tel[tm.T_THRUST] if self.ap.armed else 0.0
         current_a = 0.3 + 20.0 * thrust
         return int(volt * 1000), int(current_a * 100)
 
-    def _attitude(self, v: VehicleView) -> Any:
-        r, p, y = v.euler
-        w = v.rates_frd
-        return self.mav.attitude_encode(v.boot_ms, r, p, y, w[0], w[1], w[2])
-
-    def _attitude_quaternion(self, v: VehicleView) -> Any:
-        q = v.quaternion
-        w = v.rates_frd
-        return self.mav.attitude_quaternion_encode(
-            v.boot_ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2], (0.0, 0.0, 0.0, 0.0)
+    def _attitude(self, v: VehicleView) -> None:
+        t = v.tel
+        self._emit(
+            E_ATTITUDE,
+            (
+                v.boot_ms,
+                t[tm.T_ROLL],
+                t[tm.T_PITCH],
+                t[tm.T_YAW],
+                t[tm.T_W],
+                t[tm.T_W + 1],
+                t[tm.T_W + 2],
+            ),
         )
 
-    def _highres_imu(self, v: VehicleView) -> Any:
-        f = v.specific_force_frd
-        w = v.rates_frd
-        mag = v.r_ned_frd.T @ np.array([0.21, 0.015, 0.42])  # a mid-latitude field [gauss]
-        alt = v.geodetic[2]
-        press = 1013.25 * (1.0 - 2.25577e-5 * alt) ** 5.25588
-        return self.mav.highres_imu_encode(
-            v.usec,
-            f[0],
-            f[1],
-            f[2],
-            w[0],
-            w[1],
-            w[2],
-            mag[0],
-            mag[1],
-            mag[2],
-            press,
-            0.0,
-            alt,
-            25.0,
-            0x1FFF,
-            0,
+    def _attitude_quaternion(self, v: VehicleView) -> None:
+        t = v.tel
+        self._emit(
+            E_ATTITUDE_QUATERNION,
+            (
+                v.boot_ms,
+                t[tm.T_Q],
+                t[tm.T_Q + 1],
+                t[tm.T_Q + 2],
+                t[tm.T_Q + 3],
+                t[tm.T_W],
+                t[tm.T_W + 1],
+                t[tm.T_W + 2],
+                _ZERO4,
+            ),
         )
 
-    def _global_position_int(self, v: VehicleView) -> Any:
-        lat, lon, alt = v.geodetic
-        vn = v.vel_ned
-        return self.mav.global_position_int_encode(
-            v.boot_ms,
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(round(alt * 1000)),
-            int(round(v.relative_alt_m * 1000)),
-            int(round(vn[0] * 100)),
-            int(round(vn[1] * 100)),
-            int(round(vn[2] * 100)),
-            int(round(v.heading_deg * 100)) % 36000,
+    def _highres_imu(self, v: VehicleView) -> None:
+        t = v.tel
+        alt = t[tm.T_ALT]
+        self._emit(
+            E_HIGHRES_IMU,
+            (
+                v.usec,
+                t[tm.T_F],
+                t[tm.T_F + 1],
+                t[tm.T_F + 2],
+                t[tm.T_W],
+                t[tm.T_W + 1],
+                t[tm.T_W + 2],
+                t[tm.T_MAG],
+                t[tm.T_MAG + 1],
+                t[tm.T_MAG + 2],
+                tm.pressure_hpa(alt),
+                0.0,
+                alt,
+                25.0,
+                0x1FFF,
+                0,
+            ),
         )
 
-    def _local_position_ned(self, v: VehicleView) -> Any:
-        p = v.pos_ned
-        u = v.vel_ned
-        return self.mav.local_position_ned_encode(v.boot_ms, p[0], p[1], p[2], u[0], u[1], u[2])
-
-    def _odometry(self, v: VehicleView) -> Any:
-        p = v.pos_ned
-        q = v.quaternion
-        vb = v.r_ned_frd.T @ v.vel_ned
-        w = v.rates_frd
-        nan21 = [math.nan] + [0.0] * 20
-        return self.mav.odometry_encode(
-            v.usec,
-            FRAME_LOCAL_NED,
-            FRAME_BODY_FRD,
-            p[0],
-            p[1],
-            p[2],
-            q,
-            vb[0],
-            vb[1],
-            vb[2],
-            w[0],
-            w[1],
-            w[2],
-            nan21,
-            nan21,
-            0,
-            mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT,
-            100,
+    def _global_position_int(self, v: VehicleView) -> None:
+        t = v.tel
+        self._emit(
+            E_GLOBAL_POSITION_INT,
+            (
+                v.boot_ms,
+                int(round(t[tm.T_LAT] * 1e7)),
+                int(round(t[tm.T_LON] * 1e7)),
+                int(round(t[tm.T_ALT] * 1000)),
+                int(round(v.relative_alt_m * 1000)),
+                int(round(t[tm.T_VN] * 100)),
+                int(round(t[tm.T_VN + 1] * 100)),
+                int(round(t[tm.T_VN + 2] * 100)),
+                int(round(v.heading_deg * 100)) % 36000,
+            ),
         )
 
-    def _timesync_request(self, v: VehicleView) -> Any:
-        return self.mav.timesync_encode(0, self._now_ns())
-
-    def _altitude(self, v: VehicleView) -> Any:
-        alt = v.geodetic[2]
-        return self.mav.altitude_encode(
-            v.usec,
-            alt,
-            alt,
-            -float(v.pos_ned[2]),
-            v.relative_alt_m,
-            math.nan,
-            float(v.est_enu[2] - v.ground_z),
+    def _local_position_ned(self, v: VehicleView) -> None:
+        t = v.tel
+        self._emit(
+            E_LOCAL_POSITION_NED,
+            (
+                v.boot_ms,
+                t[tm.T_PN],
+                t[tm.T_PN + 1],
+                t[tm.T_PN + 2],
+                t[tm.T_VN],
+                t[tm.T_VN + 1],
+                t[tm.T_VN + 2],
+            ),
         )
 
-    def _attitude_target(self, v: VehicleView) -> Any:
+    def _odometry(self, v: VehicleView) -> None:
+        t = v.tel
+        self._emit(
+            E_ODOMETRY,
+            (
+                v.usec,
+                FRAME_LOCAL_NED,
+                FRAME_BODY_FRD,
+                t[tm.T_PN],
+                t[tm.T_PN + 1],
+                t[tm.T_PN + 2],
+                t[tm.T_Q : tm.T_Q + 4],
+                t[tm.T_VB],
+                t[tm.T_VB + 1],
+                t[tm.T_VB + 2],
+                t[tm.T_W],
+                t[tm.T_W + 1],
+                t[tm.T_W + 2],
+                _NAN21,
+                _NAN21,
+                0,
+                mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT,
+                100,
+            ),
+        )
+
+    def _timesync_request(self, v: VehicleView) -> None:
+        self._emit(E_TIMESYNC, (0, self._now_ns()))
+
+    def _altitude(self, v: VehicleView) -> None:
+        t = v.tel
+        alt = t[tm.T_ALT]
+        self._emit(
+            E_ALTITUDE,
+            (
+                v.usec,
+                alt,
+                alt,
+                -t[tm.T_PN + 2],
+                v.relative_alt_m,
+                math.nan,
+                t[tm.T_HAG],
+            ),
+        )
+
+    def _distance_sensor(self, v: VehicleView) -> None:
+        """A downward rangefinder (SIH simulates one): distance along the tilted body axis."""
+        t = v.tel
+        cos_tilt = max(t[tm.T_COS_TILT], 0.1)
+        d_cm = int(round(max(t[tm.T_HAG], 0.0) / cos_tilt * 100.0))
+        d_cm = min(max(d_cm, 10), 4000)
+        self._emit(
+            E_DISTANCE_SENSOR,
+            (
+                v.boot_ms,
+                10,
+                4000,
+                d_cm,
+                mavlink.MAV_DISTANCE_SENSOR_LASER,
+                0,
+                mavlink.MAV_SENSOR_ROTATION_PITCH_270,
+                0,
+                0.0,
+                0.0,
+                _ZERO4,
+                100,
+            ),
+        )
+
+    def _attitude_target(self, v: VehicleView) -> None:
         fc = v.s[dyn.S_FCMD : dyn.S_FCMD + 3]
         yaw = float(v.cmd[dyn.C_YAW])
         if not math.isfinite(yaw):
@@ -1034,9 +1399,9 @@ class VehicleLink:
         r = dyn.rotation_from_thrust(float(fc[0]), float(fc[1]), float(fc[2]), yaw)
         q = quaternion_from_matrix(rotation_ned_frd(r))
         thrust = min(max(float(np.linalg.norm(fc)) / v.f_max, 0.0), 1.0)
-        return self.mav.attitude_target_encode(v.boot_ms, 7, q, 0.0, 0.0, 0.0, thrust)
+        self._emit(E_ATTITUDE_TARGET, (v.boot_ms, 7, q, 0.0, 0.0, 0.0, thrust))
 
-    def _position_target(self, v: VehicleView) -> Any:
+    def _position_target(self, v: VehicleView) -> None:
         c = v.cmd
         pos = enu_ned(c[dyn.C_POS : dyn.C_POS + 3] - self.origin_enu)
         vel_cmd = c[dyn.C_VEL : dyn.C_VEL + 3].copy()
@@ -1057,112 +1422,200 @@ class VehicleLink:
         mask |= IGNORE_YAW if math.isnan(yaw) else 0
         mask |= IGNORE_YAW_RATE if math.isnan(yaw_rate) else 0
         yaw_ned = yaw_enu_ned(yaw) if math.isfinite(yaw) else math.nan
-        return self.mav.position_target_local_ned_encode(
-            v.boot_ms,
-            FRAME_LOCAL_NED,
-            mask,
-            pos[0],
-            pos[1],
-            pos[2],
-            vel[0],
-            vel[1],
-            vel[2],
-            acc[0],
-            acc[1],
-            acc[2],
-            yaw_ned,
-            -yaw_rate,
+        self._emit(
+            E_POSITION_TARGET_LOCAL_NED,
+            (
+                v.boot_ms,
+                FRAME_LOCAL_NED,
+                mask,
+                float(pos[0]),
+                float(pos[1]),
+                float(pos[2]),
+                float(vel[0]),
+                float(vel[1]),
+                float(vel[2]),
+                float(acc[0]),
+                float(acc[1]),
+                float(acc[2]),
+                yaw_ned,
+                -yaw_rate,
+            ),
         )
 
-    def _vfr_hud(self, v: VehicleView) -> Any:
-        u = v.vel_enu
-        gs = float(math.hypot(u[0], u[1]))
-        throttle = int(round(float(v.att[dyn.A_THRUST]) * 100))
-        return self.mav.vfr_hud_encode(
-            gs, gs, int(v.heading_deg) % 360, throttle, v.geodetic[2], float(u[2])
+    def _servo_output_raw(self, v: VehicleView) -> None:
+        """Four motors' PWM: 900 us disarmed (PWM_MAIN_DISn), 1000-2000 us with thrust."""
+        if self.ap.armed:
+            pwm = 1000 + int(round(1000.0 * min(max(v.tel[tm.T_THRUST], 0.0), 1.0)))
+        else:
+            pwm = 900
+        self._emit(
+            E_SERVO_OUTPUT_RAW,
+            (v.usec & 0xFFFFFFFF, 0, pwm, pwm, pwm, pwm, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
         )
 
-    def _gps_raw_int(self, v: VehicleView) -> Any:
-        lat, lon, alt = v.geodetic
-        u = v.vel_enu
-        gs = math.hypot(u[0], u[1])
-        cog = int(round((math.degrees(math.atan2(u[0], u[1])) % 360.0) * 100)) % 36000
-        return self.mav.gps_raw_int_encode(
-            v.usec,
-            mavlink.GPS_FIX_TYPE_3D_FIX,
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(round(alt * 1000)),
-            80,
-            120,
-            int(round(gs * 100)),
-            cog,
-            12,
+    def _vfr_hud(self, v: VehicleView) -> None:
+        t = v.tel
+        gs = math.hypot(t[tm.T_VN], t[tm.T_VN + 1])
+        throttle = int(round(t[tm.T_THRUST] * 100))
+        self._emit(
+            E_VFR_HUD,
+            (gs, gs, int(v.heading_deg) % 360, throttle, t[tm.T_ALT], -t[tm.T_VN + 2]),
         )
 
-    def _extended_sys_state(self, v: VehicleView) -> Any:
-        return self.mav.extended_sys_state_encode(
-            mavlink.MAV_VTOL_STATE_MC, int(self.ap.landed_state())
+    def _gps_raw_int(self, v: VehicleView) -> None:
+        t = v.tel
+        vn, ve = t[tm.T_VN], t[tm.T_VN + 1]
+        gs = math.hypot(vn, ve)
+        cog = int(round((math.degrees(math.atan2(ve, vn)) % 360.0) * 100)) % 36000
+        self._emit(
+            E_GPS_RAW_INT,
+            (
+                v.usec,
+                mavlink.GPS_FIX_TYPE_3D_FIX,
+                int(round(t[tm.T_LAT] * 1e7)),
+                int(round(t[tm.T_LON] * 1e7)),
+                int(round(t[tm.T_ALT] * 1000)),
+                80,
+                120,
+                int(round(gs * 100)),
+                cog,
+                12,
+                int(round(t[tm.T_ALT] * 1000)),
+                500,
+                800,
+                100,
+                0,
+                0,
+            ),
         )
 
-    def _system_time(self, v: VehicleView) -> Any:
-        return self.mav.system_time_encode(int(time.time() * 1e6), v.boot_ms)
+    def _extended_sys_state(self, v: VehicleView) -> None:
+        # a multicopter reports MAV_VTOL_STATE_UNDEFINED (observed)
+        self._emit(
+            E_EXTENDED_SYS_STATE,
+            (mavlink.MAV_VTOL_STATE_UNDEFINED, int(self.ap.landed_state())),
+        )
 
-    def _battery_status(self, v: VehicleView) -> Any:
+    def _mission_current(self, v: VehicleView) -> None:
+        mode = 1 if self.ap.mode == Mode.MISSION else 0
+        self._emit(E_MISSION_CURRENT, (0, 0, mavlink.MISSION_STATE_NO_MISSION, mode))
+
+    def _estimator_status(self, v: VehicleView) -> None:
+        self._emit(
+            E_ESTIMATOR_STATUS,
+            (v.usec, _ESTIMATOR_FLAGS, 0.05, 0.05, 0.1, 0.05, 0.02, 0.0, 0.5, 0.8),
+        )
+
+    def _system_time(self, v: VehicleView) -> None:
+        self._emit(E_SYSTEM_TIME, (int(time.time() * 1e6), v.boot_ms))
+
+    def _ping_request(self, v: VehicleView) -> None:
+        self._ping_seq = (self._ping_seq + 1) & 0xFFFFFFFF
+        self._emit(E_PING, (v.usec, self._ping_seq, 0, 0))
+
+    def _scaled_pressure(self, v: VehicleView) -> None:
+        self._emit(E_SCALED_PRESSURE, (v.boot_ms, tm.pressure_hpa(v.tel[tm.T_ALT]), 0.0, 2500, 0))
+
+    def _link_node_status(self, v: VehicleView) -> None:
+        st = self.stats
+        now = (v.t_s, st.tx_bytes, self.rx_bytes)
+        last = self._lns_last
+        if last is not None and now[0] > last[0]:
+            dt = now[0] - last[0]
+            self._lns_rates = (int((now[1] - last[1]) / dt), int((now[2] - last[2]) / dt))
+        self._lns_last = now
+        self._emit(
+            E_LINK_NODE_STATUS,
+            (
+                v.boot_ms,
+                100,
+                100,
+                self._lns_rates[0],
+                self._lns_rates[1],
+                min(st.rx_bad, 65535),
+                0,
+                0,
+                st.tx_messages & 0xFFFFFFFF,
+                st.rx_messages & 0xFFFFFFFF,
+                0,
+            ),
+        )
+
+    def _battery_status(self, v: VehicleView) -> None:
         volt_mv, current_ca = self._battery_electrics(v)
         frac = self.ap.battery_fraction
         voltages = [volt_mv] + [65535] * 9
         used_mah = int((1.0 - frac) * 5000)
-        return self.mav.battery_status_encode(
-            0,
-            mavlink.MAV_BATTERY_FUNCTION_ALL,
-            mavlink.MAV_BATTERY_TYPE_LIPO,
-            32767,
-            voltages,
-            current_ca,
-            used_mah,
-            -1,
-            int(round(frac * 100)),
-            0,
-            mavlink.MAV_BATTERY_CHARGE_STATE_OK,
+        self._emit(
+            E_BATTERY_STATUS,
+            (
+                0,
+                mavlink.MAV_BATTERY_FUNCTION_ALL,
+                mavlink.MAV_BATTERY_TYPE_LIPO,
+                32767,
+                voltages,
+                current_ca,
+                used_mah,
+                -1,
+                int(round(frac * 100)),
+                0,
+                mavlink.MAV_BATTERY_CHARGE_STATE_OK,
+                [0, 0, 0, 0],
+                0,
+                0,
+            ),
         )
 
-    def _home_position(self, v: VehicleView) -> Any:
+    def _current_mode(self, v: VehicleView) -> None:
+        """The mode flown and the mode the user chose (still Offboard during the offboard-loss
+        failsafe, as observed)."""
+        ap = self.ap
+        std = _STANDARD_MODE.get(ap.mode, mavlink.MAV_STANDARD_MODE_NON_STANDARD)
+        self._emit(E_CURRENT_MODE, (std, ap.mode.custom_mode, ap.user_mode.custom_mode))
+
+    def _home_position(self, v: VehicleView) -> None:
         lat, lon, alt = v.home_geodetic
         h = enu_ned(self.home_enu - self.origin_enu)
-        return self.mav.home_position_encode(
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(round(alt * 1000)),
-            h[0],
-            h[1],
-            h[2],
-            (1.0, 0.0, 0.0, 0.0),
-            0.0,
-            0.0,
-            0.0,
-            v.usec,
+        self._emit(
+            E_HOME_POSITION,
+            (
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round(alt * 1000)),
+                float(h[0]),
+                float(h[1]),
+                float(h[2]),
+                (1.0, 0.0, 0.0, 0.0),
+                0.0,
+                0.0,
+                0.0,
+                v.usec,
+            ),
         )
 
-    def _autopilot_version(self, v: VehicleView | None) -> Any:
-        caps = (
-            mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
-            | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-            | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
-            | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    def _vibration(self, v: VehicleView) -> None:
+        vib = 0.02 + 0.3 * v.tel[tm.T_THRUST] if self.ap.armed else 0.01
+        self._emit(E_VIBRATION, (v.usec, vib, vib, vib, 0, 0, 0))
+
+    def _autopilot_version(self, v: VehicleView | None) -> None:
+        self._emit(
+            E_AUTOPILOT_VERSION,
+            (
+                PX4_CAPABILITIES,
+                PX4_FLIGHT_SW_VERSION,
+                0,
+                0,
+                0,
+                [0] * 8,
+                [0] * 8,
+                [0] * 8,
+                0,
+                0,
+                1000 + self.system_id,
+                [0] * 18,
+            ),
         )
-        version = (1 << 24) | (16 << 16) | (0 << 8) | 255  # 1.16.0 release
-        return self.mav.autopilot_version_encode(
-            caps,
-            version,
-            0,
-            0,
-            0,
-            [0] * 8,
-            [0] * 8,
-            [0] * 8,
-            0,
-            0,
-            1000 + self.system_id,
-        )
+
+    def _protocol_version(self, v: VehicleView | None) -> None:
+        """MAVLink 2 (200), supporting 1.0-2.0 (observed on PX4 v1.16)."""
+        self._emit(E_PROTOCOL_VERSION, (200, 100, 200, [0] * 8, [0] * 8))
