@@ -121,6 +121,9 @@ class PlanReport:
     """Peers in the formation term, by drone id."""
     avoided_peers: tuple[int, ...]
     """Peers only avoided (excluded, expired, other epoch, bad or conflicting slot)."""
+    peers: tuple[PeerTrajectory, ...]
+    """The peers' trajectories the plan was made against (formation peers first), e.g. for a
+    safety monitor's ``agent.planner.check(trajectory, t, field, peers)``."""
 
 
 @dataclass(frozen=True)
@@ -176,7 +179,9 @@ class DroneAgent:
     long; on_inputs: called with every plan call's inputs before the call (records, replays);
     on_plan: called with every ``PlanReport`` after the new trajectory is scheduled — the
     service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
-    itself only reports; timer: wall clock for the timings (seconds, monotonic).
+    itself only reports. It runs inside the cycle: it may call anything but ``replan`` and
+    ``step`` (which would wait for the cycle it is in); timer: wall clock for the timings
+    (seconds, monotonic).
     """
 
     def __init__(
@@ -243,7 +248,7 @@ class DroneAgent:
         self._seq = 0
         self._last: PlanReport | None = None
         self.status_counts: dict[str, int] = {}
-        """Replans by plan status value (``PlanStatus.value``)."""
+        """Replans by plan status value (``PlanStatus.value``); other threads: ``counters()``."""
         self.avoided_count = 0
         """Replans in which at least one peer was only avoided."""
 
@@ -326,8 +331,6 @@ class DroneAgent:
             self._assign = dataclasses.replace(self._assign, goal=g)
             if replan and g is not None:
                 self._demand_s = -math.inf
-        if g is None:
-            self.cancel()
 
     def set_formation(
         self,
@@ -404,6 +407,16 @@ class DroneAgent:
             p.cancel()
 
     # --- the cycle --------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, int]:
+        """A snapshot: ``replans``, ``status.<value>`` per plan status, ``avoided`` (replans
+        with some peer only avoided), ``seq`` (messages published)."""
+        with self._cfg_lock:
+            out = {f"status.{k}": v for k, v in self.status_counts.items()}
+            out["replans"] = sum(self.status_counts.values())
+            out["avoided"] = self.avoided_count
+        out["seq"] = self._seq
+        return out
 
     @property
     def last(self) -> PlanReport | None:
@@ -486,9 +499,10 @@ class DroneAgent:
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
         key = str(res.status.value)
-        self.status_counts[key] = self.status_counts.get(key, 0) + 1
-        if avoided:
-            self.avoided_count += 1
+        with self._cfg_lock:
+            self.status_counts[key] = self.status_counts.get(key, 0) + 1
+            if avoided:
+                self.avoided_count += 1
         report = PlanReport(
             drone_id=self.drone_id,
             seq=seq,
@@ -506,6 +520,7 @@ class DroneAgent:
             goal=a.goal,
             formation_peers=tuple(m.drone_id for m in formed),
             avoided_peers=tuple(m.drone_id for m in avoided),
+            peers=peers,
         )
         self._last = report
         if self.on_plan is not None:

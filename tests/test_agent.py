@@ -230,6 +230,8 @@ def test_conflicting_peer_is_avoided_in_the_plan() -> None:
     bus.publish(TrajectoryMsg(1, 0, 0, blocker), 0.0)  # claims our slot
     rep = a.replan(0.0)
     assert rep.avoided_peers == (1,) and rep.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    assert [p.trajectory for p in rep.peers] == [blocker] and rep.peers[0].slot == 3
+    assert a.planner.check(rep.trajectory, rep.t_start_s, EMPTY.field, rep.peers)[0]
     ts = np.linspace(rep.t_start_s, rep.trajectory.t_end_s, 400)
     gap = np.linalg.norm(rep.trajectory.sample(ts) - blocker.sample(ts), axis=1)
     assert gap.min() > PARAMS.check_drone_m
@@ -260,6 +262,7 @@ def test_emergency_is_reported_and_the_policy_hook_decides() -> None:
     assert a.flying(rep.t_start_s) is rep.trajectory
     assert decisions == ["emergency"] and a.next_replan_s == pytest.approx(0.2)
     assert a.status_counts == {"emergency": 1}
+    assert a.counters() == {"status.emergency": 1, "replans": 1, "avoided": 0, "seq": 1}
 
 
 def test_setpoint_reader_thread_sees_whole_trajectories() -> None:
