@@ -350,11 +350,15 @@ def open_depth(cfg: OnboardConfig, pose_at: Any = None) -> Any:
         if pose_at is None:
             raise ValueError("a RealSense source needs the vehicle's pose provider")
         return RealSenseSource(pose_at, d.realsense_bag, clock=time.time, fps=int(d.rate_hz))
-    # zenoh-sim: the SITL mock's frames over Zenoh (their camera pose is in each frame)
-    from onboard.sensors import zenoh_sim  # type: ignore[attr-defined]
+    # zenoh-sim: the SITL mock's frames over Zenoh (each frame carries its camera pose)
+    from onboard.comm.zenoh_session import ZenohEndpoints
+    from onboard.sensors.zenoh_depth import open_depth_source
 
-    sub = zenoh_sim.open_subscriber(d.sim_prefix, d.sim_connect)
-    return sub.depth_source(cfg.autopilot.target_system(cfg.drone.id))
+    return open_depth_source(
+        cfg.autopilot.target_system(cfg.drone.id),
+        d.sim_prefix,
+        ZenohEndpoints(connect=d.sim_connect),
+    )
 
 
 __all__ = [
