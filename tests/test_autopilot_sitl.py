@@ -578,6 +578,42 @@ def test_a_dead_streamer_stops_the_heartbeat() -> None:
         assert len(relay.heartbeat_types) == hb and relay.setpoints_from_link == 0
 
 
+# ---- udpout ----------------------------------------------------------------------------------
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_udpout_link(implementation: Literal["pymavlink", "mavsdk"]) -> None:
+    # the mock sends to a port nobody listens on until it hears from the link, which speaks
+    # first (its heartbeat) to the vehicle's own port, as to PX4's 14580 + i
+    nobody = bind_consecutive_udp(1)[0]
+    fleet = Fleet(
+        FleetConfig(
+            count=1,
+            base_port=nobody.getsockname()[1],
+            local_port_offset=None,
+            speedup=2.0,
+            autopilot=AutopilotParams(boot_time_s=0.5),
+        )
+    )
+    try:
+        fleet.start()
+        host, port = fleet.addresses()[0]
+        cfg = LinkConfig(url=f"udpout://{host}:{port}", implementation=implementation)
+        with open_link(cfg) as link:
+            st = link.wait_healthy(10.0)
+            assert st.connected and st.position_enu_m is not None
+            assert abs(st.t_global_s - time.time()) < 1.0
+            pos_t = st.global_time(st.position_t_s)
+            assert pos_t is not None and pos_t <= st.t_global_s
+            link.arm()
+            poll(lambda: link.state().armed, 5.0, "armed")
+            link.disarm()
+    finally:
+        fleet.stop()
+        nobody.close()
+
+
 # ---- serial (a pty bridged to the mock's UDP port) -------------------------------------------
 
 

@@ -430,6 +430,7 @@ class AutopilotLink(ABC):
     def state(self) -> VehicleState:
         """A consistent snapshot of what the link knows (ENU, link clock)."""
         now = time.monotonic()
+        now_global = self._sample_clock()
         tel = self._tel
         origin = self.config.local_origin_enu_m
         with tel.lock:
@@ -445,6 +446,7 @@ class AutopilotLink(ABC):
             roll, pitch, yaw = attitude_ned_to_enu(*att)
         return VehicleState(
             t_s=now,
+            t_global_s=now_global,
             connected=self._health.connected,
             link_lost=self._health.lost,
             heartbeat_age_s=math.inf if last_hb is None else now - last_hb,

@@ -130,7 +130,9 @@ class VehicleState:
     (``time.monotonic``) at arrival. None: not received yet."""
 
     t_s: float
-    """When this snapshot was taken."""
+    """When this snapshot was taken (``time.monotonic``)."""
+    t_global_s: float
+    """The same instant on the link's ``sample_clock`` (the trajectories' time base)."""
     connected: bool
     """A heartbeat from the autopilot has been seen since ``connect``."""
     link_lost: bool
@@ -162,6 +164,10 @@ class VehicleState:
     """No sensor that is present and enabled reports a fault."""
     prearm_ok: bool | None = None
     """PX4's pre-arm checks pass (SYS_STATUS pre-arm bit)."""
+
+    def global_time(self, t_s: float | None) -> float | None:
+        """A link-clock stamp of this snapshot (e.g. ``position_t_s``) on the sample clock."""
+        return None if t_s is None else self.t_global_s - (self.t_s - t_s)
 
 
 # ---- events ------------------------------------------------------------------------------
