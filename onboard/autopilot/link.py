@@ -785,7 +785,13 @@ class AutopilotLink(ABC):
                 if expect_mode is not None:
                     with self._modes_lock:
                         self._modes.expect(expect_mode, time.monotonic())
-                return self._command_once(command, p)
+                result = self._command_once(command, p)
+                if result not in (CommandResult.TIMEOUT, CommandResult.LINK_DOWN):
+                    # the duplicate window runs from here even if the receiving thread has
+                    # not reported this acknowledgement yet (MAVSDK: another thread)
+                    now = time.monotonic()
+                    self._last_ack_t[command] = max(self._last_ack_t.get(command, now), now)
+                return result
 
             def retried() -> None:
                 self._c["command_retries"] += 1
