@@ -324,6 +324,11 @@ def test_clock_sample_kept_even_for_stale_messages() -> None:
         ),
         (env(msgspec.structs.replace(traj_body(), coeffs=[1e6] * 108)), "bad_value", "coeffs"),
         (
+            env(msgspec.structs.replace(traj_body(), coeffs=[*traj_body().coeffs[:-1], 1e300])),
+            "bad_value",
+            "beyond 1e+12",
+        ),
+        (
             env(msgspec.structs.replace(status_body(), battery_remaining=1.5)),
             "bad_value",
             "battery_remaining",
