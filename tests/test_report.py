@@ -1,0 +1,209 @@
+"""The flight report: records written with onboard/record.py, read back into plots and a summary
+whose figures are checked against what the synthetic flight was built to contain."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gcs.formations import load_template, place
+from gcs.report import (
+    PLOTS,
+    ReportError,
+    analyse,
+    find_records,
+    load_flights,
+    mission_world,
+    report,
+    write_report,
+)
+from onboard.record import FlightRecorder
+
+T0 = 1.75e9
+IDS = [0, 1, 2]
+SPEED = 0.5  # m/s along x
+CRUISE_Z = 1.0
+TRIANGLE = load_template("triangle-3").points
+
+
+def _true_positions(t: float) -> dict[int, np.ndarray]:
+    """The synthetic flight: a triangle-3 at 1 m climbs for 2 s from t=1, crosses x from -3 at
+    0.5 m/s from t=3 to t=33, and lands from t=33 to t=35; drone 2 swerves 1.7 m towards
+    drone 1 around t = 20 (a near miss inside 0.4 m)."""
+    tpl = TRIANGLE
+    z = CRUISE_Z * float(np.clip(t - 1.0, 0.0, 2.0) / 2.0)
+    if t > 33.0:
+        z = CRUISE_Z * float(np.clip(35.0 - t, 0.0, 2.0) / 2.0)
+    x = -3.0 + SPEED * float(np.clip(t - 3.0, 0.0, 30.0))
+    p = place(tpl, (x, 0.0, z), 1.0, 0.0)
+    out = {d: p[d].copy() for d in IDS}
+    bump = max(0.0, 1.0 - abs(t - 20.0))  # 0..1..0 over t in [19, 21]
+    out[2] += bump * (p[1] - p[2]) * 0.9  # to within 10 % of the 2 m side: 0.2 m
+    return out
+
+
+def _state_of(t: float) -> str:
+    if t < 1.0:
+        return "idle"
+    if t < 3.0:
+        return "takeoff"
+    if t < 33.0:
+        return "formation-flight"
+    if t < 35.0:
+        return "landing"
+    return "landed"
+
+
+def write_flight(d: Path) -> dict[str, object]:
+    """Three drones' records (10 Hz states, 10 s of 50 Hz setpoints with one 45 ms hiccup, 1 Hz
+    plans)
+    and the mission file; returns the mission."""
+    tpl = load_template("triangle-3").points
+    placed = place(tpl, (-3.0, 0.0, CRUISE_Z), 1.0, 0.0)
+    mission = {
+        "world": "forest-small",
+        "seed": 3,
+        "count": 3,
+        "spacing_m": 1.5,
+        "goal_m": [12.0, 0.0, CRUISE_Z],
+        "assignments": [
+            {
+                "name": "triangle-3",
+                "epoch": 5,
+                "effective_s": T0 + 2.0,
+                "points_m": (placed - placed.mean(axis=0)).tolist(),
+                "slots": {"0": 0, "1": 1, "2": 2},
+            }
+        ],
+        "sitl": {"collisions": 0},
+    }
+    (d / "mission.json").write_text(json.dumps(mission))
+    for i in IDS:
+        with FlightRecorder(d / f"drone{i}.mcap", i, {"swarm": "t"}) as rec:
+            prev = None
+            for k in range(0, 361):
+                t = k * 0.1
+                p = _true_positions(t)[i]
+                st = _state_of(t)
+                if st != prev:
+                    rec.transition(T0 + t, prev or "idle", st, "test")
+                    prev = st
+                rec.state(T0 + t, flight_state=st, position_enu_m=p, velocity_enu_m_s=[SPEED, 0, 0])
+            ts = T0 + 1.0 + np.arange(0, 10.0, 0.02)
+            ts[300:] += 0.025  # one period of 45 ms
+            for t in ts:
+                rec.setpoint(float(t), [0, 0, 1], [0, 0, 0], [0, 0, 0], 0.0)
+            for j in range(30):
+                rec.plan(T0 + 3.0 + j, status="ok", plan_ms=40.0 + i + j, traj_id=j,
+                         goal_enu_m=[12.0, 0.0, 1.0])  # fmt: skip
+            rec.event(T0 + 20.0, "near miss", level="warning")
+    return mission
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, object]]:
+    """The synthetic flight, written once for the module (tests work on copies)."""
+    d = tmp_path_factory.mktemp("recorded")
+    return d, write_flight(d)
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]) -> None:
+    flight = _copy(recorded[0], tmp_path / "flight")
+    mission = recorded[1]
+    s, out = write_report([flight])
+    assert out == flight / "report"
+    for name in PLOTS:  # every plot is a PNG with something in it
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+    assert json.loads((out / "summary.json").read_text())["n_drones"] == 3
+    assert "flight of 3 drone(s) in forest-small" in (out / "summary.txt").read_text()
+    assert s["world"] == "forest-small" and s["seed"] == 3 and s["n_drones"] == 3
+    # setpoints: 500 per drone at 20 ms, one 45 ms period each
+    sp = s["setpoint_period_ms"]
+    assert sp["count"] == 3 * 499 and sp["median"] == pytest.approx(20.0, abs=1e-3)
+    assert sp["max"] == pytest.approx(45.0, abs=1e-3)
+    assert all(d["setpoint_pauses"] == 0 for d in s["drones"])
+    # plans: 30 per drone, 40 + id + j ms
+    assert s["plan_ms"]["count"] == 90 and s["plan_ms"]["max"] == pytest.approx(71.0)
+    assert s["drones"][2]["plan_statuses"] == {"ok": 30}
+    # flight time: take-off transition at t=1 to landed at t=35
+    assert s["flight_time_s"] == pytest.approx(34.0, abs=1e-6)
+    # the near miss: drone 2 comes to 0.2 m of drone 1 (one drone-collision start)
+    assert s["min_drone_distance_m"] == pytest.approx(0.2, abs=0.02)
+    assert s["collisions_from_records"]["drone"] == 1
+    assert s["collisions_reported_by_mock"] == 0
+    # formation error: zero while the triangle is intact, > 0 in the swerve
+    a = analyse(load_flights(find_records([flight])), mission_world(mission), mission)
+    rel = a.t - T0
+    intact = (rel > 4.0) & (rel < 15.0)
+    assert np.nanmax(a.e_sim[intact]) < 1e-9 and np.nanmax(a.e_dist[intact]) < 1e-6
+    assert np.nanmax(a.e_dist) > 0.5 and s["e_dist_m"]["max"] == pytest.approx(np.nanmax(a.e_dist))
+    assert np.isnan(a.e_dist[rel < 1.5]).all()  # on the ground: not flying the formation
+    # obstacle clearance: the minimum over airborne samples of the mock's world
+    w = mission_world(mission)
+    assert w is not None and w.cylinders.shape[0] == 8
+    air = (rel >= 1.0) & (rel < 35.0)
+    from onboard.world import World
+
+    solid = World(w.cylinders, w.rings, w.boxes, ground_z=None)
+    pts = np.array([list(_true_positions(float(t)).values()) for t in rel[air]])
+    direct = float(solid.distance(pts.reshape(-1, 3))[0].min())
+    assert s["min_obstacle_clearance_m"] == pytest.approx(direct, abs=1e-6)
+    assert (s["collisions_from_records"]["obstacle"] > 0) == (direct < 0.2)
+    # arrival: the goal is 12 m east; the swarm stops at x = 12 - offset: every drone arrived
+    assert s["arrived"] and all(d["arrived"] for d in s["drones"])
+
+
+def test_report_cli_and_errors(tmp_path: Path, recorded: tuple[Path, dict[str, object]]) -> None:
+    flight = _copy(recorded[0], tmp_path / "f")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(report, [str(flight / "drone0.mcap"), str(flight / "drone1.mcap"),
+                                    "--out", str(out), "--json", "--no-plots"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.output)
+    assert s["n_drones"] == 2 and (out / "summary.json").is_file() and s["plots"] == []
+    r = CliRunner().invoke(report, [str(flight), "--out", str(out), "--no-plots"])
+    assert r.exit_code == 0 and "flight of 3 drone(s) in forest-small (seed 3)" in r.output
+    r = CliRunner().invoke(report, [str(tmp_path / "nothing")])
+    assert r.exit_code == 1 and "no such file" in r.output
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ReportError, match="no flight record"):
+        write_report([empty])
+    (flight / "mission.json").write_text("{not json")
+    with pytest.raises(ReportError, match="mission file"):
+        write_report([flight])
+
+
+def test_report_of_a_record_cut_short(tmp_path: Path) -> None:
+    """A record cut by a crash (no summary section) still reports the whole chunks it holds."""
+    flight = tmp_path / "f"
+    flight.mkdir()
+    path = flight / "drone-cut.mcap"
+    with FlightRecorder(path, 4) as rec:
+        for k in range(3000):  # several 256 kB chunks: states and setpoints interleaved
+            t = T0 + k * 0.02
+            if k % 5 == 0:
+                rec.state(t, flight_state="formation-flight", position_enu_m=[k * 0.01, 0, 1],
+                          velocity_enu_m_s=[0.5, 0, 0], noise=list(range(k % 7, 40)))  # fmt: skip
+            rec.setpoint(t, [k * 0.01, 0.1, 1.0], [0.5, 0, 0], [0, 0, 0], 1.0 / (k + 1))
+            if k % 200 == 0:
+                rec.flush()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])
+    s, _ = write_report([flight], world="forest-small", seed=3, plots=False)
+    (d,) = s["drones"]
+    assert d["id"] == 4 and d["read_error"]
+    assert 0 < d["states"] < 600 and 0 < d["setpoints"] < 3000
+    assert d["setpoint_period_ms"]["max"] == pytest.approx(20.0, abs=1e-3)
+    assert s["min_obstacle_clearance_m"] is not None and s["e_dist_m"]["count"] == 0
