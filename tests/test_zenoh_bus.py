@@ -98,6 +98,7 @@ def test_peers_exchange_trajectories_latest_only(mesh: Callable[..., list[SwarmN
     np.testing.assert_array_equal(m.trajectory.coeffs, traj(0, now).trajectory.coeffs)
     assert m.trajectory.t0_s == now
     assert set(wait_for(lambda: a.receive(0, time.time()), "a hears b")) == {1}  # own excluded
+    assert set(b.trajectories(time.time())) == {0}
     c = b.counters()
     assert c["rx.traj"] == 3 and a.counters()["tx.traj"] == 3
     assert sum(v for k, v in c.items() if k.startswith(("reject.", "error."))) == 0

@@ -273,6 +273,11 @@ class SwarmNode:
                 if d != drone_id and now_s <= p.msg.valid_until_s
             }
 
+    def trajectories(self, now_s: float) -> dict[int, TrajectoryMsg]:
+        """Every drone's latest trajectory still valid at ``now_s`` (e.g. for a ground-station
+        view)."""
+        return self.receive(-1, now_s)
+
     def expired(self, now_s: float, keep_s: float) -> dict[int, TrajectoryMsg]:
         """Peers whose latest trajectory expired less than ``keep_s`` ago (silent peers, still
         to be avoided for a bounded time)."""
