@@ -756,11 +756,13 @@ def bench_planner(
 
 def _register_bench_plugins() -> None:
     """Benchmarks that live in their own modules (their dependencies load only when run)."""
+    from gcs.bench_bus import bench_bus
     from gcs.bench_mapping import bench_mapping
     from gcs.bench_sitl import sitl
 
     bench.add_command(sitl)
     bench.add_command(bench_mapping)
+    bench.add_command(bench_bus)
 
 
 _register_bench_plugins()
