@@ -353,8 +353,10 @@ class AutopilotLink(ABC):
     def _rx_heartbeat(self, now: float, custom_mode: int, base_mode: int, status: int) -> None:
         mode = px4.mode_from_custom_mode(custom_mode)
         failsafe = status in (px4.MAV_STATE_CRITICAL, px4.MAV_STATE_EMERGENCY)
+        armed = bool(base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
         tel = self._tel
         with tel.lock:
+            was_armed = bool(tel.base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
             tel.custom_mode = custom_mode
             tel.base_mode = base_mode
             tel.system_status = status
@@ -363,7 +365,8 @@ class AutopilotLink(ABC):
         self._c["heartbeats_received"] += 1
         with self._modes_lock:
             obs = self._modes.observe(mode, now)
-        if obs.offboard_lost:
+        # (after a landing PX4 returns to OFFBOARD disarmed; leaving it then is no takeover)
+        if obs.offboard_lost and (armed or was_armed or self._streaming):
             was = self._streaming
             if self.config.stop_streaming_on_offboard_loss:
                 self._halt_streaming(wait=False)

@@ -213,9 +213,12 @@ class ModeChanged(LinkEvent):
 
 @dataclass(frozen=True)
 class OffboardLost(LinkEvent):
-    """The vehicle left OFFBOARD without this link asking: a pilot took over, or PX4 entered a
-    failsafe (``failsafe``). Streaming was stopped at once (with ``stop_streaming_on_offboard_
-    loss``); the link never re-enters OFFBOARD by itself."""
+    """The vehicle left OFFBOARD without this link asking, while armed or streaming: a pilot
+    took over, or PX4 entered a failsafe (``failsafe``: the heartbeat's system status is
+    critical or emergency). Streaming was stopped at once (``stop_streaming_on_offboard_loss``);
+    the link never re-enters OFFBOARD by itself. Seen through PX4's 1 Hz heartbeat, so up to
+    about a second after the switch (PX4 ignores offboard setpoints outside OFFBOARD meanwhile).
+    """
 
     current: FlightMode
     failsafe: bool
