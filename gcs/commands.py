@@ -497,6 +497,71 @@ def _print_status(gs: GroundStation, console: Console, as_json: bool) -> None:
         console.print(status_table(gs))
 
 
+# --- view ------------------------------------------------------------------------------------
+
+
+def mock_world(world: str, count: int, seed: int, spacing_m: float) -> Any:
+    """The obstacles exactly as ``swarm-sitl --world W --seed S --count N --spacing D`` builds
+    them (the generated forest keeps clear of the mock's spawn row and goals)."""
+    from sitl_mock.cli import build_world
+
+    try:
+        w, _ = build_world(world, count, seed, spacing_m)
+    except ConfigError as e:
+        raise click.BadParameter(str(e), param_hint="--world") from e
+    return w
+
+
+@click.command()
+@bus_options
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on.")
+@click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
+              help="WebSocket port (0: any free port).")  # fmt: skip
+@click.option("--rate", type=click.FloatRange(min=0.2, max=50.0), default=5.0, show_default=True,
+              help="Scene updates per second.")  # fmt: skip
+@click.option("--world", default=None, help="World of the flight, to draw its obstacles.")
+@click.option("--seed", type=int, default=1, show_default=True, help="Seed of the world.")
+@click.option("--count", type=int, default=None,
+              help="Vehicles of the mock (its forest keeps clear of their spawn points) "
+              "[default: the drones up].")  # fmt: skip
+@click.option("--spacing", type=float, default=1.5, show_default=True,
+              help="The mock's spawn spacing [m].")  # fmt: skip
+def view(
+    host: str,
+    port: int,
+    rate: float,
+    world: str | None,
+    seed: int,
+    count: int | None,
+    spacing: float,
+    **kw: Any,
+) -> None:
+    """Serve the swarm to Foxglove (WebSocket): drones, their plans, the formation target and
+    the obstacles, until Ctrl-C."""
+    from gcs.view import SwarmView, station_input
+
+    bus = _bus(kw)
+    with open_station(bus, with_state=True) as gs:
+        w = None
+        if world is not None:
+            w = mock_world(world, count if count is not None else max(len(gs.drones()), 1), seed,
+                           spacing)  # fmt: skip
+        try:
+            sv = SwarmView(station_input(gs), w, host=host, port=port, rate_hz=rate)
+        except RuntimeError as e:
+            raise click.ClickException(str(e)) from e
+        with sv:
+            sv.start()
+            click.echo(
+                f"Foxglove view on {sv.url} ({len(gs.drones())} drone(s) up); Ctrl-C to stop"
+            )
+            try:
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+
+
 COMMANDS: tuple[click.Command, ...] = (
     status,
     formation,
@@ -506,5 +571,6 @@ COMMANDS: tuple[click.Command, ...] = (
     land,
     abort,
     resume,
+    view,
 )
 """Register on ``swarm-gcs``: ``for c in COMMANDS: main.add_command(c)``."""
