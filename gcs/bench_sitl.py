@@ -250,9 +250,12 @@ def run_bench(
             start = (round(p1.x, 1), round(p1.y, 1), -HOVER_ALT_M)
             goal = (start[0] - step_m, start[1], start[2])  # south: away from the others
             target = start
+            # the others stop where they are: all flew the same circle in phase, so they stay
+            # north of vehicle 1 by their spawn spacing while it steps south
+            t_stop = (time.monotonic() - t0) * speedup
 
             def step_target(i: int, t: float) -> tuple[float, float, float]:
-                return target if i == 0 else circle(i, t)
+                return target if i == 0 else circle(i, t_stop)
 
             stream(3.0 / speedup, step_target)  # settle at the start point
             target = goal

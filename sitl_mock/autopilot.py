@@ -277,9 +277,9 @@ class OffboardSetpoint:
         """At least one position, velocity or acceleration component is set: PX4 publishes
         ``offboard_control_mode`` for it, so it keeps the offboard stream alive."""
         return bool(
-            np.any(np.isfinite(self.position_m))
-            or np.any(np.isfinite(self.velocity_m_s))
-            or np.any(np.isfinite(self.acceleration_m_s2))
+            np.isfinite(self.position_m).any()
+            or np.isfinite(self.velocity_m_s).any()
+            or np.isfinite(self.acceleration_m_s2).any()
         )
 
     def valid(self) -> bool:

@@ -4,6 +4,7 @@ Vehicle i (0-based) has system id i + 1, listens on ``base_port + 40 + i`` and s
 telemetry to ``base_port + i`` (PX4 SITL's API-link convention: MAVSDK connects with
 ``udpin://127.0.0.1:14540``, pymavlink with ``udpin:127.0.0.1:14540``). Ctrl-C or SIGTERM stop
 it cleanly; SIGUSR1 restarts the loop counters written by ``--stats-json`` (for benchmarks).
+The vehicles behave as PX4 v1.16 does (``sitl_mock/README.md``: conformance table).
 """
 
 from __future__ import annotations
@@ -105,9 +106,15 @@ def parse_signing(values: Sequence[str], require: bool) -> tuple[Any, ...]:
     "--signing-key",
     multiple=True,
     metavar="[SYSID:]HEX",
-    help="MAVLink 2 signing key (64 hex digits) for all vehicles or one (repeatable).",
+    help="MAVLink 2 signing key (64 hex digits) for all vehicles or one (repeatable). "
+    "Imitates PX4 v1.17+: PX4 v1.16 has no signing.",
 )
 @click.option("--allow-unsigned", is_flag=True, help="Sign telemetry but accept unsigned input.")
+@click.option(
+    "--accept-setup-signing",
+    is_flag=True,
+    help="Let SETUP_SIGNING set a key (PX4 v1.17+); by default it is ignored, as by PX4 v1.16.",
+)
 @click.option(
     "--truth",
     type=click.Choice(["none", "zenoh"]),
@@ -145,6 +152,7 @@ def main(
     sets: tuple[str, ...],
     signing_key: tuple[str, ...],
     allow_unsigned: bool,
+    accept_setup_signing: bool,
     truth: str,
     zenoh_listen: str,
     zenoh_prefix: str,
@@ -189,6 +197,8 @@ def main(
         if world is not None:
             w, spawns = build_world(world, count, seed, spacing)
             data["spawn_enu_m"] = [list(p) for p in spawns]
+        if accept_setup_signing:
+            data["accept_setup_signing"] = True
         if signing_key:
             data["signing"] = [
                 dataclasses.asdict(s) for s in parse_signing(signing_key, not allow_unsigned)

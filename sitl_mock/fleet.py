@@ -238,6 +238,7 @@ class Fleet:
         # compile (or load) the telemetry kernel now, not in the first tick
         tm.telemetry_fleet(self.state, self.att, self._origins, self.ground_z, self._geo, self._tel)
         self.loop_error: BaseException | None = None  # what stopped the background loop
+        self._pairs = np.triu_indices(n, 1)  # every vehicle pair (a < b), for collisions
         self.collision_counts = np.zeros(n, dtype=np.int64)
         self.collisions: list[CollisionEvent] = []
         self._in_contact_obstacle = np.zeros(n, dtype=bool)
@@ -400,15 +401,13 @@ class Fleet:
         """Advance simulated time by one tick (logic, physics, collisions, telemetry, truth)."""
         t = self.t_s
         s = self.state
+        est_p = s[:, dyn.S_P : dyn.S_P + 3] + s[:, dyn.S_E : dyn.S_E + 3]
+        vel = s[:, dyn.S_V : dyn.S_V + 3].copy()
+        yaw = s[:, dyn.S_YAW].tolist()
+        ground = (s[:, dyn.S_GROUND] > 0.5).tolist()
+        thrust = self.att[:, dyn.A_THRUST].tolist()
         for i, ap in enumerate(self.autopilots):
-            row = s[i]
-            est = Estimate(
-                row[dyn.S_P : dyn.S_P + 3] + row[dyn.S_E : dyn.S_E + 3],
-                row[dyn.S_V : dyn.S_V + 3].copy(),
-                float(row[dyn.S_YAW]),
-                bool(row[dyn.S_GROUND] > 0.5),
-                float(self.att[i, dyn.A_THRUST]),
-            )
+            est = Estimate(est_p[i], vel[i], yaw[i], ground[i], thrust[i])
             ap.update(t, est, self.cmd[i])
         noise = np.stack(
             [r.standard_normal((self._nsub, dyn.NOISE_PER_SUBSTEP)) for r in self._rngs]
@@ -462,16 +461,18 @@ class Fleet:
         # vehicle pairs
         n = pos.shape[0]
         if n > 1:
-            diff = pos[:, None, :] - pos[None, :, :]
-            dist = np.sqrt(np.sum(diff * diff, axis=-1))
-            iu = np.triu_indices(n, 1)
-            self.min_vehicle_distance_m = min(self.min_vehicle_distance_m, float(np.min(dist[iu])))
-            close = dist < 2.0 * r
-            now_pairs = {(int(a), int(b)) for a, b in zip(*iu, strict=True) if close[a, b]}
-            for a, b in sorted(now_pairs - self._in_contact_pair):
-                mid = 0.5 * (pos[a] + pos[b])
-                self._collision(t, "vehicle", (a, b), float(dist[a, b]), mid)
-            self._in_contact_pair = now_pairs
+            ia, ib = self._pairs
+            diff = pos[ia] - pos[ib]
+            dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+            self.min_vehicle_distance_m = min(self.min_vehicle_distance_m, float(dist.min()))
+            close = np.flatnonzero(dist < 2.0 * r)
+            if close.size or self._in_contact_pair:
+                close_d = {(int(ia[k]), int(ib[k])): float(dist[k]) for k in close}
+                now_pairs = set(close_d)
+                for a, b in sorted(now_pairs - self._in_contact_pair):
+                    mid = 0.5 * (pos[a] + pos[b])
+                    self._collision(t, "vehicle", (a, b), close_d[(a, b)], mid)
+                self._in_contact_pair = now_pairs
 
     def _collision(
         self, t: float, kind: str, idx: tuple[int, ...], distance: float, where: np.ndarray

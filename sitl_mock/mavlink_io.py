@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import heapq
 import logging
 import math
 import socket
@@ -203,6 +204,9 @@ class ParsedSetpoint:
     error: str = ""
 
 
+_EYE3 = np.eye(3)
+
+
 def _rot_z(psi: float) -> np.ndarray:
     c, s = math.cos(psi), math.sin(psi)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -236,12 +240,14 @@ def parse_position_target_local_ned(
     alive, and PX4's position controller then stops (``OffboardSetpoint.valid``).
     """
     name = "SET_POSITION_TARGET_LOCAL_NED"
+    nan = math.nan
+    m = type_mask
 
-    def comp(values: Sequence[float], bits: tuple[int, int, int]) -> np.ndarray:
-        out = np.full(3, np.nan)
+    def comp(values: Sequence[float], bits: tuple[int, int, int]) -> list[float]:
+        out = [nan, nan, nan]
         for k in range(3):
             v = float(values[k])
-            if not (type_mask & bits[k]) and math.isfinite(v):
+            if not (m & bits[k]) and math.isfinite(v):
                 out[k] = v
         return out
 
@@ -250,32 +256,42 @@ def parse_position_target_local_ned(
         v = comp(vel_ned, (IGNORE_VX, IGNORE_VY, IGNORE_VZ))
         a = comp(acc_ned, (IGNORE_AX, IGNORE_AY, IGNORE_AZ))
     elif frame_id == FRAME_BODY_NED:
-        p = np.full(3, np.nan)
-        v = np.full(3, np.nan)
-        a = np.full(3, np.nan)
+        p = [nan, nan, nan]
+        v = [nan, nan, nan]
+        a = [nan, nan, nan]
         r = np.asarray(r_ned_frd, dtype=np.float64)
         vb = np.array([float(x) for x in vel_ned[:3]])
         ab = np.array([float(x) for x in acc_ned[:3]])
         # a non-finite component spoils the rotated vector: the mock treats it as not set
-        if not type_mask & IGNORE_VELOCITY and np.all(np.isfinite(vb)):
-            v = _rot_z(math.atan2(r[1, 0], r[0, 0])) @ vb
-        if not type_mask & IGNORE_ACCELERATION and np.all(np.isfinite(ab)):
-            a = r @ ab
+        if not m & IGNORE_VELOCITY and np.all(np.isfinite(vb)):
+            v = (_rot_z(math.atan2(r[1, 0], r[0, 0])) @ vb).tolist()
+        if not m & IGNORE_ACCELERATION and np.all(np.isfinite(ab)):
+            a = (r @ ab).tolist()
     else:
         return ParsedSetpoint(None, f"{name} coordinate frame {frame_id} unsupported")
-    has_acc = bool(np.any(np.isfinite(a)))
-    if has_acc and type_mask & FORCE_SETPOINT:
+    has_acc = a[0] == a[0] or a[1] == a[1] or a[2] == a[2]  # NaN != NaN
+    if has_acc and m & FORCE_SETPOINT:
         return ParsedSetpoint(None, f"{name} force not supported")
-    if not (np.any(np.isfinite(p)) or np.any(np.isfinite(v)) or has_acc):
+    if not (has_acc or any(x == x for x in p) or any(x == x for x in v)):
         return ParsedSetpoint(None, f"{name} invalid")
-    yaw = math.nan
-    yaw_rate = math.nan
-    if not (type_mask & IGNORE_YAW) and math.isfinite(yaw_ned):
+    yaw = nan
+    yaw_rate = nan
+    if not (m & IGNORE_YAW) and math.isfinite(yaw_ned):
         yaw = yaw_enu_ned(yaw_ned)
-    if not (type_mask & IGNORE_YAW_RATE) and math.isfinite(yaw_rate_ned):
+    if not (m & IGNORE_YAW_RATE) and math.isfinite(yaw_rate_ned):
         yaw_rate = -yaw_rate_ned
-    pos_enu = np.asarray(origin_enu, dtype=np.float64).reshape(3) + enu_ned(p)
-    return ParsedSetpoint(OffboardSetpoint(pos_enu, enu_ned(v), enu_ned(a), yaw, yaw_rate))
+    o = origin_enu
+    # NED -> ENU: (n, e, d) -> (e, n, -d); positions relative to the local origin
+    pos_enu = np.array([o[0] + p[1], o[1] + p[0], o[2] - p[2]])
+    return ParsedSetpoint(
+        OffboardSetpoint(
+            pos_enu,
+            np.array([v[1], v[0], -v[2]]),
+            np.array([a[1], a[0], -a[2]]),
+            yaw,
+            yaw_rate,
+        )
+    )
 
 
 def setpoint_from_local_ned(
@@ -569,8 +585,11 @@ class VehicleLink:
         self.intervals_s: dict[int, float] = {
             m: (1.0 / r if r > 0 else math.inf) for m, r in rates.items()
         }
-        self._next_due: dict[int, float] = {m: 0.0 for m in self.intervals_s}
-        self._next_any_due = 0.0
+        # stream schedule: a heap of (due time, version, message id); a changed interval bumps
+        # the stream's version, which retires its old entry
+        self._version: dict[int, int] = {m: 0 for m in self.intervals_s}
+        self._schedule: list[tuple[float, int, int]] = [(0.0, 0, m) for m in self.intervals_s]
+        heapq.heapify(self._schedule)
         self._out: list[bytes] = []
         self._deferred: list[Callable[[], None]] = []
         self._encoders: dict[int, Callable[[VehicleView], None]] = {
@@ -947,8 +966,9 @@ class VehicleLink:
             self.intervals_s[mid] = 1.0 / r if r > 0 else math.inf
         else:
             self.intervals_s[mid] = interval_us * 1e-6
-        self._next_due[mid] = self._t
-        self._next_any_due = min(self._next_any_due, self._t)
+        ver = self._version.get(mid, 0) + 1
+        self._version[mid] = ver
+        heapq.heappush(self._schedule, (self._t, ver, mid))
         return Result.ACCEPTED
 
     def _ack(self, command: int, result: int, src_sys: int, src_comp: int) -> None:
@@ -962,13 +982,16 @@ class VehicleLink:
     def _setpoint(self, msg: Any) -> None:
         st = self.stats
         view = self.view
-        if view is not None:
+        frame_id = int(msg.coordinate_frame)
+        if frame_id != FRAME_BODY_NED:
+            r = _EYE3  # the attitude matters only in the body frame
+        elif view is not None:
             r = view.r_ned_frd
         else:
             r = _rot_z(yaw_enu_ned(self.ap.yaw0_rad))
         parsed = parse_position_target_local_ned(
             int(msg.type_mask),
-            int(msg.coordinate_frame),
+            frame_id,
             (msg.x, msg.y, msg.z),
             (msg.vx, msg.vy, msg.vz),
             (msg.afx, msg.afy, msg.afz),
@@ -1138,23 +1161,18 @@ class VehicleLink:
         if self.ap.events:
             self._drain_events()
         t = view.t_s
-        if t + 1e-9 >= self._next_any_due:
-            next_any = math.inf
-            nd = self._next_due
-            enc = self._encoders
-            for mid, interval in self.intervals_s.items():
-                if interval == math.inf:
-                    continue
-                due = nd[mid]
-                if t + 1e-9 >= due:
-                    enc[mid](view)
-                    due += interval
-                    if due <= t:
-                        due = t + interval
-                    nd[mid] = due
-                if due < next_any:
-                    next_any = due
-            self._next_any_due = next_any
+        limit = t + 1e-9
+        heap = self._schedule
+        while heap and heap[0][0] <= limit:
+            due, ver, mid = heapq.heappop(heap)
+            interval = self.intervals_s.get(mid, math.inf)
+            if ver != self._version[mid] or interval == math.inf:
+                continue  # retired entry, or a stopped stream
+            self._encoders[mid](view)
+            due += interval
+            if due <= t:
+                due = t + interval
+            heapq.heappush(heap, (due, ver, mid))
         self.flush()
 
     # ---- encoders (each emits one message from the view) ---------------------------------
