@@ -71,13 +71,17 @@ $(STAMP310): pyproject.toml
 
 ifeq ($(strip $(PYTHON310)),)
 pytest310:
-	@echo "pytest310: no Python 3.10 interpreter found (see README); suite ran on $$($(PY) -V) only"
+	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PY) -V) only"
 else
 pytest310: $(STAMP310) | system-deps
 	$(VENV310)/bin/pytest -q -p no:cacheprovider
 endif
 
-test: lint typecheck pytest pytest310
+# The two suites run side by side (one core each; TEST_JOBS=1 runs them one after the other);
+# each one's output is printed in one piece when it ends.
+TEST_JOBS ?= 2
+test: lint typecheck
+	@$(MAKE) --no-print-directory -j$(TEST_JOBS) --output-sync=target pytest pytest310
 
 demo: $(STAMP)
 	$(VENV)/bin/swarm-gcs sim --formation hexagon-7 --world forest-medium --seed 1

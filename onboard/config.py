@@ -4,6 +4,8 @@ Everything the numerical core needs arrives as plain values: planner parameters
 (``PlannerParams``), formation templates (``Formation``) and world descriptions (``WorldSpec``).
 Files are YAML (or JSON, which YAML reads too). Every unknown key and every wrongly typed value is
 a ``ConfigError`` that names the key path, e.g. ``planner.w_obstacle: expected a number, got 'x'``.
+``from_mapping`` builds any frozen dataclass this way (pydantic checks the values against the
+dataclass's type hints; the dataclasses themselves stay plain, so the core never imports pydantic).
 
 Named files live under ``config_dir()``: ``formations/NAME.yaml``, ``worlds/NAME.yaml`` and
 ``planner.yaml``. ``SWARM_CONFIG_DIR`` overrides the directory.
