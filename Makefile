@@ -14,7 +14,7 @@ STAMP := $(VENV)/.installed
 ifeq ($(origin PYTHON310), undefined)
 PYTHON310 := $(shell for c in python3.10 \
 	$$(ls -d "$$(pyenv root 2>/dev/null || echo $$HOME/.pyenv)"/versions/3.10.* 2>/dev/null \
-	  | sort -t. -k3 -n -r | sed 's|$$|/bin/python3.10|'); do \
+	  | sort -V -r | sed 's|$$|/bin/python3.10|'); do \
 	"$$c" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 10))' >/dev/null 2>&1 \
 	  && { command -v "$$c"; break; }; done)
 endif
