@@ -118,7 +118,7 @@ def run_virtual_structure(
     t_limit = (
         cfg.time_limit_s
         if cfg.time_limit_s is not None
-        else default_time_limit_s(starts, goals, cfg.v_max_m_s)
+        else default_time_limit_s(starts, goals, cfg.params.v_max_m_s)
     )
     mon = FlightMonitor(
         world,
@@ -145,7 +145,7 @@ def run_virtual_structure(
     pos = starts.astype(np.float64).copy()
     vel = np.zeros_like(pos)
     dt = cfg.dt_s
-    v_max = cfg.v_max_m_s
+    v_max = cfg.params.v_max_m_s
     step_ms: list[float] = []
     t = 0.0
     timed_out = True

@@ -111,9 +111,12 @@ def flight_path(
     """Camera positions (K, 3) and yaws (K,) at ``rate_hz`` along an A* path that keeps 0.6 m
     from the obstacles (near the start's height); yaw follows the path, smoothed over 1 s."""
     from onboard.planner.astar import astar_path
+    from onboard.planner.field import AnalyticField
 
     z = float(start[2])
-    path = astar_path(world.field(), start, goal, clearance_m=0.6, z_limits=(z - 0.1, z + 0.1))
+    path = astar_path(
+        AnalyticField(world), start, goal, clearance_m=0.6, z_limits=(z - 0.1, z + 0.1)
+    )
     if path is None:
         raise ConfigError("no obstacle-free path from start to goal in this world")
     seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
@@ -165,9 +168,11 @@ def run_mapping_bench(
     from onboard.mapping.simcam import SimulatedDepthCamera
 
     spec = load_world_spec(cfg.world)
-    world, _, _ = spec.build(cfg.seed, load_formation("triangle-3"))
-    start = np.array([*spec.start_center[:2], cfg.height_m])
-    goal = np.array([*spec.goal_center[:2], cfg.height_m])
+    world, starts, goals = spec.build(cfg.seed, load_formation("triangle-3"))
+    c_start = spec.start_center if spec.start_center is not None else starts.mean(axis=0)
+    c_goal = spec.goal_center if spec.goal_center is not None else goals.mean(axis=0)
+    start = np.array([*c_start[:2], cfg.height_m])
+    goal = np.array([*c_goal[:2], cfg.height_m])
     pos, yaw = flight_path(world, start, goal, cfg.speed_m_s, cfg.rate_hz)
     if cfg.max_frames > 0:
         pos, yaw = pos[: cfg.max_frames], yaw[: cfg.max_frames]

@@ -14,7 +14,7 @@ from onboard.planner.astar import (
     octile_distance,
     segment_is_free,
 )
-from onboard.planner.field import DistanceField, GridField
+from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.world import World, random_forest
 
 NO_RING = np.zeros((0, 7))
@@ -44,7 +44,7 @@ def _check_path(
 
 
 def test_path_around_a_wall() -> None:
-    field = _wall_world().field()
+    field = AnalyticField(_wall_world())
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([10.0, 0.0, 1.0])
     assert not segment_is_free(field, start, goal, 0.4)
     # the default 3 m margin keeps the search within |y| <= 3: the wall closes it
@@ -62,7 +62,7 @@ def test_path_around_a_wall() -> None:
 def test_path_through_a_forest_on_a_grid_field() -> None:
     start, goal = np.array([-1.0, 4.0, 1.0]), np.array([13.0, 4.0, 1.0])
     world = random_forest(5, 45, (0.0, 12.0), (0.0, 8.0), keep_clear=[(start, 1.0), (goal, 1.0)])
-    truth = world.field()
+    truth = AnalyticField(world)
     grid = GridField.from_function(truth.distance, [-5.0, -4, 0], [17.0, 12, 3], 0.1)
     for field in (truth, grid):
         path = astar_path(field, start, goal, 0.35, resolution_m=0.2, z_limits=(0.5, 1.8))
@@ -74,12 +74,12 @@ def test_path_through_a_forest_on_a_grid_field() -> None:
 
 def test_blocked_returns_none() -> None:
     wall = World(np.zeros((0, 5)), NO_RING, np.array([[4.0, -50, -50, 6.0, 50, 50]]), None)
-    path = astar_path(wall.field(), np.array([0.0, 0, 1]), np.array([10.0, 0, 1]), 0.3)
+    path = astar_path(AnalyticField(wall), np.array([0.0, 0, 1]), np.array([10.0, 0, 1]), 0.3)
     assert path is None
 
 
 def test_expansion_limit_returns_none() -> None:
-    field = _wall_world().field()
+    field = AnalyticField(_wall_world())
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([10.0, 0.0, 1.0])
     for limit, found in ((50, False), (50_000, True)):
         path = astar_path(field, start, goal, 0.4, 0.2, 5.0, (0.5, 2.0), max_expansions=limit)
@@ -87,7 +87,7 @@ def test_expansion_limit_returns_none() -> None:
 
 
 def test_trivial_cases() -> None:
-    field = World.empty(0.0).field()
+    field = AnalyticField(World.empty(0.0))
     p = np.array([1.0, 2.0, 1.5])
     path = astar_path(field, p, p.copy(), 0.5)
     assert path is not None
@@ -99,7 +99,7 @@ def test_trivial_cases() -> None:
 
 
 def test_start_inside_clearance_zone() -> None:
-    field = _wall_world().field()
+    field = AnalyticField(_wall_world())
     start, goal = np.array([4.6, 0.0, 1.0]), np.array([10.0, 0.0, 1.0])  # 0.1 m from a trunk
     path = astar_path(field, start, goal, 0.4, margin_m=5.0, z_limits=(0.5, 2.0))
     assert path is not None
@@ -125,7 +125,7 @@ def test_astar_grid_kernel() -> None:
 
 
 def test_segment_is_free() -> None:
-    field = _wall_world().field()
+    field = AnalyticField(_wall_world())
     assert segment_is_free(field, np.array([0.0, 0, 1]), np.array([4.0, 0, 1]), 0.5)
     assert not segment_is_free(field, np.array([0.0, 0, 1]), np.array([6.0, 0, 1]), 0.5)
     assert segment_is_free(field, np.array([1.0, 1, 1]), np.array([1.0, 1, 1]), 0.5)

@@ -28,10 +28,6 @@ PURE_FORBIDDEN = ("zenoh", "pymavlink", "mavsdk", "open3d", "threading", "socket
 # the list only shrinks. (path relative to the repository, imported top-level module or
 # ``module@function``) -> reason.
 EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("onboard/planner/lbfgs.py", "threading"): (
-        "lbfgs.minimize accepts a threading.Event as its cancel flag (isinstance check only; "
-        "it starts no thread)"
-    ),
     ("onboard/world.py", "onboard.planner@field"): (
         "the deprecated World.field() forwards to AnalyticField(world) until its last callers "
         "(tests and tools outside this change) switch"

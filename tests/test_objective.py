@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from onboard.planner import objective as obj
+from onboard.planner.field import AnalyticField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.minco import BAND_COLS, Minco
 from onboard.planner.timemap import tau_from_T
@@ -77,7 +78,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         boxes=np.zeros((0, 6)),
         ground_z=0.0,
     )
-    fld = obj.field_args(world.field().kernel_data())
+    fld = obj.field_args(AnalyticField(world).kernel_data())
     return M, head, tail, q, T, prob, fld
 
 

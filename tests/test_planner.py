@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from onboard.planner.lbfgs import LbfgsStatus
+from onboard.planner.field import AnalyticField
+from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -32,7 +33,7 @@ def test_free_space_plan_reaches_goal_within_limits() -> None:
     planner = FormationPlanner(params, LINE3, slot=1)
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([5.0, 0.0, 1.0])
-    res = planner.plan(2.0, start, ZERO, ZERO, goal, [], _world([]).field())
+    res = planner.plan(2.0, start, ZERO, ZERO, goal, [], AnalyticField(_world([])))
     assert res.status == PlanStatus.OK
     tr = res.trajectory
     assert tr.t0_s == 2.0
@@ -47,7 +48,9 @@ def test_local_target_is_within_the_horizon() -> None:
     params = PlannerParams(v_max_m_s=1.0, horizon_m=5.0)
     planner = FormationPlanner(params, LINE3, slot=1)
     start = np.array([0.0, 0.0, 1.0])
-    res = planner.plan(0.0, start, ZERO, ZERO, np.array([40.0, 0, 1]), [], _world([]).field())
+    res = planner.plan(
+        0.0, start, ZERO, ZERO, np.array([40.0, 0, 1]), [], AnalyticField(_world([]))
+    )
     assert res.status == PlanStatus.OK
     end = res.trajectory.sample(res.trajectory.t_end_s)
     assert np.linalg.norm(end - start) == pytest.approx(5.0, abs=0.2)
@@ -61,7 +64,7 @@ def test_plan_around_a_wall_of_trunks_keeps_clearance() -> None:
     planner = FormationPlanner(params, LINE3, slot=1)
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([6.0, 0.0, 1.0])
-    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], world.field())
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], AnalyticField(world))
     assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
     tr = res.trajectory
     ts = np.linspace(tr.t0_s, tr.t_end_s, 500)
@@ -74,7 +77,7 @@ def test_two_drones_pass_each_other_with_separation() -> None:
     params = PlannerParams(v_max_m_s=1.0, w_formation=0.0)
     a = FormationPlanner(params, LINE3, slot=0)
     b = FormationPlanner(params, LINE3, slot=2)
-    field = _world([]).field()
+    field = AnalyticField(_world([]))
     pa, pb = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.05, 1.0])
     ra = a.plan(0.0, pa, ZERO, ZERO, pb, [], field)
     rb = b.plan(0.0, pb, ZERO, ZERO, pa, [PeerTrajectory(0, 0, ra.trajectory)], field)
@@ -92,10 +95,10 @@ def test_unreachable_goal_keeps_the_safe_previous_trajectory() -> None:
     start = np.array([0.0, 0.0, 1.0])
     previous = Trajectory.hover(start, 0.0, duration_s=3.0)
     goal = np.array([4.0, 0.0, 1.0])
-    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], world.field(), previous=previous)
+    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], AnalyticField(world), previous=previous)
     assert res.status == PlanStatus.KEPT_PREVIOUS
     assert res.trajectory is previous
-    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], world.field(), previous=None)
+    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], AnalyticField(world), previous=None)
     assert res.status == PlanStatus.EMERGENCY
     tr = res.trajectory
     np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
@@ -107,25 +110,54 @@ def test_emergency_stop_brakes_from_speed() -> None:
     planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
     v = np.array([0.8, 0.0, 0.0])
     res = planner.plan(0.0, np.array([0.0, 0, 1]), v, ZERO, np.array([4.0, 0, 1]), [],
-                       world.field())  # fmt: skip
+                       AnalyticField(world))  # fmt: skip
     assert res.status == PlanStatus.EMERGENCY
     tr = res.trajectory
     np.testing.assert_allclose(tr.sample(tr.t0_s, order=1), v, atol=1e-9)
     np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
 
 
-def test_cancel_returns_the_best_point() -> None:
+def test_cancel_before_the_solve_returns_the_start() -> None:
     planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
     problem = planner.prepare(
-        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], _world([]).field()
+        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], AnalyticField(_world([]))
     )
     problem.cancel_flag[0] = 1
     x, status = problem.solve()
     assert status == LbfgsStatus.CANCELED
-    assert np.all(np.isfinite(x))
-    f0, _ = problem.objective(problem.x0)
-    f, _ = problem.objective(x)
-    assert f <= f0
+    np.testing.assert_array_equal(x, problem.x0)
+    assert problem.evaluations == 1
+
+
+def test_cancel_mid_solve_returns_the_best_point_seen() -> None:
+    # The compiled solver's own kernels driven from Python on the planner's objective: cancel
+    # after a few evaluations, then the point returned must be the best one evaluated, strictly
+    # better than the start.
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    problem = planner.prepare(
+        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], AnalyticField(_world([]))
+    )
+    seen: list[tuple[float, np.ndarray]] = []
+
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = problem.objective(x)
+        seen.append((f, x.copy()))
+        return f, g
+
+    polls = [0]
+
+    def cancel() -> bool:
+        polls[0] += 1
+        return polls[0] > 6
+
+    r = minimize(fun, problem.x0, planner.params.lbfgs, cancel=cancel)
+    assert r.status == LbfgsStatus.CANCELED
+    assert r.evaluations == len(seen) == 7
+    f0 = seen[0][0]
+    f_best, x_best = min(seen, key=lambda fx: fx[0])
+    assert f_best < f0
+    np.testing.assert_array_equal(r.x, x_best)
+    assert r.f == f_best == problem.objective(r.x)[0]
 
 
 @pytest.mark.parametrize(
@@ -146,7 +178,7 @@ def test_bad_inputs_raise_value_error(kwargs: dict) -> None:
         "start_a": ZERO,
         "goal": np.array([5.0, 0, 1]),
         "peers": [],
-        "field": _world([]).field(),
+        "field": AnalyticField(_world([])),
     }
     args.update(kwargs)
     with pytest.raises(ValueError):

@@ -40,9 +40,9 @@ upper bracket yet) or bisected. It fails (``LINESEARCH_FAILED``, best point kept
 from __future__ import annotations
 
 import enum
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numba import njit
@@ -578,21 +578,28 @@ def lbfgs_cancel(ws: np.ndarray, iw: np.ndarray, x: np.ndarray, g: np.ndarray) -
 # ---- Python driver ------------------------------------------------------------------------------
 
 
-def _cancel_poll(cancel: Callable[[], bool] | threading.Event | None) -> Callable[[], bool]:
+class _CancelFlag(Protocol):
+    def is_set(self) -> bool: ...
+
+
+def _cancel_poll(cancel: Callable[[], bool] | _CancelFlag | None) -> Callable[[], bool]:
+    """A poll function for ``cancel``: None, an object with ``is_set()`` (a threading.Event, duck
+    typed so this module needs no threading) or a callable returning bool."""
     if cancel is None:
         return lambda: False
-    if isinstance(cancel, threading.Event):
-        return cancel.is_set
+    is_set = getattr(cancel, "is_set", None)
+    if callable(is_set):
+        return is_set
     if callable(cancel):
         return cancel
-    raise TypeError("cancel must be None, a threading.Event or a callable returning bool")
+    raise TypeError("cancel must be None, an object with is_set() or a callable returning bool")
 
 
 def minimize(
     fun: Callable[[np.ndarray], tuple[float, np.ndarray]],
     x0: np.ndarray,
     params: LbfgsParams = LbfgsParams(),  # noqa: B008 (frozen, immutable)
-    cancel: Callable[[], bool] | threading.Event | None = None,
+    cancel: Callable[[], bool] | _CancelFlag | None = None,
 ) -> LbfgsResult:
     """Minimise ``fun`` from ``x0`` (n,) with the compiled solver; ``fun(x) -> (f, df/dx)``.
 
