@@ -36,6 +36,7 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -273,25 +274,36 @@ class OffboardSetpoint:
     yaw_rad: float = math.nan
     yaw_rate_rad_s: float = math.nan
 
+    def __post_init__(self) -> None:
+        # computed once: the controller reads them every tick
+        p = np.asarray(self.position_m, dtype=np.float64).reshape(3).tolist()
+        v = np.asarray(self.velocity_m_s, dtype=np.float64).reshape(3).tolist()
+        a = np.asarray(self.acceleration_m_s2, dtype=np.float64).reshape(3).tolist()
+        fp = [math.isfinite(x) for x in p]
+        fv = [math.isfinite(x) for x in v]
+        fa = [math.isfinite(x) for x in a]
+        any_set = any(fp) or any(fv) or any(fa)
+        valid = (
+            all(fp[k] or fv[k] or fa[k] for k in range(3))
+            and fp[0] == fp[1]
+            and fv[0] == fv[1]
+            and fa[0] == fa[1]
+        )
+        object.__setattr__(self, "_any", any_set)
+        object.__setattr__(self, "_valid", valid)
+        object.__setattr__(self, "_pva", p + v + a)  # C_POS, C_VEL, C_ACC columns
+
     def controls_any(self) -> bool:
         """At least one position, velocity or acceleration component is set: PX4 publishes
         ``offboard_control_mode`` for it, so it keeps the offboard stream alive."""
-        return bool(
-            np.isfinite(self.position_m).any()
-            or np.isfinite(self.velocity_m_s).any()
-            or np.isfinite(self.acceleration_m_s2).any()
-        )
+        return bool(self._any)  # type: ignore[attr-defined]
 
     def valid(self) -> bool:
         """PX4's position controller accepts it (``PositionControl::_inputValid``): every axis
         has a position, velocity or acceleration, and x / y come in pairs for each of them.
         Otherwise PX4 flies its "stop and wait" failsafe (zero velocity) while the stream
         still counts as alive."""
-        p, v, a = self.position_m, self.velocity_m_s, self.acceleration_m_s2
-        fp, fv, fa = np.isfinite(p), np.isfinite(v), np.isfinite(a)
-        if not bool(np.all(fp | fv | fa)):
-            return False
-        return bool(fp[0] == fp[1] and fv[0] == fv[1] and fa[0] == fa[1])
+        return bool(self._valid)  # type: ignore[attr-defined]
 
 
 @dataclass
@@ -694,36 +706,39 @@ class Autopilot:
         return p.land_speed_m_s + w * (p.land_speed_high_m_s - p.land_speed_m_s)
 
     def _command(self, t_s: float, dt: float, est: Estimate, c: np.ndarray) -> None:
-        c[:] = np.nan
-        c[dyn.C_YAW] = self._hold_yaw
+        """Write the controller command row ``c`` for the current mode (one numpy write)."""
+        nan = math.nan
+        v = [nan] * dyn.NC
+        v[dyn.C_YAW] = self._hold_yaw
         if not self.armed:
-            c[dyn.C_MOTOR] = dyn.MOTOR_OFF
+            v[dyn.C_MOTOR] = dyn.MOTOR_OFF
+            c[:] = v
             return
+        P, V, A = dyn.C_POS, dyn.C_VEL, dyn.C_ACC  # noqa: N806 - column offsets
         spooling = t_s - self._t_arm < self.params.spoolup_s
         mode = self.mode
         if self._hold_target is None:
             self._hold_target = self._stop_point()
         if mode == Mode.HOLD:
-            c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+            v[P : P + 3] = self._hold_target.tolist()
         elif mode in MANUAL_INPUT_MODES:
             if self.params.rc_present:  # sticks centred: hold (Altitude: hold the height only)
                 if mode == Mode.POSCTL:
-                    c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+                    v[P : P + 3] = self._hold_target.tolist()
                 else:
-                    c[dyn.C_VEL : dyn.C_VEL + 2] = 0.0
-                    c[dyn.C_POS + 2] = self._hold_target[2]
+                    v[V] = v[V + 1] = 0.0
+                    v[P + 2] = float(self._hold_target[2])
             else:
                 # observed on PX4 v1.16 SIH without RC: the Position-mode fallback of the
                 # offboard failsafe descends at about MPC_LAND_SPEED
-                c[dyn.C_VEL : dyn.C_VEL + 3] = (0.0, 0.0, -self.params.land_speed_m_s)
+                v[V : V + 3] = [0.0, 0.0, -self.params.land_speed_m_s]
         elif mode == Mode.TAKEOFF:
             if self._ramp is None:
                 self._enter(t_s, Mode.TAKEOFF)
             assert self._ramp is not None
             if not spooling:
-                vff = self._ramp.advance(dt)
-                c[dyn.C_VEL : dyn.C_VEL + 3] = vff
-            c[dyn.C_POS : dyn.C_POS + 3] = self._ramp.point
+                v[V : V + 3] = self._ramp.advance(dt).tolist()
+            v[P : P + 3] = self._ramp.point.tolist()
             goal_z = self._ramp.goal[2]
             if (
                 self._ramp.done
@@ -736,16 +751,15 @@ class Autopilot:
         elif mode == Mode.LAND or (mode == Mode.RTL and self._rtl_phase == "land"):
             if self._land_xy is None:
                 self._land_xy = est.position_m[:2].copy()
-            c[dyn.C_POS] = self._land_xy[0]
-            c[dyn.C_POS + 1] = self._land_xy[1]
-            c[dyn.C_VEL + 2] = -self._land_speed(est.position_m[2] - self.ground_z_m)
+            v[P] = float(self._land_xy[0])
+            v[P + 1] = float(self._land_xy[1])
+            v[V + 2] = -self._land_speed(float(est.position_m[2]) - self.ground_z_m)
         elif mode == Mode.RTL:
             if self._ramp is None:
                 self._enter(t_s, Mode.RTL)
             assert self._ramp is not None
-            vff = self._ramp.advance(dt)
-            c[dyn.C_POS : dyn.C_POS + 3] = self._ramp.point
-            c[dyn.C_VEL : dyn.C_VEL + 3] = vff
+            v[V : V + 3] = self._ramp.advance(dt).tolist()
+            v[P : P + 3] = self._ramp.point.tolist()
             if self._ramp.done:
                 if self._rtl_phase == "climb":
                     goal = self._ramp.goal.copy()
@@ -768,33 +782,32 @@ class Autopilot:
             if sp is None:
                 # no setpoint since Offboard began: PX4 keeps the last trajectory setpoint
                 # of the previous mode; the mock holds where Offboard began
-                c[dyn.C_POS : dyn.C_POS + 3] = self._hold_target
+                v[P : P + 3] = self._hold_target.tolist()
             elif not sp.valid():
                 # PX4's position controller rejects it and stops: "Failsafe: stop and wait"
-                c[dyn.C_VEL : dyn.C_VEL + 3] = 0.0
+                v[V : V + 3] = [0.0, 0.0, 0.0]
                 self._hold_yaw = est.yaw_rad
-                c[dyn.C_YAW] = self._hold_yaw
+                v[dyn.C_YAW] = self._hold_yaw
             else:
-                c[dyn.C_POS : dyn.C_POS + 3] = sp.position_m
-                c[dyn.C_VEL : dyn.C_VEL + 3] = sp.velocity_m_s
-                c[dyn.C_ACC : dyn.C_ACC + 3] = sp.acceleration_m_s2
+                v[P : A + 3] = sp._pva  # type: ignore[attr-defined]
                 if not math.isnan(sp.yaw_rad):
-                    c[dyn.C_YAW] = sp.yaw_rad
+                    v[dyn.C_YAW] = sp.yaw_rad
                     self._hold_yaw = sp.yaw_rad
                 elif not math.isnan(sp.yaw_rate_rad_s):
-                    c[dyn.C_YAW] = math.nan
-                    c[dyn.C_YAWRATE] = sp.yaw_rate_rad_s
+                    v[dyn.C_YAW] = nan
+                    v[dyn.C_YAWRATE] = sp.yaw_rate_rad_s
                     self._hold_yaw = est.yaw_rad
         else:  # pragma: no cover - unsupported modes are never entered
-            c[dyn.C_POS : dyn.C_POS + 3] = est.position_m
+            v[P : P + 3] = est.position_m.tolist()
         if spooling:
-            c[dyn.C_MOTOR] = dyn.MOTOR_IDLE
-        elif self.landed and not self._wants_takeoff(est, c):
-            c[dyn.C_MOTOR] = dyn.MOTOR_IDLE
+            v[dyn.C_MOTOR] = dyn.MOTOR_IDLE
+        elif self.landed and not self._wants_takeoff(est, v):
+            v[dyn.C_MOTOR] = dyn.MOTOR_IDLE
         else:
-            c[dyn.C_MOTOR] = dyn.MOTOR_RUN
+            v[dyn.C_MOTOR] = dyn.MOTOR_RUN
+        c[:] = v
 
-    def _wants_takeoff(self, est: Estimate, c: np.ndarray) -> bool:
+    def _wants_takeoff(self, est: Estimate, c: Sequence[float]) -> bool:
         """PX4's takeoff trigger: the setpoint asks to climb."""
         trig = self.params.takeoff_trigger_m
         pz, vz, az = c[dyn.C_POS + 2], c[dyn.C_VEL + 2], c[dyn.C_ACC + 2]

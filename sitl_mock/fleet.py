@@ -31,6 +31,8 @@ from sitl_mock.truth import DepthCamera, DepthStreamer, TruthSample, TruthSink
 
 log = logging.getLogger("sitl_mock")
 
+_NOISE_BLOCK = 64  # ticks of random draws made at once
+
 # PX4 SITL's default home (Zurich), used as the geodetic reference of the world origin
 DEFAULT_LAT_DEG = 47.397742
 DEFAULT_LON_DEG = 8.545594
@@ -195,6 +197,8 @@ class Fleet:
             np.zeros((n, 1, dyn.NOISE_PER_SUBSTEP)),
         )
         self._rngs = [np.random.default_rng([cfg.seed, i]) for i in range(n)]
+        self._noise = np.zeros((0, n, 1, dyn.NOISE_PER_SUBSTEP))
+        self._noise_k = _NOISE_BLOCK
         self._tel = np.zeros((n, tm.NT))
         self._geo = np.array([cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m])
         self.t_s = 0.0
@@ -249,6 +253,7 @@ class Fleet:
         self._truth_interval = 1.0 / cfg.truth_rate_hz if cfg.truth_rate_hz > 0 else math.inf
         self._next_truth = 0.0
         self._latest_truth: dict[int, TruthSample] = {}
+        self._truth_snapshot: tuple[Any, ...] | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._reset_stats = threading.Event()
@@ -388,8 +393,8 @@ class Fleet:
             elif lateness > period:
                 st.late_ticks += 1
             st.max_lateness_s = max(st.max_lateness_s, lateness)
-            for link in self.links:
-                link.receive()
+            for key, _ in sel.select(0):  # what arrived since the last wait
+                key.data.receive()
             self.tick()
             next_tick += period
         st.loop_cpu_s += time.thread_time() - cpu0
@@ -409,10 +414,7 @@ class Fleet:
         for i, ap in enumerate(self.autopilots):
             est = Estimate(est_p[i], vel[i], yaw[i], ground[i], thrust[i])
             ap.update(t, est, self.cmd[i])
-        noise = np.stack(
-            [r.standard_normal((self._nsub, dyn.NOISE_PER_SUBSTEP)) for r in self._rngs]
-        )
-        dyn.step_fleet(s, self.cmd, self._prm, self.ground_z, self.dt_s, noise)
+        dyn.step_fleet(s, self.cmd, self._prm, self.ground_z, self.dt_s, self._next_noise())
         dyn.attitude_fleet(s, self._prm, self._r_prev, self.dt_s, self.att)
         self.t_s = t = t + self.dt_s
         self._check_collisions(t)
@@ -439,6 +441,19 @@ class Fleet:
         st = self.stats
         st.ticks += 1
         st.sim_s = t
+
+    def _next_noise(self) -> np.ndarray:
+        """This tick's standard normals (N, substeps, NOISE_PER_SUBSTEP): each vehicle's own
+        seeded generator, drawn ``_NOISE_BLOCK`` ticks at a time (the same numbers as drawing
+        tick by tick)."""
+        if self._noise_k >= _NOISE_BLOCK:
+            shape = (_NOISE_BLOCK, self._nsub, dyn.NOISE_PER_SUBSTEP)
+            draws = [r.standard_normal(shape) for r in self._rngs]
+            self._noise = np.ascontiguousarray(np.stack(draws, axis=1))
+            self._noise_k = 0
+        k = self._noise_k
+        self._noise_k += 1
+        return self._noise[k]
 
     def _check_collisions(self, t: float) -> None:
         cfg = self.config
@@ -503,11 +518,37 @@ class Fleet:
                 self.autopilots[i].command_arm(t, False, force=True)
 
     def _publish_truth(self, t: float) -> None:
+        """Snapshot the true state; build the samples now only if a sink wants them (else on
+        demand, in ``latest_truth``)."""
+        snap = (
+            t,
+            self.state.copy(),
+            self.att.copy(),
+            [(ap.armed, ap.landed, ap.mode.name) for ap in self.autopilots],
+            self.collision_counts.copy(),
+        )
+        with self._lock:
+            self._truth_snapshot = snap
+            self._latest_truth = {}
+        if not self.truth_sinks:
+            return
+        samples = self._truth_samples(snap)
+        with self._lock:
+            if self._truth_snapshot is snap:
+                self._latest_truth = {x.system_id: x for x in samples}
+        for sink in self.truth_sinks:
+            try:
+                sink.publish_poses(samples)
+            except Exception:  # noqa: BLE001 - a broken sink must not stop the vehicles
+                log.warning("truth sink failed", exc_info=True)
+
+    @staticmethod
+    def _truth_samples(snap: tuple[Any, ...]) -> list[TruthSample]:
+        t, s, att, status, collisions = snap
         samples = []
-        s = self.state
-        for i, ap in enumerate(self.autopilots):
+        for i, (armed, landed, mode) in enumerate(status):
             row = s[i]
-            q = quaternion_from_matrix(self.att[i, dyn.A_R : dyn.A_R + 9].reshape(3, 3))
+            q = quaternion_from_matrix(att[i, dyn.A_R : dyn.A_R + 9].reshape(3, 3))
             samples.append(
                 TruthSample(
                     system_id=i + 1,
@@ -516,25 +557,26 @@ class Fleet:
                     velocity_m_s=(float(row[3]), float(row[4]), float(row[5])),
                     quaternion=q,
                     yaw_rad=float(row[dyn.S_YAW]),
-                    armed=ap.armed,
-                    landed=ap.landed,
-                    mode=ap.mode.name,
-                    collisions=int(self.collision_counts[i]),
+                    armed=armed,
+                    landed=landed,
+                    mode=mode,
+                    collisions=int(collisions[i]),
                 )
             )
-        with self._lock:
-            self._latest_truth = {x.system_id: x for x in samples}
-        for sink in self.truth_sinks:
-            try:
-                sink.publish_poses(samples)
-            except Exception:  # noqa: BLE001 - a broken sink must not stop the vehicles
-                log.warning("truth sink failed", exc_info=True)
+        return samples
 
     # ---- queries (any thread) ------------------------------------------------------------
     def latest_truth(self) -> dict[int, TruthSample]:
         """The last published true state of every vehicle, by system id."""
         with self._lock:
-            return dict(self._latest_truth)
+            snap = self._truth_snapshot
+            latest = self._latest_truth
+        if not latest and snap is not None:
+            latest = {x.system_id: x for x in self._truth_samples(snap)}
+            with self._lock:
+                if self._truth_snapshot is snap:
+                    self._latest_truth = latest
+        return dict(latest)
 
     def collision_events(self) -> list[CollisionEvent]:
         with self._lock:

@@ -15,8 +15,9 @@ NED lives here and only here: incoming setpoints are resolved into ENU by
   ``handler_errors`` (an exception in the mock's own handling: a bug, logged at error level with
   its traceback; the tests fail on any).
 - Streams at the rates a real PX4 v1.16 sends on its onboard API link (``PX4_STREAM_RATES_HZ``,
-  simulated time), changeable with SET_MESSAGE_INTERVAL; messages due in the same tick share a
-  datagram, as PX4 packs them.
+  simulated time), changeable with SET_MESSAGE_INTERVAL; telemetry is sent every
+  ``flush_interval_s`` (10 ms), the messages due since then sharing datagrams, as PX4 packs
+  them; replies to commands are sent at once.
 - STATUSTEXT only once the link has heard a GCS heartbeat (MAV_TYPE_GCS), as PX4 v1.16 does.
 - Signing: PX4 v1.16 has none (its receiver ignores SETUP_SIGNING; observed). Signing here is an
   explicit option imitating PX4 v1.17+, off by default: outgoing messages are signed with the
@@ -558,6 +559,7 @@ class VehicleLink:
         stream_rates_hz: dict[int, float] | None = None,
         duplicate_mode_ack: bool = True,
         batch_datagrams: bool = True,
+        flush_interval_s: float = 0.01,
     ) -> None:
         self.system_id = int(system_id)
         self.ap = autopilot
@@ -572,6 +574,9 @@ class VehicleLink:
         self.accept_setup_signing = accept_setup_signing
         self.duplicate_mode_ack = duplicate_mode_ack
         self.batch_datagrams = batch_datagrams
+        # telemetry is sent at most this often (simulated time; replies go out at once)
+        self.flush_interval_s = float(flush_interval_s)
+        self._next_flush = 0.0
         self.stats = LinkStats()
         self.mav = new_mavlink(self.system_id, 1)
         self.mav.check_signature = self._check_signature
@@ -1173,7 +1178,9 @@ class VehicleLink:
             if due <= t:
                 due = t + interval
             heapq.heappush(heap, (due, ver, mid))
-        self.flush()
+        if t + 1e-9 >= self._next_flush:
+            self.flush()
+            self._next_flush = max(self._next_flush + self.flush_interval_s, t)
 
     # ---- encoders (each emits one message from the view) ---------------------------------
     def _heartbeat(self, v: VehicleView) -> None:
