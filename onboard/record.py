@@ -5,7 +5,10 @@ Topics (log time = global time of the event, nanoseconds):
 - ``/state``      the vehicle and flight state (10 Hz): position, velocity, yaw, mode, armed ...
 - ``/pose``       the same pose as ``foxglove.PoseInFrame`` (frame ``enu``) for the 3D panel
 - ``/setpoint``   every setpoint streamed to the autopilot: position, velocity, acceleration, yaw
-- ``/plan``       every replan: status, timing (ms, iterations, evaluations), the trajectory
+- ``/plan``       every replan: status, timing (ms, iterations, evaluations), the peers in the
+                  formation and only avoided, slot and epoch, the trajectory
+- ``/map``        what the map holds (2 Hz while frames arrive): occupied cells, the nearest
+                  mapped surface to the camera and where it is
 - ``/counters``   bus and link counters (1 Hz)
 - ``/transition`` flight state machine transitions
 - ``/log``        events and reactions as ``foxglove.Log``
@@ -108,7 +111,16 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 "plan_ms": _NUM,
                 "iterations": {"type": "integer"},
                 "evaluations": {"type": "integer"},
-                "n_peers": {"type": "integer"},
+                "cycle_ms": _NUM,
+                "n_peers": {"type": "integer", "description": "peers in the formation term"},
+                "formation_peers": {"type": "array", "items": {"type": "integer"}},
+                "avoided_peers": {
+                    "type": "array",
+                    "items": {"type": "integer"},
+                    "description": "peers only avoided (silent, other epoch, slot conflict)",
+                },
+                "slot": {"type": "integer"},
+                "formation_epoch": {"type": "integer"},
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},
                 "coeffs": {
@@ -119,6 +131,21 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 "goal_enu_m": _VEC3,
             },
             "One replan: outcome, timing and the trajectory it produced",
+        ),
+    ),
+    "/map": (
+        "swarm.Map",
+        _obj(
+            "swarm.Map",
+            {
+                "t_s": _NUM,
+                "frames": {"type": "integer"},
+                "occupied_cells": {"type": "integer"},
+                "camera_enu_m": _VEC3,
+                "nearest_obstacle_m": _NUM,
+                "nearest_obstacle_enu_m": _VEC3,
+            },
+            "The rolling map: occupied cells, the nearest mapped surface to the camera (ENU)",
         ),
     ),
     "/counters": (
@@ -273,6 +300,9 @@ class FlightRecorder:
 
     def plan(self, t_s: float, **fields: Any) -> None:
         self.put("/plan", t_s, {"t_s": t_s, **fields})
+
+    def map(self, t_s: float, **fields: Any) -> None:
+        self.put("/map", t_s, {"t_s": t_s, **fields})
 
     def counters(self, t_s: float, counters: Mapping[str, float]) -> None:
         self.put("/counters", t_s, {"t_s": t_s, "counters": dict(counters)})

@@ -10,12 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from onboard.agent import DroneAgent, PlanReport
 from onboard.config import merge_mappings
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.service.config import default_config_path, load_onboard_config
 from onboard.service.fakes import FakeAutopilot, FakeBus, FakeDepth, straight_trajectory
-from onboard.service.planning import inside_box, split_peers
+from onboard.service.planning import PortPeerBus, inside_box, peer_roles
 from onboard.service.ports import PeerInfo
 from onboard.service.sdnotify import Notifier
 from onboard.service.service import FlightService
@@ -56,6 +57,7 @@ class Harness:
         )
         self.gcs = True
         self.monitor_results: list[str] = []
+        self.reports: list[PlanReport] = []
 
     @property
     def state(self) -> FlightState:
@@ -76,10 +78,9 @@ class Harness:
             r = svc.monitor_step()
             if r:
                 self.monitor_results.append(r)
-            due = self.clock.t - svc._last_plan_s >= self.cfg.planning.replan_period_s
-            if svc._replan_now.is_set() or due:
-                svc._replan_now.clear()
-                svc.plan_step()
+            rep = svc.plan_step()  # the agent replans when due on its grid or when asked
+            if rep is not None:
+                self.reports.append(rep)
 
     def until(self, cond: Callable[[], bool], max_s: float, what: str) -> None:
         t_end = self.clock.t + max_s
@@ -248,25 +249,58 @@ def test_gcs_lost_finishes_the_goal_then_hovers_or_lands(tmp_path: Path, action:
 
 
 def test_peer_silent_past_validity_leaves_the_formation_but_is_avoided_for_a_while() -> None:
+    """The service's roles for silent peers, applied by the agent's cycle (the one the
+    simulator runs): judged on the peers each plan was made against."""
+    from onboard.planner.field import AnalyticField
+    from onboard.world import World
+
     traj = Trajectory.hover(np.array([0.0, 1.5, 1.0]), T0, 100.0)
-    peers = {
+    bus = FakeBus()
+    bus.peer_infos = {
         0: PeerInfo(0, 0, 1, traj, T0 + 2.0, T0),  # valid until T0 + 2
         2: PeerInfo(2, 2, 1, traj, T0 + 50.0, T0),
         3: PeerInfo(3, 1, 1, traj, T0 + 50.0, T0),  # claims our slot: avoided, not in formation
     }
+    cfg = load_onboard_config(default_config_path(), 1)
+    agent = DroneAgent(
+        1,
+        cfg.planner,
+        POINTS,
+        1,
+        Trajectory.hover(np.array([0.0, 0.0, 1.0]), T0, 1.0),
+        PortPeerBus(bus),
+        lambda_map(AnalyticField(World.empty(0.0))),
+        goal=(3.0, 0.0, 1.0),
+        formation_epoch=1,
+        validity_s=3.0,
+        peer_forget_s=10.0,
+    )
 
     def split(now: float) -> tuple[list[int], list[int], list[int]]:
-        s = split_peers(peers, now, 1, 1, 1, 3, validity_s=3.0, avoid_for_s=10.0)
+        roles = peer_roles(bus.peers(), now, 1, validity_s=3.0, avoid_for_s=10.0)
+        agent.set_peer_roles(roles.avoid_only, roles.ignore)
+        rep = agent.replan(now)
+        seen = {*rep.formation_peers, *rep.avoided_peers}
+        assert {p.drone_id for p in rep.peers} == seen  # the plan was made against exactly these
         return (
-            [p.drone_id for p in s.formation],
-            [p.drone_id for p in s.avoid_only],
-            list(s.dropped),
+            list(rep.formation_peers),
+            list(rep.avoided_peers),
+            sorted(set(bus.peer_infos) - seen),
         )
 
     assert split(T0 + 1.0) == ([0, 2], [3], [])
     assert split(T0 + 2.5) == ([2], [0, 3], [])  # 0 past its message's validity
     assert split(T0 + 3.5) == ([], [0, 2, 3], [])  # 2 silent past validity_s
     assert split(T0 + 13.5) == ([], [], [0, 2, 3])  # avoided no longer
+    # what the agent published went out through the service's bus port, with its validity
+    _, slot, epoch, _, valid_for = bus.trajectories[-1]
+    assert (slot, epoch) == (1, 1) and valid_for == pytest.approx(3.0)
+
+
+def lambda_map(field: Any) -> Any:
+    from onboard.agent import StaticMap
+
+    return StaticMap(field)
 
 
 def test_silent_peer_drops_out_of_the_plans_formation(tmp_path: Path) -> None:
@@ -323,3 +357,114 @@ def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> N
     assert h.state is S.IDLE
     assert not h.ap.streaming
     assert "arming denied" in h.svc.machine.history[-1].reason
+
+
+def test_goal_and_formation_take_effect_at_their_common_time_in_the_agent(
+    tmp_path: Path,
+) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    assert h.svc.agent.formation_epoch == 1 and h.svc.agent.slot == 1
+    # a new formation (this drone moves to slot 0) and a goal, both at common times ahead
+    t_form = h.clock.t + 1.0
+    ok, why = h.command(SetFormation(2, t_form, ((0, 1), (1, 0), (2, 2)), POINTS))
+    assert ok, why
+    t_goal = h.clock.t + 1.5
+    ok, why = h.command(Goal((4.0, 0.0, 1.0), t_goal))
+    assert ok, why
+    n_reports = len(h.reports)
+    h.until(lambda: h.clock.t >= t_form - 0.06, 2.0, "just before the formation time")
+    assert h.svc.agent.formation_epoch == 1 and h.svc.agent.goal is None
+    h.until(lambda: h.svc.agent.formation_epoch == 2, 0.2, "the formation at its time")
+    assert h.svc.agent.slot == 0 and h.clock.t >= t_form
+    assert h.state is S.HOVER and len(h.reports) == n_reports  # no goal yet: no replan
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 1.0, "the goal at its time")
+    assert h.clock.t >= t_goal
+    h.step()
+    first = h.reports[n_reports]
+    assert first.planned_at_s >= t_goal  # the first plan to it is made at its time, not before
+    assert (first.slot, first.formation_epoch) == (0, 2)
+    # this drone's goal: the formation goal plus its slot's offset (slot 0: y - 1.5)
+    assert np.allclose(first.goal, [4.0, -1.5, 1.0])
+    h.until(lambda: h.state is S.HOVER, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - [4.0, -1.5, 1.0]) < h.cfg.planning.goal_tolerance_m
+    # every trajectory message went out with the epoch in force when it was made
+    epochs = [epoch for _, _, epoch, _, _ in h.bus.trajectories]
+    assert epochs == sorted(epochs) and epochs[-1] == 2
+
+
+def test_a_plan_made_while_the_service_overrides_never_replaces_the_override(
+    tmp_path: Path,
+) -> None:
+    """The race between a replan (planner thread) and a braking stop (main loop), made
+    deterministic: the override happens inside the agent's cycle, while it plans."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    assert h.command(Goal((6.0, 0.0, 1.0)))[0]
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT
+    svc = h.svc
+    inner = svc.agent.map_source
+    braked: list[Trajectory] = []
+
+    class Interrupting:
+        def snapshot(self, now_s: float, position: np.ndarray) -> Any:
+            if not braked:
+                svc._brake(now_s, None)  # what the main loop does on a hold, meanwhile
+                braked.append(svc.agent.current)
+            return inner.snapshot(now_s, position)
+
+    svc.agent.map_source = Interrupting()  # type: ignore[assignment]
+    svc.agent.request_replan()
+    rep = svc.plan_step()
+    assert rep is not None and braked
+    assert svc.agent.current is braked[0] and not svc.agent.queued
+    assert svc.flying(h.clock.t + 1.0) is braked[0]  # the new plan did not take over
+    assert svc.counters["announcements"] >= 1
+    _, _, _, announced, _ = h.bus.trajectories[-1]
+    assert announced is braked[0]  # peers heard the braking stop last, not the plan
+    svc.main_step()
+    assert svc.counters["plans_superseded"] == 1
+
+
+def test_hovering_drone_keeps_announcing_its_trajectory(tmp_path: Path) -> None:
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.step(2)
+    n = len(h.bus.trajectories)
+    h.step(100)  # 5 s of hover without a goal: no replan, but peers must keep seeing it
+    assert not h.reports
+    sent = h.bus.trajectories[n:]
+    period = h.cfg.planning.replan_period_s
+    assert len(sent) == pytest.approx(5.0 / period, abs=1)
+    for _, slot, epoch, traj, valid_for in sent:
+        assert (slot, epoch) == (1, 1)
+        assert valid_for == pytest.approx(h.cfg.reactions.peer_lost.validity_s)
+        assert np.allclose(traj.sample(h.clock.t), h.ap.position, atol=1e-6)
+
+
+def test_a_plan_leaving_the_geofence_is_replaced_by_a_braking_stop(tmp_path: Path) -> None:
+    """A trunk on the straight line and a geofence too narrow to pass it: the planner's detour
+    would leave the box, so the service brakes and hovers instead."""
+    from onboard.planner.field import AnalyticField
+    from onboard.world import World
+
+    box = {"min_enu_m": [-2.0, -0.35, 0.0], "max_enu_m": [8.0, 0.35, 3.0]}
+    h = Harness(tmp_path, depth=False, geofence=box)
+    world = World(np.array([[3.0, 0.0, 0.3, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    h.svc._ground_field = AnalyticField(world)
+    h.airborne()
+    assert h.command(Goal((6.0, 0.0, 1.0)))[0]
+    h.until(lambda: h.svc.counters["plans_failed"] > 0, 20.0, "a refused plan")
+    assert h.state is S.HOVER  # hover, retry later
+    lo, hi = np.array(box["min_enu_m"]), np.array(box["max_enu_m"])
+    for _ in range(60):
+        h.step()
+        traj = h.svc.flying(h.clock.t)
+        assert traj is not None
+        p = traj.sample(np.linspace(h.clock.t, traj.t_end_s + 1.0, 50))
+        assert np.all(p >= lo - 1e-9) and np.all(p <= hi + 1e-9)
+    h.svc._close_record()
+    plans = read_record(next(tmp_path.glob("*.mcap"))).messages("/plan")
+    assert any(m["status"] == "emergency" and "geofence" in m["reason"] for m in plans)
+    assert np.all(h.ap.position >= lo) and np.all(h.ap.position <= hi)

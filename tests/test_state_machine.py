@@ -179,6 +179,63 @@ def test_formation_epochs_slots_and_effective_time() -> None:
     assert m.slot() == 0  # effective time in the past: at once
 
 
+def test_goal_and_waypoints_take_effect_at_their_common_time() -> None:
+    m, clock, seen = make()
+    airborne(m)
+    n = len(seen)
+    ok(m.command(Goal((5.0, 0, 1), clock.t + 1.5)))  # checked and acknowledged now
+    rejected(m.command(Goal((50.0, 0, 1), clock.t + 1.5)), "outside the geofence")
+    rejected(m.command(Goal((1.0, 0, 1), float("nan"))), "effective time")
+    assert m.state is S.HOVER and m.goal is None and len(seen) == n
+    clock.t += 1.49
+    m.tick()
+    assert m.state is S.HOVER and m.goal is None  # not before its time
+    clock.t += 0.01
+    m.tick()
+    assert m.state is S.FORMATION_FLIGHT and m.goal == (5.0, 0, 1)
+    assert seen[-1].reason == "goal at its effective time" and seen[-1].t_s == clock.t
+    # a later goal while flying: the current one is flown until the new one's time
+    ok(m.command(Waypoints(((6.0, 0, 1), (7.0, 0, 1)), clock.t + 2.0)))
+    assert m.goal == (5.0, 0, 1)
+    m.goal_reached()  # arrival at the current goal keeps the pending one
+    assert m.state is S.HOVER and m.pending_goals is not None
+    clock.t += 2.0
+    m.tick()
+    assert m.state is S.FORMATION_FLIGHT and m.goal == (6.0, 0, 1)
+    assert m.waypoints == [(7.0, 0, 1)]
+
+
+@pytest.mark.parametrize("cut", ["land", "abort", "pilot", "link"])
+def test_a_pending_goal_goes_with_the_current_one(cut: str) -> None:
+    m, clock, _ = make()
+    airborne(m)
+    ok(m.command(Goal((5.0, 0, 1), clock.t + 1.0)))
+    if cut == "land":
+        ok(m.command(Land()))
+    elif cut == "abort":
+        ok(m.command(Abort()))
+    elif cut == "pilot":
+        m.pilot_took_over("POSCTL")
+    else:
+        m.link_lost()
+    state = m.state
+    clock.t += 2.0
+    m.tick()
+    assert m.state is state and m.goal is None and m.pending_goals is None
+
+
+def test_a_goal_pending_during_a_depth_hold_waits_for_the_frames() -> None:
+    m, clock, _ = make()
+    airborne(m)
+    m.depth_lost()
+    ok(m.command(Goal((5.0, 0, 1), clock.t + 1.0)))
+    clock.t += 1.0
+    m.tick()
+    assert m.state is S.HOVER and m.paused and m.goal == (5.0, 0, 1)
+    m.depth_restored()
+    assert m.state is S.FORMATION_FLIGHT
+
+
 def test_depth_loss_pauses_the_flight_until_frames_return() -> None:
     m, _, seen = make()
     airborne(m)

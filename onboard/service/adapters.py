@@ -192,10 +192,14 @@ def command_from_wire(action: Any) -> Any:
     if isinstance(action, wire.Resume):
         return state.Resume()
     if isinstance(action, wire.Goal):
-        return state.Goal(tuple(float(v) for v in action.position_m))  # type: ignore[arg-type]
+        return state.Goal(
+            tuple(float(v) for v in action.position_m),  # type: ignore[arg-type]
+            float(action.effective_s),
+        )
     if isinstance(action, wire.Waypoints):
         return state.Waypoints(
-            tuple(tuple(float(v) for v in p) for p in action.points_m)  # type: ignore[misc]
+            tuple(tuple(float(v) for v in p) for p in action.points_m),  # type: ignore[misc]
+            float(action.effective_s),
         )
     if isinstance(action, wire.FormationAssignment):
         c, s_ = math.cos(action.yaw_rad), math.sin(action.yaw_rad)

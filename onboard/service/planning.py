@@ -1,69 +1,95 @@
-"""The planning side of the service: which peers count, the planner per formation slot, and the
-checks the service adds to the planner's own (geofence, peers that went silent)."""
+"""What the service adds around the per-drone cycle (``onboard.agent.DroneAgent``, the class the
+fast-time simulator runs too): the agent's bus over the service's bus port, the roles of peers
+that went silent, the map source, the geofence check, and the warm-up before READY."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from onboard.comm.messages import TrajectoryMsg
+from onboard.planner.field import DistanceField
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanResult
+from onboard.planner.planner import FormationPlanner, PeerTrajectory
 from onboard.planner.trajectory import Trajectory
 from onboard.service.config import GeofenceSection
-from onboard.service.ports import PeerInfo
+from onboard.service.ports import PeerInfo, SwarmBusPort
+
+
+class PortPeerBus:
+    """The agent's ``PeerBus`` over the service's ``SwarmBusPort``: ``publish`` sends the
+    agent's trajectory message (its validity as ``valid_until_s - now``), ``receive`` gives the
+    latest trajectory of every peer heard, expired ones included (the agent avoids a peer past
+    its message's validity and forgets it ``peer_forget_s`` later)."""
+
+    def __init__(self, port: SwarmBusPort) -> None:
+        self.port = port
+
+    def publish(self, msg: TrajectoryMsg, now_s: float) -> None:
+        self.port.publish_trajectory(
+            msg.traj_id,
+            msg.slot,
+            msg.formation_epoch,
+            msg.trajectory,
+            max(msg.valid_until_s - now_s, 1e-3),
+        )
+
+    def receive(self, drone_id: int, now_s: float) -> dict[int, TrajectoryMsg]:
+        out = {}
+        for pid, info in sorted(self.port.peers().items()):
+            if pid == drone_id:
+                continue
+            out[pid] = TrajectoryMsg(
+                pid, 0, info.slot, info.trajectory, info.formation_epoch, info.valid_until_s
+            )
+        return out
 
 
 @dataclass(frozen=True)
-class PeerSplit:
-    """Peers sorted for one replan: ``formation`` (heard within their validity and flying the
-    same formation epoch: kept in formation and avoided), ``avoid_only`` (silent past their
-    validity, but not longer than the avoid time: avoided through their last trajectory),
-    ``dropped`` (ids silent for longer: ignored)."""
+class PeerRoles:
+    """The service's decision about peers that went silent (``reactions.peer_lost``):
+    ``avoid_only`` were last heard more than ``validity_s`` ago, or their message's own validity
+    has passed (out of the formation, still avoided through their last trajectory); ``ignore``
+    have been silent for ``avoid_for_s`` more (no longer considered)."""
 
-    formation: tuple[PeerTrajectory, ...]
-    avoid_only: tuple[PeerTrajectory, ...]
-    dropped: tuple[int, ...]
+    avoid_only: frozenset[int]
+    ignore: frozenset[int]
 
 
-def split_peers(
-    peers: dict[int, PeerInfo],
-    now_s: float,
-    own_id: int,
-    own_slot: int,
-    epoch: int,
-    n_slots: int,
-    validity_s: float,
-    avoid_for_s: float,
-) -> PeerSplit:
-    """Classify the peers (see ``PeerSplit``); a peer's validity ends at the earlier of its
-    message's own ``valid_until_s`` and ``validity_s`` after it was received."""
-    formation: list[PeerTrajectory] = []
-    avoid: list[PeerTrajectory] = []
-    dropped: list[int] = []
-    taken = {own_slot}
-    for pid in sorted(peers):
+def peer_roles(
+    peers: dict[int, PeerInfo], now_s: float, own_id: int, validity_s: float, avoid_for_s: float
+) -> PeerRoles:
+    """Classify silent peers (see ``PeerRoles``); a peer's validity ends at the earlier of its
+    message's ``valid_until_s`` and ``validity_s`` after it was received."""
+    avoid: set[int] = set()
+    ignore: set[int] = set()
+    for pid, info in peers.items():
         if pid == own_id:
             continue
-        info = peers[pid]
         until = min(info.valid_until_s, info.received_s + validity_s)
-        if now_s <= until:
-            pt = PeerTrajectory(pid, info.slot, info.trajectory)
-            if (
-                info.formation_epoch == epoch
-                and 0 <= info.slot < n_slots
-                and info.slot not in taken
-            ):
-                taken.add(info.slot)
-                formation.append(pt)
-            else:
-                avoid.append(pt)
-        elif now_s <= until + avoid_for_s:
-            avoid.append(PeerTrajectory(pid, info.slot, info.trajectory))
-        else:
-            dropped.append(pid)
-    return PeerSplit(tuple(formation), tuple(avoid), tuple(dropped))
+        if now_s > until + avoid_for_s:
+            ignore.add(pid)
+        elif now_s > until:
+            avoid.add(pid)
+    return PeerRoles(frozenset(avoid), frozenset(ignore))
+
+
+class FieldSource:
+    """The agent's ``MapSource``: whatever field ``latest()`` gives (the mapping thread's latest
+    ESDF snapshot, an immutable object replaced as a whole)."""
+
+    def __init__(self, latest: Callable[[], Any]) -> None:
+        self.latest = latest
+
+    def snapshot(self, now_s: float, position: np.ndarray) -> DistanceField:
+        f = self.latest()
+        if f is None:
+            raise RuntimeError("no map to plan on yet")
+        return f
 
 
 def inside_box(
@@ -78,41 +104,8 @@ def inside_box(
     return bool(np.all((p >= lo) & (p <= hi)))
 
 
-class Replanner:
-    """One ``FormationPlanner`` per (formation template, slot), built when first needed."""
-
-    def __init__(self, params: PlannerParams) -> None:
-        self.params = params
-        self._planners: dict[tuple[object, int], FormationPlanner] = {}
-
-    def planner(self, points: Sequence[tuple[float, float, float]], slot: int) -> FormationPlanner:
-        key = (tuple(tuple(float(x) for x in p) for p in points), int(slot))
-        pl = self._planners.get(key)
-        if pl is None:
-            pl = FormationPlanner(self.params, np.array(key[0], dtype=np.float64), slot)
-            self._planners = {key: pl}  # one formation at a time: drop the old ones
-        return pl
-
-    def plan(
-        self,
-        points: Sequence[tuple[float, float, float]],
-        slot: int,
-        t_start_s: float,
-        start: tuple[np.ndarray, np.ndarray, np.ndarray],
-        goal: np.ndarray,
-        peers: Sequence[PeerTrajectory],
-        field: object,
-        previous: Trajectory | None,
-    ) -> PlanResult:
-        pl = self.planner(points, slot)
-        p, v, a = start
-        return pl.plan(t_start_s, p, v, a, goal, list(peers), field, previous)  # type: ignore[arg-type]
-
-
 def warm_up(params: PlannerParams) -> float:
     """Plan a small formation problem once (numba's cache loaded, kernels hot); seconds taken."""
-    import time
-
     from onboard.planner.field import AnalyticField
     from onboard.world import World
 

@@ -8,8 +8,13 @@ Threads (each loop is a ``*_step`` method the tests call directly with an inject
 - ``depth``: frames at camera rate into the rolling map; the planner's ESDF snapshot refreshed
   at ``mapping.esdf_rate_hz`` (a new immutable field object each time: the planner and the
   monitor always read a consistent one);
-- ``planner``: a replan every ``planning.replan_period_s`` and at once when asked (new goal,
-  the monitor's prediction);
+- ``planner``: the per-drone cycle, ``onboard.agent.DroneAgent`` — the same class the fast-time
+  simulator runs N of: a replan on the agent's grid every ``planning.replan_period_s`` and at
+  once when asked (new goal or formation at its effective time, the monitor's prediction); the
+  agent publishes every new trajectory and schedules it; the service's policy for the outcome
+  (geofence, hover-and-retry, emergency) hangs on the agent's ``on_plan``. While the drone is
+  airborne without a goal, the trajectory in control is re-announced every period so that
+  peers keep avoiding it;
 - ``monitor``: at ``planning.monitor_rate_hz`` the trajectory in control is checked against the
   map, the peers' latest trajectories and the geofence over ``monitor_horizon_s``; a predicted
   conflict asks for a replan at once, and if the conflict is still there after it, brakes;
@@ -19,7 +24,10 @@ Threads (each loop is a ``*_step`` method the tests call directly with an inject
   timers, state (10 Hz) and status (1 Hz) publishing, the flight record, the watchdog.
 
 Only the main loop touches the state machine; the other threads read an immutable ``Intent``
-that it publishes, and post their results back through a queue.
+that it publishes, and post their results back through a queue. The trajectory in control is
+the agent's (``agent.flying``/``advance``); the service overrides it (take-off climb, braking
+stop, hover) through ``_control``, and a plan whose cycle began before an override never
+replaces it.
 """
 
 from __future__ import annotations
@@ -36,12 +44,13 @@ from typing import Any
 
 import numpy as np
 
+from onboard.agent import DroneAgent, PlanReport
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
 from onboard.service.config import OnboardConfig
 from onboard.service.logs import event
-from onboard.service.planning import Replanner, inside_box, split_peers, warm_up
+from onboard.service.planning import FieldSource, PortPeerBus, inside_box, peer_roles, warm_up
 from onboard.service.ports import (
     AutopilotPort,
     CommandFailed,
@@ -55,7 +64,9 @@ from onboard.service.ports import (
 )
 from onboard.service.sdnotify import Notifier
 from onboard.service.state import (
+    AIRBORNE_CONTROLLED,
     COMMANDING,
+    Assignment,
     Command,
     CommandResult,
     FlightState,
@@ -69,7 +80,7 @@ from onboard.service.state import (
 log = logging.getLogger("onboard.service")
 
 S = FlightState
-_EPS_T = 1e-9
+_OK = (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
 
 
 @dataclass(frozen=True)
@@ -135,18 +146,40 @@ class FlightService:
             inside_geofence=lambda p: gf.contains(self._own_goal(np.asarray(p, dtype=float))),
             listener=self._on_transition,
         )
-        self.replanner = Replanner(config.planner)
+        pc = config.planning
+        rc = config.reactions.peer_lost
+        # the per-drone cycle: the same class the fast-time simulator runs. Until a formation is
+        # assigned it holds a one-point template; until take-off nothing is in control.
+        self.agent = DroneAgent(
+            self.id,
+            config.planner,
+            np.zeros((1, 3)),
+            0,
+            Trajectory.hover(np.zeros(3), clock(), 1.0),
+            PortPeerBus(bus),
+            FieldSource(self.field),
+            replan_period_s=pc.replan_period_s,
+            plan_ahead_s=pc.plan_ahead_s,
+            validity_s=rc.validity_s,
+            peer_forget_s=rc.avoid_for_s,
+            on_plan=self._on_plan,
+        )
+        self._agent_assignment: Assignment | None = None
         self._transitions: list[Transition] = []
         self._intent = Intent(S.IDLE)
         self._results: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._actions: queue.Queue[tuple[str, Callable[[], None]] | None] = queue.Queue()
-        self._replan_now = threading.Event()
+        self._wake = threading.Event()  # the planner thread: a replan or an announcement asked
         self._stop = threading.Event()
-        self._lock = threading.Lock()  # guards the trajectory in control and the next one
-        self._current: Trajectory | None = None
-        self._next: Trajectory | None = None
+        # overrides of the trajectory in control (take-off, braking, hover) against plans
+        self._ctl_lock = threading.Lock()
+        self._in_control = False  # nothing is in control before the first override
+        self._gen = 0  # overrides so far
+        self._cycle_gen = 0  # overrides when the running cycle began
+        self._override: Trajectory | None = None
+        self._announce = False
+        self._last_pub_s = -math.inf
         self._yaw = 0.0
-        self._traj_id = 0
         self._field: Any = None
         self._ground_field: Any = None
         self.mapper: Any = None
@@ -161,7 +194,7 @@ class FlightService:
         self._last_state_pub = -math.inf
         self._last_status_pub = -math.inf
         self._last_plan_s = -math.inf
-        self._last_plan_monotonic = -math.inf
+        self._last_map_record_s = -math.inf
         self._monitor_brake_at = -math.inf
         self._plan_ms: list[float] = []
         self._plan_status = ""
@@ -181,6 +214,9 @@ class FlightService:
             "commands_rejected": 0,
             "setpoints_sampled": 0,
             "peers_dropped": 0,
+            "plans_superseded": 0,
+            "announcements": 0,
+            "map_occupied_cells": 0,
         }
         self.ready = False
         self._threads: list[threading.Thread] = []
@@ -202,32 +238,28 @@ class FlightService:
         return formation_goal + pts[slot] - pts.mean(axis=0)
 
     # ---- trajectory in control (any thread) --------------------------------------------------
-    def set_trajectory(self, traj: Trajectory, replace_next: bool = True) -> None:
-        """``traj`` takes control now (or at its start time if that lies ahead)."""
-        with self._lock:
-            now = self.clock()
-            if traj.t0_s <= now + _EPS_T or self._current is None:
-                self._current = traj
-                if replace_next:
-                    self._next = None
-            else:
-                self._next = traj
+    def _control(self, traj: Trajectory) -> None:
+        """``traj`` takes control now (take-off, braking stop, hover): the agent's queue is
+        dropped, a plan whose cycle is running will not replace it, and peers hear of it."""
+        with self._ctl_lock:
+            self._gen += 1
+            self._override = traj
+            self.agent.reset(traj)
+            self._in_control = True
+        self._announce = True
+        self._wake.set()
 
     def flying(self, t_s: float) -> Trajectory | None:
-        """The trajectory in control at ``t_s`` (>= now)."""
-        with self._lock:
-            if self._next is not None and t_s >= self._next.t0_s - _EPS_T:
-                return self._next
-            return self._current
+        """The trajectory in control at ``t_s`` (>= now); None before the first take-off."""
+        if not self._in_control:
+            return None
+        return self.agent.flying(t_s)
 
     def sample_setpoint(self, t_s: float) -> Setpoint | None:
         """Called by the setpoint thread at 50 Hz: the trajectory in control at ``t_s``."""
-        with self._lock:
-            if self._next is not None and t_s >= self._next.t0_s - _EPS_T:
-                self._current, self._next = self._next, None
-            traj = self._current
-        if traj is None:
+        if not self._in_control:
             return None
+        traj = self.agent.advance(t_s)
         p, v, a = traj.state(t_s)
         self._yaw = heading_of(v, self._yaw)
         self.counters["setpoints_sampled"] += 1
@@ -278,19 +310,23 @@ class FlightService:
             self._queue_action("land", self.ap.land)
             return
         if target in (S.HOVER, S.EMERGENCY):
-            self._brake(now, veh, keep_hover=tr.source is S.TAKEOFF)
+            if tr.source in (S.PILOT, S.LINK_LOST) and veh is not None:
+                # someone else flew the vehicle: hold where it is, not where the plan was
+                self._control(Trajectory.hover(veh.position_m, now, 1.0))
+            else:
+                self._brake(now, veh, keep_hover=tr.source is S.TAKEOFF)
             if tr.source in (S.PILOT, S.LINK_LOST, S.EMERGENCY) and target is S.HOVER:
                 self._queue_action("resume", self._do_resume)
             return
         if target is S.FORMATION_FLIGHT:
-            self._replan_now.set()
+            self._ask_replan()
 
     def _brake(self, now: float, veh: VehicleSnapshot | None, keep_hover: bool = False) -> None:
         """A braking stop from the state of the trajectory in control (or the vehicle)."""
         traj = self.flying(now)
         if keep_hover and traj is not None:
             end = traj.end_position
-            self.set_trajectory(Trajectory.hover(end, now, 1.0))
+            self._control(Trajectory.hover(end, now, 1.0))
             return
         if traj is not None:
             p, v, a = traj.state(now)
@@ -298,16 +334,34 @@ class FlightService:
             p, v, a = veh.position_m, veh.velocity_m_s, np.zeros(3)
         else:
             return
-        self.set_trajectory(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
+        self._control(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
+
+    def _ask_replan(self) -> None:
+        self.agent.request_replan()
+        self._wake.set()
 
     def _publish_intent(self) -> None:
         m = self.machine
         a = m.assignment
+        slot = None if a is None else a.slot_of(self.id)
+        flying_to = m.state is S.FORMATION_FLIGHT and m.goal is not None and slot is not None
         goal = None if m.goal is None else self._own_goal(np.asarray(m.goal, dtype=float))
+        # the agent first (thread-safe setters), then the intent the other threads read
+        if a is not None and slot is not None and a is not self._agent_assignment:
+            self.agent.set_formation(np.asarray(a.points, dtype=np.float64), slot, a.epoch)
+            self._agent_assignment = a
+        target = goal if flying_to else None
+        current = self.agent.goal
+        if target is None:
+            if current is not None:
+                self.agent.set_goal(None)
+        elif current is None or not np.array_equal(current, target):
+            self.agent.set_goal(target)
+            self._wake.set()
         self._intent = Intent(
             m.state,
             goal,
-            -1 if a is None else (a.slot_of(self.id) if a.slot_of(self.id) is not None else -1),  # type: ignore[arg-type]
+            -1 if slot is None else slot,
             -1 if a is None else a.epoch,
             () if a is None else a.points,
         )
@@ -323,21 +377,19 @@ class FlightService:
         start = veh.position_m.copy()
         self._yaw = veh.yaw_rad
         now = self.clock()
-        self.set_trajectory(Trajectory.hover(start, now, 1.0))
+        self._control(Trajectory.hover(start, now, 1.0))
         self.ap.stream(self.sample_setpoint)
         self.ap.request_offboard()
         self.ap.arm()
         alt = self.machine.takeoff_altitude_m or self.cfg.flight.takeoff_altitude_m
-        self.set_trajectory(
-            climb_trajectory(self.clock(), start, alt, self.cfg.flight.takeoff_speed_m_s)
-        )
+        self._control(climb_trajectory(self.clock(), start, alt, self.cfg.flight.takeoff_speed_m_s))
 
     def _do_resume(self) -> None:
         veh = self.ap.vehicle()
         if veh is None:
             raise CommandFailed("no telemetry")
         if self.flying(self.clock()) is None:
-            self.set_trajectory(Trajectory.hover(veh.position_m, self.clock(), 1.0))
+            self._control(Trajectory.hover(veh.position_m, self.clock(), 1.0))
         self.ap.stream(self.sample_setpoint)
         self.ap.request_offboard()
 
@@ -384,7 +436,30 @@ class FlightService:
             self._field = self.mapper.planning_field()
             self._last_esdf_s = now
             self.counters["esdf_builds"] += 1
+            if now - self._last_map_record_s >= 0.5:
+                self._last_map_record_s = now
+                self._record_map(now, np.asarray(frame.position, dtype=np.float64))
         return True
+
+    def _record_map(self, now: float, camera: np.ndarray) -> None:
+        """Twice a second: what the map holds (occupied cells; the nearest mapped surface to the
+        camera and where it is), in the counters and the flight record."""
+        occupied = int(np.count_nonzero(self.mapper.map.occupied()))
+        self.counters["map_occupied_cells"] = occupied
+        rec = self.recorder
+        if rec is None:
+            return
+        d, g = self.mapper.field().distance(camera.reshape(1, 3))
+        dist = float(d[0])
+        nearest = camera - dist * np.asarray(g[0], dtype=np.float64)
+        rec.map(
+            now,
+            frames=self.counters["frames"],
+            occupied_cells=occupied,
+            camera_enu_m=camera,
+            nearest_obstacle_m=dist,
+            nearest_obstacle_enu_m=nearest,
+        )
 
     def field(self) -> Any:
         """The distance field to plan on: the latest ESDF snapshot, or the ground alone when the
@@ -401,74 +476,84 @@ class FlightService:
         return None
 
     # ---- planning (the planner thread) -------------------------------------------------------
-    def plan_step(self, reason: str = "period") -> PlanStatus | None:
-        """One replan if the intent is a formation flight; posts the outcome to the main loop."""
-        it = self._intent
-        if it.state is not S.FORMATION_FLIGHT or it.goal is None or it.slot < 0:
-            return None
-        fld = self.field()
-        if fld is None:
-            return None
+    def plan_step(self) -> PlanReport | None:
+        """The planner thread's step: the agent's cycle when a replan is due in formation flight
+        (the report, else None); then, while airborne, the trajectory in control announced when
+        an override asks for it or nothing was published for a replan period."""
         now = self.clock()
-        self._last_plan_s = now
-        self._last_plan_monotonic = time.monotonic()
-        t_start = now + self.cfg.planning.plan_ahead_s
-        flying = self.flying(t_start)
-        if flying is None:
-            return None
-        start = flying.state(t_start)
-        rc = self.cfg.reactions.peer_lost
-        split = split_peers(
-            self.bus.peers(),
-            now,
-            self.id,
-            it.slot,
-            it.epoch,
-            len(it.points),
-            rc.validity_s,
-            rc.avoid_for_s,
-        )
-        c0 = time.perf_counter()
-        res = self.replanner.plan(
-            it.points, it.slot, t_start, start, it.goal, split.formation, fld, flying
-        )
-        traj = res.trajectory
-        status = res.status
-        why = res.message
-        if status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
-            pl = self.replanner.planner(it.points, it.slot)
-            if not inside_box(traj, t_start, self.cfg.geofence):
-                status, why = PlanStatus.EMERGENCY, "plan leaves the geofence"
-            elif split.avoid_only:
-                safe, w = pl.check(traj, t_start, fld, split.avoid_only)
-                if not safe:
-                    status, why = PlanStatus.EMERGENCY, f"silent peer: {w}"
-            if status is PlanStatus.EMERGENCY:
-                traj = braking_trajectory(t_start, *start, self.cfg.planner.a_max_m_s2)
-        plan_ms = (time.perf_counter() - c0) * 1e3
-        self.set_trajectory(traj, replace_next=True)
-        self._traj_id += 1
-        if traj is not flying:
-            valid = max(traj.t_end_s - now, 0.0) + self.cfg.reactions.peer_lost.validity_s
-            self.bus.publish_trajectory(self._traj_id, it.slot, it.epoch, traj, min(valid, 600.0))
-        self._results.put(("plan", (status, plan_ms, why, len(split.formation), split.dropped)))
+        it = self._intent
+        report = None
+        if (
+            it.state is S.FORMATION_FLIGHT
+            and it.goal is not None
+            and self._in_control
+            and self.field() is not None
+        ):
+            rc = self.cfg.reactions.peer_lost
+            roles = peer_roles(self.bus.peers(), now, self.id, rc.validity_s, rc.avoid_for_s)
+            self.agent.set_peer_roles(roles.avoid_only, roles.ignore)
+            self.counters["peers_dropped"] = len(roles.ignore)
+            with self._ctl_lock:
+                self._cycle_gen = self._gen
+            try:
+                report = self.agent.step(now)
+            except ValueError:
+                if self.agent.goal is not None:
+                    raise
+                # the main loop cleared the goal between the due check and the cycle
+        if it.state in AIRBORNE_CONTROLLED and self._in_control:
+            period = self.cfg.planning.replan_period_s
+            if self._announce or now - self._last_pub_s >= period:
+                self._announce = False
+                self.agent.announce(now)
+                self._last_pub_s = now
+                self.counters["announcements"] += 1
+        return report
+
+    def _on_plan(self, rep: PlanReport) -> None:
+        """The agent's report, inside its cycle (planner thread): the new trajectory is already
+        published and scheduled. An override made meanwhile wins; a plan leaving the geofence
+        is replaced by a braking stop; the outcome goes to the main loop and the record."""
+        status, why = rep.status, rep.message
+        traj = rep.trajectory
+        with self._ctl_lock:
+            superseded = self._gen != self._cycle_gen and self._override is not None
+            if superseded:
+                self.agent.reset(self._override)  # type: ignore[arg-type]
+                self._announce = True
+        if (
+            not superseded
+            and status in _OK
+            and not inside_box(traj, rep.t_start_s, self.cfg.geofence)
+        ):
+            status, why = PlanStatus.EMERGENCY, "plan leaves the geofence"
+            now = self.clock()
+            p, v, a = self.agent.flying(now).state(now)
+            self._control(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
+        self._last_plan_s = rep.planned_at_s
+        self._last_pub_s = rep.planned_at_s
+        self._results.put(("plan", (status, rep.plan_ms, why, superseded)))
         rec = self.recorder
         if rec is not None:
             rec.plan(
-                now,
+                rep.planned_at_s,
                 status=status.value,
-                traj_id=self._traj_id,
-                reason=reason + (f": {why}" if why else ""),
-                plan_ms=plan_ms,
-                iterations=res.iterations,
-                evaluations=res.evaluations,
-                n_peers=len(split.formation),
+                traj_id=rep.seq,
+                reason=why + (" (superseded by an override)" if superseded else ""),
+                plan_ms=rep.plan_ms,
+                cycle_ms=rep.cycle_ms,
+                iterations=rep.iterations,
+                evaluations=rep.evaluations,
+                n_peers=len(rep.formation_peers),
+                formation_peers=list(rep.formation_peers),
+                avoided_peers=list(rep.avoided_peers),
+                slot=rep.slot,
+                formation_epoch=rep.formation_epoch,
                 t0_s=traj.t0_s,
                 durations_s=traj.durations_s,
                 coeffs=traj.coeffs.ravel(),
-                goal_enu_m=it.goal,
+                goal_enu_m=rep.goal,
             )
-        return status
 
     # ---- the safety monitor (the monitor thread) ---------------------------------------------
     def monitor_step(self) -> str:
@@ -493,8 +578,10 @@ class FlightService:
                 problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
         if not problem:
             rc = self.cfg.reactions.peer_lost
-            for pid, info in self.bus.peers().items():
-                if pid == self.id or now > info.received_s + rc.validity_s + rc.avoid_for_s:
+            peers = self.bus.peers()
+            gone = peer_roles(peers, now, self.id, rc.validity_s, rc.avoid_for_s).ignore
+            for pid, info in sorted(peers.items()):
+                if pid == self.id or pid in gone:
                     continue
                 dd = np.linalg.norm(pos - info.trajectory.sample(ts), axis=1)
                 k = int(np.argmin(dd))
@@ -510,14 +597,14 @@ class FlightService:
             return ""
         if it.state is S.FORMATION_FLIGHT and now - self._last_plan_s > 0.3:
             self.counters["monitor_replans"] += 1
-            self._replan_now.set()
+            self._ask_replan()
             return f"replan: {problem}"
         if now - self._monitor_brake_at < 1.0:
             return f"braking: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
         pp, vv, aa = traj.state(now)
-        self.set_trajectory(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2))
+        self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2))
         self._results.put(("monitor_brake", problem))
         return f"brake: {problem}"
 
@@ -545,8 +632,6 @@ class FlightService:
                 f"command {inc.cmd_id} {type(cmd).__name__}: "
                 + ("accepted" if res.accepted else f"rejected ({res.reason})"),
             )
-        if isinstance(cmd, (Goal, Waypoints)) and res.accepted:
-            self._replan_now.set()
         return res
 
     def _react(self, now: float, veh: VehicleSnapshot | None) -> None:
@@ -623,14 +708,14 @@ class FlightService:
             except queue.Empty:
                 return
             if kind == "plan":
-                status, plan_ms, why, n_peers, dropped = payload
+                status, plan_ms, why, superseded = payload
                 self.counters["replans"] += 1
                 self._plan_ms.append(plan_ms)
                 self._plan_status = status.value
                 self._plan_stamp = self.clock()
-                if dropped:
-                    self.counters["peers_dropped"] = len(dropped)
-                if status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
+                if superseded:  # the state changed while it was made: nothing to decide
+                    self.counters["plans_superseded"] += 1
+                elif status in _OK:
                     m.plan_ok()
                 else:
                     self.counters["plans_failed"] += 1
@@ -793,22 +878,24 @@ class FlightService:
             self._stop.wait(delay)
 
     def _planner_loop(self) -> None:
-        period = self.cfg.planning.replan_period_s
         while not self._stop.is_set():
             self.health.beat("planner")
-            asked = self._replan_now.wait(min(period, 0.5))
+            # sleep until the agent's next replan (its grid or a request), a wake-up (goal,
+            # override, monitor) or a quarter second (announcements, the watchdog's beat)
+            if self.agent.goal is None:
+                wait = 0.25
+            else:
+                wait = min(max(self.agent.next_replan_s - self.clock(), 0.02), 0.25)
+            self._wake.wait(wait)
+            self._wake.clear()
             if self._stop.is_set():
                 return
-            due = time.monotonic() - self._last_plan_monotonic >= period
-            if not (asked or due):
-                continue
-            self._replan_now.clear()
             try:
-                self.plan_step("asked" if asked else "period")
+                self.plan_step()
             except Exception:
                 log.exception("planner step failed")
                 self.counters["planner_errors"] = self.counters.get("planner_errors", 0) + 1
-                self._last_plan_monotonic = time.monotonic()
+                self._stop.wait(0.1)
 
     def _depth_loop(self) -> None:
         period = 1.0 / (2.0 * self.cfg.depth.rate_hz)
@@ -898,7 +985,7 @@ class FlightService:
         """Stop the workers and the stream; close the record (safe from a signal handler's
         thread via ``request_stop``)."""
         self._stop.set()
-        self._replan_now.set()
+        self._wake.set()
         self._actions.put(None)
         for t in self._threads:
             t.join(5.0)
@@ -910,4 +997,4 @@ class FlightService:
 
     def request_stop(self) -> None:
         self._stop.set()
-        self._replan_now.set()
+        self._wake.set()

@@ -15,6 +15,11 @@ FORMATION_FLIGHT pauses into HOVER (the goal kept) while a *hold* is active: ``d
 frames: stop and hover until they return) or ``plan`` (a 'kept-previous' or 'emergency' plan:
 hover, retry after ``retry_after_s``). When every hold is gone the flight continues.
 
+Swarm-wide changes take effect at one common time: a ``SetFormation``, ``Goal`` or ``Waypoints``
+whose ``effective_s`` lies ahead is checked and acknowledged at once, kept *pending*, and applied
+by ``tick`` when the clock reaches it (every drone switches together, not as the messages
+arrive). A pending goal is dropped with the current one (land, abort, pilot, link loss ...).
+
 Ground-station commands (``Takeoff``, ``SetFormation``, ``Goal``, ``Waypoints``, ``Land``,
 ``Abort``, ``Resume``) return a ``CommandResult``: accepted, or rejected with the reason (which the
 service acks back). Every transition is reported to the listener (the service logs, publishes and
@@ -74,12 +79,20 @@ class SetFormation:
 
 @dataclass(frozen=True)
 class Goal:
+    """Fly the formation's centre to ``position``, from the global time ``effective_s`` on (the
+    same on every drone; a time already past: at once). Checked when it arrives; until its
+    time the drone goes on with what it was doing."""
+
     position: Vec3
+    effective_s: float = -math.inf
 
 
 @dataclass(frozen=True)
 class Waypoints:
+    """Fly through ``positions`` in order, from ``effective_s`` on (see ``Goal``)."""
+
     positions: tuple[Vec3, ...]
+    effective_s: float = -math.inf
 
 
 @dataclass(frozen=True)
@@ -173,6 +186,8 @@ class FlightStateMachine:
         self.takeoff_altitude_m: float | None = None
         self.assignment: Assignment | None = None
         self.pending: Assignment | None = None
+        self.pending_goals: tuple[tuple[Vec3, ...], float] | None = None
+        """Goal(s) accepted for a common time still ahead: (positions, effective_s)."""
         self.holds: set[str] = set()
         self.link_ok = True
         self.gcs_ok = True
@@ -207,10 +222,15 @@ class FlightStateMachine:
             self.holds.discard(HOLD_PLAN)  # the depth hold lasts as long as the frames are missing
             self._retry_at_s = math.inf
         if target in (FlightState.LANDING, FlightState.LANDED, FlightState.IDLE):
-            self.goal = None
-            self.waypoints.clear()
+            self._clear_goals()
         if self.listener is not None:
             self.listener(tr)
+
+    def _clear_goals(self) -> None:
+        """Forget the goal, the waypoints and a goal waiting for its effective time."""
+        self.goal = None
+        self.waypoints.clear()
+        self.pending_goals = None
 
     def _reject(self, reason: str) -> CommandResult:
         return CommandResult(False, reason)
@@ -233,9 +253,9 @@ class FlightStateMachine:
         if isinstance(cmd, Takeoff):
             return self._takeoff(cmd)
         if isinstance(cmd, Goal):
-            return self._goals([cmd.position])
+            return self._goals([cmd.position], cmd.effective_s)
         if isinstance(cmd, Waypoints):
-            return self._goals(list(cmd.positions))
+            return self._goals(list(cmd.positions), cmd.effective_s)
         if isinstance(cmd, Land):
             return self._land()
         if isinstance(cmd, Abort):
@@ -288,7 +308,7 @@ class FlightStateMachine:
         self._go(FlightState.TAKEOFF, "take-off command")
         return CommandResult(True)
 
-    def _goals(self, positions: list[Vec3]) -> CommandResult:
+    def _goals(self, positions: list[Vec3], effective_s: float) -> CommandResult:
         why = self._not_airborne_reason()
         if why is not None:
             return self._reject(why)
@@ -303,11 +323,31 @@ class FlightStateMachine:
                 return self._reject(f"goal {[round(float(v), 2) for v in p]} outside the geofence")
         if self.assignment is None and self.pending is None:
             return self._reject("no formation assigned yet")
+        if math.isnan(effective_s):
+            return self._reject("effective time is not a number")
+        if self.clock() >= effective_s:
+            self.pending_goals = None
+            self._apply_goals(positions, "goal command")
+        else:
+            self.pending_goals = (tuple(positions), effective_s)
+        return CommandResult(True)
+
+    def _apply_goals(self, positions: Sequence[Vec3], reason: str) -> None:
         self.goal = positions[0]
         self.waypoints = list(positions[1:])
         if not self.holds:
-            self._go(FlightState.FORMATION_FLIGHT, "goal command")
-        return CommandResult(True)
+            self._go(FlightState.FORMATION_FLIGHT, reason)
+
+    def _activate_goals(self) -> None:
+        pg = self.pending_goals
+        if pg is None or self.clock() < pg[1]:
+            return
+        self.pending_goals = None
+        if self._not_airborne_reason() is None and self.state in (
+            FlightState.HOVER,
+            FlightState.FORMATION_FLIGHT,
+        ):
+            self._apply_goals(pg[0], "goal at its effective time")
 
     def _land(self) -> CommandResult:
         s = self.state
@@ -332,8 +372,7 @@ class FlightStateMachine:
             return self._reject("the pilot has control")
         if s is FlightState.LINK_LOST:
             return self._reject("autopilot link lost")
-        self.goal = None
-        self.waypoints.clear()
+        self._clear_goals()
         self._go(FlightState.EMERGENCY, "abort command")
         return CommandResult(True)
 
@@ -343,8 +382,7 @@ class FlightStateMachine:
             return self._reject(f"nothing to resume in state {s.value}")
         if not self.link_ok:
             return self._reject("autopilot link is down")
-        self.goal = None
-        self.waypoints.clear()
+        self._clear_goals()
         if self.on_ground:
             self._go(FlightState.IDLE, "resume on the ground")
         else:
@@ -373,22 +411,20 @@ class FlightStateMachine:
             self.goal = self.waypoints.pop(0)
             return
         self.goal = None
-        self.waypoints.clear()
+        self.waypoints.clear()  # a pending goal (a later common time) stays
         self._go(FlightState.HOVER, "goal reached")
         self._gcs_lost_policy()
 
     def pilot_took_over(self, detail: str = "") -> None:
         """The vehicle left the service's mode without the service asking: yield at once."""
         if self.state in AIRBORNE_CONTROLLED:
-            self.goal = None
-            self.waypoints.clear()
+            self._clear_goals()
             self._go(FlightState.PILOT, "pilot took over" + (f" ({detail})" if detail else ""))
 
     def link_lost(self) -> None:
         self.link_ok = False
         if self.state in AIRBORNE_CONTROLLED:
-            self.goal = None
-            self.waypoints.clear()
+            self._clear_goals()
             self._go(FlightState.LINK_LOST, "autopilot heartbeat lost")
         elif self.state is FlightState.TAKEOFF:  # pragma: no cover - TAKEOFF is controlled
             self._go(FlightState.LINK_LOST, "autopilot heartbeat lost")
@@ -413,8 +449,7 @@ class FlightStateMachine:
             FlightState.HOVER,
             FlightState.FORMATION_FLIGHT,
         ):
-            self.goal = None
-            self.waypoints.clear()
+            self._clear_goals()
             self._go(
                 FlightState.EMERGENCY, f"planning failing for {now - self._failing_since_s:.1f} s"
             )
@@ -460,8 +495,10 @@ class FlightStateMachine:
             self._go(FlightState.FORMATION_FLIGHT, reason)
 
     def tick(self) -> None:
-        """Time-driven transitions: formation activation, plan retry, emergency landing."""
+        """Time-driven transitions: formation and goal activation at their effective times,
+        plan retry, emergency landing."""
         self._activate_assignment()
+        self._activate_goals()
         now = self.clock()
         if HOLD_PLAN in self.holds and now >= self._retry_at_s:
             self._release(HOLD_PLAN, "retrying the plan")
