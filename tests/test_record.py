@@ -36,11 +36,24 @@ def _write_flight(path: Path) -> None:
             plan_ms=12.5,
             iterations=30,
             evaluations=80,
+            cycle_ms=14.0,
             n_peers=2,
+            formation_peers=[1, 4],
+            avoided_peers=[6],
+            slot=3,
+            formation_epoch=2,
             t0_s=1000.6,
             durations_s=np.array([1.0, 2.0]),
             coeffs=np.zeros((2, 6, 3)).ravel(),
             goal_enu_m=[5.0, 0, 1],
+        )
+        rec.map(
+            1000.7,
+            frames=21,
+            occupied_cells=345,
+            camera_enu_m=np.array([1.0, 0.0, 1.1]),
+            nearest_obstacle_m=0.75,
+            nearest_obstacle_enu_m=np.array([1.75, 0.0, 1.1]),
         )
         rec.counters(1001.0, {"traj_rx": 10, "traj_rejected_stale": 1})
         rec.transition(1000.2, "takeoff", "hover", "take-off altitude reached")
@@ -65,6 +78,10 @@ def test_record_round_trip(tmp_path: Path) -> None:
     plan = rec.messages("/plan")[0]
     assert plan["status"] == "ok" and plan["durations_s"] == [1.0, 2.0]
     assert len(plan["coeffs"]) == 36
+    assert plan["formation_peers"] == [1, 4] and plan["avoided_peers"] == [6]
+    assert (plan["slot"], plan["formation_epoch"]) == (3, 2)
+    (m,) = rec.messages("/map")
+    assert m["occupied_cells"] == 345 and m["nearest_obstacle_enu_m"] == [1.75, 0.0, 1.1]
     assert rec.messages("/counters")[0]["counters"]["traj_rx"] == 10
     assert rec.transitions() == [(1000.2, "takeoff", "hover", "take-off altitude reached")]
     assert rec.events() == [(1000.3, 3, "depth frames back")]
