@@ -562,15 +562,12 @@ def view(
                 pass
 
 
-COMMANDS: tuple[click.Command, ...] = (
-    status,
-    formation,
-    goal,
-    waypoints,
-    takeoff,
-    land,
-    abort,
-    resume,
-    view,
-)
+def _all_commands() -> tuple[click.Command, ...]:
+    from gcs.demo import demo
+    from gcs.report import report
+
+    return (status, formation, goal, waypoints, takeoff, land, abort, resume, view, report, demo)
+
+
+COMMANDS: tuple[click.Command, ...] = _all_commands()
 """Register on ``swarm-gcs``: ``for c in COMMANDS: main.add_command(c)``."""

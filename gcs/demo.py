@@ -1,0 +1,885 @@
+"""``swarm-gcs demo``: the whole stack on one machine, flown through the same commands an operator
+sends in the field.
+
+1. ``swarm-sitl --count N --world W --seed S --truth zenoh --depth`` (the PX4-like fleet, its
+   true poses and simulated depth frames on a Zenoh endpoint of its own);
+2. N x ``swarm-onboard run --id i`` (one flight service per drone: MAVLink to its vehicle, depth
+   frames from the mock, the swarm bus on a loopback peer mesh, a flight record each);
+3. the ground station (this process) on the same mesh: take off, assign the formation (Hungarian
+   slots from where the drones hover), form up at the start, fly the formation's centre to the
+   world's goal across the forest, optionally change formation in flight
+   (``--formation-change NAME@SECONDS``, seconds after the goal was sent), land;
+4. the result (arrived, collisions reported by the mock, e_dist, e_sim, clearances, flight time,
+   setpoint jitter) and the flight report (``gcs.report``) in the flight directory.
+
+Every port is picked free on 127.0.0.1, so two demos on one machine do not collide. All child
+processes run in one process group of their own; it is stopped (SIGTERM, then SIGKILL) on
+success, on failure, on Ctrl-C and on SIGTERM. The exit status is 0 only on success.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import IO, Any
+
+import numpy as np
+
+from gcs.formations import FormationError, load_template
+from gcs.station import CommandOutcome, GroundStation, StationConfig
+from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
+
+log = logging.getLogger(__name__)
+
+
+class DemoError(RuntimeError):
+    """The demo cannot go on (a process died, a step timed out, a command was refused)."""
+
+
+class Interrupted(BaseException):
+    """SIGTERM received (handled like Ctrl-C)."""
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """What to fly and how.
+
+    formation_change: (formation name, seconds after the goal was sent) or None;
+    altitude_m: cruise altitude (None: the world's start height); depth_rate_hz: frames per
+    second the mock renders per drone (the machine must sustain N times that); v_max_m_s:
+    the planner's speed limit (None: config/onboard.yaml's); onboard_sets / sitl_sets: extra
+    ``--set KEY=VALUE`` for every service / the mock; startup_timeout_s: until every service
+    is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
+    (None: from the route length and the speed limit); out_dir: the flight directory.
+    """
+
+    drones: int = 7
+    formation: str = "hexagon-7"
+    world: str = "forest-medium"
+    seed: int = 1
+    formation_change: tuple[str, float] | None = None
+    altitude_m: float | None = None
+    depth_rate_hz: float = 10.0
+    depth_step: int = 2
+    v_max_m_s: float | None = None
+    spacing_m: float = 1.5
+    onboard_sets: tuple[str, ...] = ()
+    sitl_sets: tuple[str, ...] = ()
+    startup_timeout_s: float = 180.0
+    step_timeout_s: float = 60.0
+    flight_timeout_s: float | None = None
+    out_dir: Path = field(
+        default_factory=lambda: Path("flights") / time.strftime("demo-%Y%m%d-%H%M%S")
+    )
+    swarm: str = ""
+    view_port: int | None = None
+    report: bool = True
+
+
+# --- processes -------------------------------------------------------------------------------
+
+
+def _exe(name: str, module: str) -> list[str]:
+    """The console script next to this interpreter, else the module's click group."""
+    script = Path(sys.executable).parent / name
+    if script.is_file() and os.access(script, os.X_OK):
+        return [str(script)]
+    return [sys.executable, "-c", f"import sys; from {module} import main; sys.exit(main())"]
+
+
+def _term_with_parent() -> None:
+    """Linux: the child gets SIGTERM when this process dies, even by SIGKILL (so that not even
+    a killed demo leaves its fleet running)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+
+
+class ProcessGroup:
+    """Child processes in one new process group (the first child leads it), each with its
+    output in a log file. Stopping signals the children by pid (SIGTERM, so that the services
+    close their flight records and the mock writes its statistics), then the whole group."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.pgid: int | None = None
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._logs: dict[str, IO[bytes]] = {}
+
+    def start(self, name: str, argv: Sequence[str], env: dict[str, str] | None = None) -> None:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        out = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - closed in close()
+        self._logs[name] = out
+        pgid = self.pgid
+
+        def join_group() -> None:  # runs in the child between fork and exec
+            os.setpgid(0, 0 if pgid is None else pgid)
+            _term_with_parent()
+
+        proc = subprocess.Popen(
+            list(argv),
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, **(env or {})},
+            preexec_fn=join_group,  # sets the group between fork and exec
+        )
+        if self.pgid is None:
+            self.pgid = proc.pid
+        self.procs[name] = proc
+        log.info("started %s (pid %d): %s", name, proc.pid, " ".join(argv))
+        # who runs, for an operator (or a test) checking that nothing is left behind
+        (self.log_dir / "processes.json").write_text(
+            json.dumps({"pgid": self.pgid, "pids": {n: p.pid for n, p in self.procs.items()}})
+        )
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.procs.values()]
+
+    def check(self, expected_running: Sequence[str] | None = None) -> None:
+        """Raise :class:`DemoError` if a child that should run has exited."""
+        for name in expected_running if expected_running is not None else list(self.procs):
+            p = self.procs[name]
+            if p.poll() is not None:
+                raise DemoError(f"{name} exited with status {p.returncode}:\n{self.tail(name)}")
+
+    def tail(self, name: str, lines: int = 15) -> str:
+        try:
+            text = (self.log_dir / f"{name}.log").read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join("    " + ln for ln in text.splitlines()[-lines:])
+
+    def stop(self, names: Sequence[str], timeout_s: float = 15.0) -> dict[str, int | None]:
+        """SIGTERM to ``names`` (by pid), wait; SIGKILL whoever is left. Exit codes by name."""
+        for n in names:
+            p = self.procs[n]
+            if p.poll() is None:
+                try:
+                    p.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + timeout_s
+        for n in names:
+            p = self.procs[n]
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop after SIGTERM: killed", n)
+                p.kill()
+                p.wait()
+        return {n: self.procs[n].returncode for n in names}
+
+    def close(self, timeout_s: float = 15.0) -> None:
+        """Stop every child, then make sure nothing of the group is left."""
+        try:
+            self.stop(list(self.procs), timeout_s)
+        finally:
+            if self.pgid is not None:
+                try:
+                    os.killpg(self.pgid, signal.SIGKILL)  # grandchildren, if any
+                except ProcessLookupError:
+                    pass
+            for f in self._logs.values():
+                f.close()
+
+
+# --- the mock's truth ------------------------------------------------------------------------
+
+
+class TruthWatch:
+    """The mock's true poses over Zenoh (``<prefix>/<system id>/pose``): that the mock runs, and
+    its per-vehicle collision counters."""
+
+    def __init__(self, prefix: str, endpoint: str) -> None:
+        from sitl_mock.truth import TruthSample
+
+        self._decode = TruthSample.from_bytes
+        self._lock = threading.Lock()
+        self.latest: dict[int, Any] = {}
+        self._session = open_session(connect=(endpoint,))
+        self._sub = self._session.declare_subscriber(f"{prefix}/*/pose", self._on)
+
+    def _on(self, sample: Any) -> None:
+        try:
+            s = self._decode(sample.payload.to_bytes())
+        except (ValueError, KeyError, TypeError):
+            log.warning("undecodable truth sample on %s", sample.key_expr)
+            return
+        with self._lock:
+            self.latest[s.system_id] = s
+
+    def snapshot(self) -> dict[int, Any]:
+        with self._lock:
+            return dict(self.latest)
+
+    def collisions(self) -> int:
+        return sum(int(s.collisions) for s in self.snapshot().values())
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        finally:
+            self._session.close()
+
+
+# --- the mission -----------------------------------------------------------------------------
+
+
+@dataclass
+class FlightLog:
+    """Samples the ground station takes while the swarm flies (5 Hz, from the drones' states)."""
+
+    t: list[float] = field(default_factory=list)
+    centroid_x: list[float] = field(default_factory=list)
+    e_dist: list[float] = field(default_factory=list)
+    e_sim: list[float] = field(default_factory=list)
+    min_pair_m: list[float] = field(default_factory=list)
+
+    def add(self, gs: GroundStation, now: float) -> None:
+        pos = gs.positions()
+        err = gs.formation_error()
+        p = np.array(list(pos.values())) if pos else np.zeros((0, 3))
+        self.t.append(now)
+        self.centroid_x.append(float(p[:, 0].mean()) if len(p) else math.nan)
+        self.e_dist.append(err[0] if err is not None else math.nan)
+        self.e_sim.append(err[1] if err is not None else math.nan)
+        if len(p) >= 2:
+            d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+            self.min_pair_m.append(float(d[np.triu_indices(len(p), 1)].min()))
+        else:
+            self.min_pair_m.append(math.nan)
+
+    def cluttered(self, span: tuple[float, float]) -> dict[str, float | None]:
+        x = np.array(self.centroid_x)
+        inside = (x >= span[0]) & (x <= span[1])
+
+        def mean(v: list[float]) -> float | None:
+            a = np.array(v)[inside]
+            a = a[np.isfinite(a)]
+            return float(a.mean()) if a.size else None
+
+        return {"e_dist_m": mean(self.e_dist), "e_sim": mean(self.e_sim)}
+
+
+GAVE_UP = ("emergency", "landing", "landed", "pilot", "link-lost")
+"""Flight states in which a drone no longer flies the mission."""
+
+Progress = Callable[[str, dict[str, Any]], None]
+"""``progress(phase, info)``: called about twice a second while waiting."""
+
+
+class Demo:
+    """One demo run; :meth:`run` returns the result and writes ``mission.json`` and the report.
+    Use as a context manager: leaving it stops every process."""
+
+    def __init__(self, cfg: DemoConfig, progress: Progress | None = None) -> None:
+        from onboard.config import load_world_spec
+
+        self.cfg = cfg
+        self.progress = progress or (lambda phase, info: None)
+        if cfg.drones < 2:
+            raise DemoError("a formation needs at least 2 drones")
+        try:
+            self.template = load_template(cfg.formation)
+            if cfg.formation_change is not None:
+                load_template(cfg.formation_change[0])
+        except FormationError as e:
+            raise DemoError(str(e)) from e
+        if self.template.n != cfg.drones:
+            raise DemoError(
+                f"formation {self.template.name} has {self.template.n} points, not {cfg.drones}"
+            )
+        self.spec = load_world_spec(cfg.world)
+        self.out = Path(cfg.out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.swarm = cfg.swarm or f"demo{os.getpid()}"
+        self.procs = ProcessGroup(self.out / "logs")
+        self.truth: TruthWatch | None = None
+        self.gs: GroundStation | None = None
+        self.view: Any = None
+        self.outcomes: list[CommandOutcome] = []
+        self.assignments: list[dict[str, Any]] = []
+        self.events: list[tuple[float, str]] = []
+        self.flight = FlightLog()
+        self.sitl_stats: dict[str, Any] = {}
+        self.exit_codes: dict[str, int | None] = {}
+
+    # -- lifecycle --
+
+    def __enter__(self) -> Demo:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop everything (idempotent)."""
+        if self.view is not None:
+            self.view.close()
+            self.view = None
+        if self.gs is not None:
+            self.gs.close()
+            self.gs = None
+        if self.truth is not None:
+            self.truth.close()
+            self.truth = None
+        self.procs.close()
+
+    def _event(self, text: str) -> None:
+        self.events.append((time.time(), text))
+        log.info("%s", text)
+
+    # -- start-up --
+
+    def start(self) -> None:
+        cfg = self.cfg
+        n = cfg.drones
+        sitl_ep = free_loopback_endpoint()
+        self.sitl_endpoint = sitl_ep
+        prefix = f"{self.swarm}/sim"
+        from sitl_mock.client import bind_consecutive_udp
+
+        socks = bind_consecutive_udp(n)
+        base_port = socks[0].getsockname()[1]
+        for sock in socks:
+            sock.close()
+        self.base_port = base_port
+        self.world_file = self._world_file()
+        sitl = [
+            *_exe("swarm-sitl", "sitl_mock.cli"),
+            "--count", str(n), "--world", str(self.world_file), "--seed", str(cfg.seed),
+            "--spacing", str(cfg.spacing_m), "--base-port", str(base_port),
+            "--local-port-offset", "-1", "--truth", "zenoh", "--zenoh-listen", sitl_ep,
+            "--zenoh-prefix", prefix, "--depth", "--depth-rate", str(cfg.depth_rate_hz),
+            "--depth-step", str(cfg.depth_step), "--set", "local_origin=world",
+            "--stats-json", str(self.out / "sitl-stats.json"),
+        ]  # fmt: skip
+        for s in cfg.sitl_sets:
+            sitl += ["--set", s]
+        self.procs.start("sitl", sitl)
+        self.truth = TruthWatch(prefix, sitl_ep)
+        self._wait("mock", lambda: len(self.truth.snapshot()) == n if self.truth else False,
+                   cfg.step_timeout_s, ["sitl"])  # fmt: skip
+        self._event(f"mock fleet up: {n} vehicles, {cfg.world} seed {cfg.seed}")
+        mesh = peer_mesh(n + 1)  # the drones and this ground station
+        conf = self.out / "onboard.yaml"
+        conf.write_text(self._onboard_yaml(base_port, sitl_ep, prefix), encoding="utf-8")
+        for i in range(n):
+            ep = mesh[i + 1]
+            argv = [
+                *_exe("swarm-onboard", "onboard.cli"), "run", "--id", str(i),
+                "--config", str(conf),
+                "--set", f"zenoh.listen={json.dumps(list(ep.listen))}",
+                "--set", f"zenoh.connect={json.dumps(list(ep.connect))}",
+            ]  # fmt: skip
+            for s in cfg.onboard_sets:
+                argv += ["--set", s]
+            self.procs.start(f"drone{i}", argv, env={"OPENBLAS_NUM_THREADS": "1"})
+        self.gs = GroundStation(self.swarm, mesh[0], config=StationConfig(ack_timeout_s=5.0))
+        gs = self.gs
+        ids = list(range(n))
+
+        def all_idle() -> bool:
+            v = gs.views()
+            return all(i in v and v[i].alive and v[i].flight_state == "idle" for i in ids)
+
+        self._wait("services", all_idle, cfg.startup_timeout_s)
+        self._event(f"{n} flight services up and idle")
+        if cfg.view_port is not None:
+            from gcs.commands import mock_world
+            from gcs.view import SwarmView, station_input
+
+            w = mock_world(str(self.world_file), n, cfg.seed, cfg.spacing_m)
+            self.view = SwarmView(station_input(gs), w, port=cfg.view_port).start()
+            self._event(f"Foxglove view on {self.view.url}")
+
+    def _world_file(self) -> Path:
+        """The world as flown: the named world with per-drone ``starts`` and ``goals`` in the
+        formation around its start and goal centres (unless it has its own for this many
+        drones), so that the mock spawns the drones in formation. The mock's forest then keeps
+        clear of the same points as the fast-time simulator's, which makes the two fly the very
+        same obstacles for a seed."""
+        import dataclasses
+
+        spec = self.spec
+        data = dataclasses.asdict(spec)  # the fields are the file's keys (round trip exact)
+        if not (spec.starts is not None and len(spec.starts) == self.cfg.drones):
+            assert spec.start_center is not None and spec.goal_center is not None
+            off = self.template.centered
+            data["starts"] = (np.asarray(spec.start_center) + off).tolist()
+            data["goals"] = (np.asarray(spec.goal_center) + off).tolist()
+        out = self.out / "world.json"
+        out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        return out
+
+    def _onboard_yaml(self, base_port: int, sitl_ep: str, prefix: str) -> str:
+        cfg = self.cfg
+        planner = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
+        data = {
+            "drone": {"swarm": self.swarm},
+            "autopilot": {"url": f"udp://127.0.0.1:{base_port}", "port_plus_id": True},
+            "depth": {
+                "source": "zenoh-sim",
+                "rate_hz": float(cfg.depth_rate_hz),
+                "sim_prefix": prefix,
+                "sim_connect": [sitl_ep],
+                "step": cfg.depth_step,
+            },
+            "planner": planner,
+            "record": {"enabled": True, "directory": str(self.out.resolve())},
+            "logging": {"format": "json"},
+        }
+        return json.dumps(data, indent=2) + "\n"  # JSON is YAML
+
+    # -- waiting --
+
+    def _wait(
+        self,
+        what: str,
+        cond: Callable[[], bool],
+        timeout_s: float,
+        running: Sequence[str] | None = None,
+        info: Callable[[], dict[str, Any]] | None = None,
+    ) -> None:
+        """Poll ``cond`` until true; every child must keep running (or ``running``)."""
+        deadline = time.monotonic() + timeout_s
+        last = 0.0
+        while not cond():
+            self.procs.check(running)
+            if time.monotonic() > deadline:
+                raise DemoError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+            now = time.monotonic()
+            if now - last >= 0.5:
+                last = now
+                self.progress(what, info() if info is not None else {})
+            time.sleep(0.05)
+
+    def _need(self, outcome: CommandOutcome) -> CommandOutcome:
+        self.outcomes.append(outcome)
+        self._event(outcome.describe())
+        if not outcome.ok:
+            raise DemoError(outcome.describe())
+        return outcome
+
+    def _own_goals(self, center: np.ndarray) -> dict[int, np.ndarray]:
+        assert self.gs is not None
+        known = self.gs.known_formation()
+        assert known is not None
+        wire = known[1]
+        pts = np.asarray(wire.points_m, dtype=np.float64)
+        off = pts - pts.mean(axis=0)
+        return {d: center + off[s] for d, s in wire.slots.items()}
+
+    def _at(self, goals: dict[int, np.ndarray], tol_m: float = 0.5) -> bool:
+        """Every drone hovers within ``tol_m`` of its goal."""
+        assert self.gs is not None
+        v = self.gs.views()
+        for d, g in goals.items():
+            x = v.get(d)
+            if x is None or x.position_m is None or x.flight_state != "hover":
+                return False
+            if np.linalg.norm(np.asarray(x.position_m) - g) > tol_m:
+                return False
+            if (x.speed_m_s or 0.0) > 0.25:
+                return False
+        return True
+
+    def _assign(self, name: str) -> None:
+        assert self.gs is not None
+        try:
+            a, out = self.gs.formation(name)
+        except FormationError as e:
+            raise DemoError(str(e)) from e
+        self._need(out)
+        self.assignments.append(
+            {
+                "name": a.name,
+                "epoch": a.epoch,
+                "effective_s": a.effective_s,
+                "points_m": a.offsets_m.tolist(),
+                "slots": {str(d): s for d, s in sorted(a.slots.items())},
+                "cost_m": a.cost_m,
+            }
+        )
+
+    # -- the mission --
+
+    def fly(self) -> None:
+        """Take off, form up, cross, (re-shape), land."""
+        cfg, gs = self.cfg, self.gs
+        assert gs is not None
+        spec = self.spec
+        assert spec.start_center is not None and spec.goal_center is not None
+        alt = float(cfg.altitude_m if cfg.altitude_m is not None else spec.start_center[2])
+        ids = list(range(cfg.drones))
+        self.t_takeoff = time.time()
+        self._need(gs.takeoff(alt))
+
+        def all_hover() -> bool:
+            v = gs.views()
+            return all(i in v and v[i].flight_state == "hover" for i in ids)
+
+        self._wait("take-off", all_hover, cfg.step_timeout_s)
+        # the drones stand in formation (see _world_file): slots from where they hover
+        self._assign(cfg.formation)
+        start = np.array([spec.start_center[0], spec.start_center[1], alt])
+        goal = np.array([spec.goal_center[0], spec.goal_center[1], alt])
+        route = float(np.linalg.norm(goal - start))
+        v_max = cfg.v_max_m_s or 0.5
+        limit = cfg.flight_timeout_s or (route / v_max * 2.5 + 60.0)
+        self.goal = goal
+        self.t_goal = time.time()
+        self._need(gs.goal(tuple(goal)))
+        change = cfg.formation_change
+        changed = change is None
+        self.change_reached_s: float | None = None
+        self.t_change: float | None = None
+        deadline = time.monotonic() + limit
+        last_sample = 0.0
+        while not (changed and self._at(self._own_goals(goal))):
+            self.procs.check()
+            self._check_flying(ids)
+            now = time.time()
+            if time.monotonic() > deadline:
+                raise DemoError(f"the swarm did not reach the goal within {limit:.0f} s")
+            if now - last_sample >= 0.2:
+                last_sample = now
+                self.flight.add(gs, now)
+                self.progress("crossing", self._info(start, goal))
+                if self.t_change is not None and self.change_reached_s is None:
+                    e = self.flight.e_sim[-1]
+                    if math.isfinite(e) and e < 0.01 and now > self.assignments[-1]["effective_s"]:
+                        self.change_reached_s = now - self.t_change
+                        self._event(f"new formation reached (e_sim < 0.01) after "
+                                    f"{self.change_reached_s:.1f} s")  # fmt: skip
+            if change is not None and not changed and now - self.t_goal >= change[1]:
+                self.t_change = time.time()
+                self._assign(change[0])
+                changed = True
+                self._event(f"formation changed to {change[0]} in flight")
+            time.sleep(0.05)
+        self.t_arrived = time.time()
+        self._event(f"arrived after {self.t_arrived - self.t_goal:.1f} s")
+        self._need(gs.land())
+
+        def all_landed() -> bool:
+            v = gs.views()
+            return all(i in v and v[i].flight_state == "landed" for i in ids)
+
+        self._wait("landing", all_landed, cfg.step_timeout_s)
+        self.t_landed = time.time()
+        self._event("landed")
+
+    def _check_flying(self, ids: Sequence[int]) -> None:
+        """Fail at once when a drone gave up the mission (emergency, landing, pilot, link)."""
+        assert self.gs is not None
+        views = self.gs.views()
+        out = {d: views[d] for d in ids if d in views and views[d].flight_state in GAVE_UP}
+        if out:
+            why = "; ".join(
+                f"drone {d} {v.flight_state}" + (f" ({v.message})" if v.message else "")
+                for d, v in sorted(out.items())
+            )
+            raise DemoError(f"a drone left the mission: {why}")
+
+    def _info(self, start: np.ndarray, goal: np.ndarray) -> dict[str, Any]:
+        assert self.gs is not None
+        pos = self.gs.positions()
+        if not pos:
+            return {}
+        c = np.mean(list(pos.values()), axis=0)
+        total = float(np.linalg.norm(goal - start))
+        done = float(np.clip(np.dot(c - start, goal - start) / max(total, 1e-9), 0.0, total))
+        states: dict[str, int] = {}
+        for v in self.gs.views().values():
+            states[v.flight_state or "?"] = states.get(v.flight_state or "?", 0) + 1
+        return {
+            "done_m": done,
+            "total_m": total,
+            "e_sim": self.flight.e_sim[-1] if self.flight.e_sim else math.nan,
+            "min_pair_m": self.flight.min_pair_m[-1] if self.flight.min_pair_m else math.nan,
+            "states": states,
+            "collisions": self.truth.collisions() if self.truth else 0,
+        }
+
+    # -- the end --
+
+    def finish(self) -> dict[str, Any]:
+        """Stop the processes in order (services, then the mock), write mission.json and the
+        report; returns the result."""
+        names = [f"drone{i}" for i in range(self.cfg.drones)]
+        live_collisions = self.truth.collisions() if self.truth else None
+        if self.view is not None:
+            self.view.close()
+            self.view = None
+        if self.gs is not None:
+            self.gs.close()
+            self.gs = None
+        self.exit_codes.update(self.procs.stop(names))
+        self.exit_codes.update(self.procs.stop(["sitl"]))
+        stats_file = self.out / "sitl-stats.json"
+        if stats_file.is_file():
+            self.sitl_stats = json.loads(stats_file.read_text())
+        return self._result(live_collisions)
+
+    def mission(self) -> dict[str, Any]:
+        s = self.sitl_stats
+        collisions = s.get("collisions")
+        return {
+            "swarm": self.swarm,
+            "world": str(getattr(self, "world_file", self.cfg.world)),
+            "world_name": self.cfg.world,
+            "seed": self.cfg.seed,
+            "count": self.cfg.drones,
+            "spacing_m": self.cfg.spacing_m,
+            "cluttered_x": list(self.spec.cluttered_x),
+            "formation": self.cfg.formation,
+            "formation_change": None
+            if self.cfg.formation_change is None
+            else list(self.cfg.formation_change),  # fmt: skip
+            "goal_m": self.goal.tolist() if hasattr(self, "goal") else None,
+            "assignments": self.assignments,
+            "commands": [o.to_json() for o in self.outcomes],
+            "events": self.events,
+            "sitl": {
+                "collisions": None if collisions is None else len(collisions),
+                "collision_events": collisions,
+                "min_obstacle_distance_m": s.get("min_obstacle_distance_m"),
+                "min_vehicle_distance_m": s.get("min_vehicle_distance_m"),
+                "depth": s.get("depth"),
+            },
+        }
+
+    def _result(self, live_collisions: int | None) -> dict[str, Any]:
+        mission = self.mission()
+        (self.out / "mission.json").write_text(json.dumps(mission, indent=2) + "\n")
+        summary: dict[str, Any] = {}
+        if self.cfg.report and list(self.out.glob("*.mcap")):
+            from gcs.report import write_report
+
+            summary, _ = write_report([self.out], mission=mission)
+        sp = summary.get("setpoint_period_ms", {})
+        flown = self.flight.cluttered(self.spec.cluttered_x)
+        sitl = mission["sitl"]
+        collisions = sitl["collisions"] if sitl["collisions"] is not None else live_collisions
+        arrived = hasattr(self, "t_arrived")
+        services_ok = all(rc == 0 for n, rc in self.exit_codes.items() if n.startswith("drone"))
+        result = {
+            "success": bool(arrived and collisions == 0 and services_ok),
+            "arrived": arrived,
+            "collisions": collisions,
+            "e_dist_m": flown["e_dist_m"],
+            "e_sim": flown["e_sim"],
+            "min_obstacle_clearance_m": sitl["min_obstacle_distance_m"],
+            "min_drone_distance_m": sitl["min_vehicle_distance_m"],
+            "flight_time_s": (self.t_landed - self.t_takeoff)
+            if hasattr(self, "t_landed")
+            else None,
+            "crossing_time_s": (self.t_arrived - self.t_goal) if arrived else None,
+            "formation_change_reached_s": getattr(self, "change_reached_s", None),
+            "setpoint_period_ms": {k: sp.get(k) for k in ("median", "p99", "max", "count")},
+            "plan_ms": {k: summary.get("plan_ms", {}).get(k) for k in ("median", "p90", "max")},
+            "depth": sitl.get("depth"),
+            "exit_codes": self.exit_codes,
+            "flight_dir": str(self.out),
+        }
+        (self.out / "result.json").write_text(json.dumps(_json_safe(result), indent=2) + "\n")
+        return result
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM ends the demo like Ctrl-C (the cleanup runs)."""
+
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        raise Interrupted()
+
+    old = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def run_demo(cfg: DemoConfig, progress: Progress | None = None) -> dict[str, Any]:
+    """Run the whole demo; returns the result (``success`` False on any failure, with
+    ``error``). Raises KeyboardInterrupt after the cleanup when interrupted."""
+    with _sigterm_as_interrupt():
+        demo = Demo(cfg, progress)
+        error: str | None = None
+        try:
+            demo.start()
+            demo.fly()
+            result = demo.finish()
+        except DemoError as e:
+            error = str(e)
+            result = demo.finish()
+        except (KeyboardInterrupt, Interrupted):
+            demo.close()
+            raise KeyboardInterrupt from None
+        finally:
+            demo.close()
+    if error is not None:
+        result["success"] = False
+        result["error"] = error
+    return result
+
+
+def parse_change(text: str | None) -> tuple[str, float] | None:
+    """``NAME@SECONDS`` -> (NAME, SECONDS)."""
+    if not text:
+        return None
+    name, sep, when = text.rpartition("@")
+    try:
+        t = float(when)
+    except ValueError:
+        t = math.nan
+    if not sep or not name or not math.isfinite(t) or t < 0:
+        raise ValueError(f"--formation-change {text!r}: expected NAME@SECONDS, e.g. arrow-7@20")
+    return name, t
+
+
+def demo_command() -> Any:
+    import click
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    @click.command("demo")
+    @click.option("--drones", type=click.IntRange(2, 64), default=7, show_default=True)
+    @click.option("--formation", default="hexagon-7", show_default=True)
+    @click.option("--world", default="forest-medium", show_default=True)
+    @click.option("--seed", type=int, default=1, show_default=True)
+    @click.option("--formation-change", "change", default=None, metavar="NAME@SECONDS",
+                  help="Change formation this many seconds after the goal was sent.")  # fmt: skip
+    @click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=10.0,
+                  show_default=True, help="Depth frames per second and drone.")  # fmt: skip
+    @click.option("--v-max", type=click.FloatRange(0.1, 3.0), default=None,
+                  help="Planner speed limit [m/s] (default: config/onboard.yaml's).")  # fmt: skip
+    @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+                  default=None, help="Flight directory [default: flights/demo-TIME].")  # fmt: skip
+    @click.option("--view", "view_port", type=int, default=None, metavar="PORT",
+                  help="Serve the live 3-D view to Foxglove on this port (0: any).")  # fmt: skip
+    @click.option("--set-onboard", "onboard_sets", multiple=True, metavar="KEY=VALUE",
+                  help="Override a setting of every flight service.")  # fmt: skip
+    @click.option("--set-sitl", "sitl_sets", multiple=True, metavar="KEY=VALUE",
+                  help="Override a setting of the mock fleet.")  # fmt: skip
+    @click.option("--startup-timeout", type=float, default=180.0, show_default=True)
+    @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+    @click.option("--quiet", "-q", is_flag=True, help="No progress display.")
+    def demo(
+        drones: int, formation: str, world: str, seed: int, change: str | None,
+        depth_rate: float, v_max: float | None, out_dir: Path | None, view_port: int | None,
+        onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], startup_timeout: float,
+        as_json: bool, quiet: bool,
+    ) -> None:  # fmt: skip
+        """Fly the real stack on this machine: the mock fleet, one flight service per drone
+        and this ground station, through a forest; print the result and write the report.
+        Exits 0 only on success."""
+        try:
+            fc = parse_change(change)
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--formation-change") from e
+        cfg = DemoConfig(
+            out_dir=out_dir if out_dir is not None else DemoConfig().out_dir,
+            drones=drones, formation=formation, world=world, seed=seed, formation_change=fc,
+            depth_rate_hz=depth_rate, v_max_m_s=v_max, view_port=view_port,
+            onboard_sets=onboard_sets, sitl_sets=sitl_sets, startup_timeout_s=startup_timeout,
+        )  # fmt: skip
+        console = Console(quiet=quiet or as_json, highlight=False, stderr=True)
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
+        console.print(f"flight directory: {cfg.out_dir} (pid {os.getpid()})")
+        columns = (
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+        )
+        with Progress(*columns, console=console, transient=True) as bar:
+            task = bar.add_task("starting", total=1.0, info="")
+
+            def progress(phase: str, info: dict[str, Any]) -> None:
+                if "total_m" not in info:
+                    bar.update(task, description=phase, info="")
+                    return
+                st = ", ".join(f"{k} {v}" for k, v in sorted(info["states"].items()))
+                text = (
+                    f"{info['done_m']:.1f}/{info['total_m']:.0f} m, e_sim {info['e_sim']:.4f}, "
+                    f"min pair {info['min_pair_m']:.2f} m, collisions {info['collisions']} | {st}"
+                )
+                bar.update(
+                    task,
+                    description=phase,
+                    total=info["total_m"],
+                    completed=info["done_m"],
+                    info=text,
+                )
+
+            try:
+                result = run_demo(cfg, progress)
+            except (DemoError, FormationError) as e:
+                raise click.ClickException(str(e)) from e
+            except KeyboardInterrupt:
+                click.echo("interrupted: every process stopped", err=True)
+                sys.exit(130)
+        if as_json:
+            click.echo(json.dumps(_json_safe(result)))
+        else:
+            click.echo(result_text(result))
+        sys.exit(0 if result["success"] else 1)
+
+    return demo
+
+
+def result_text(r: dict[str, Any]) -> str:
+    def f(x: Any, spec: str = ".3f") -> str:
+        return (
+            "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
+        )
+
+    sp = r.get("setpoint_period_ms", {})
+    lines = [
+        f"{'SUCCESS' if r['success'] else 'FAILED'}"
+        + (f": {r['error']}" if r.get("error") else ""),
+        f"arrived: {'yes' if r['arrived'] else 'no'}; collisions reported by the mock: "
+        f"{f(r['collisions'], 'd') if isinstance(r['collisions'], int) else '-'}",
+        f"e_dist {f(r['e_dist_m'])} m, e_sim {f(r['e_sim'], '.4f')} (mean over the cluttered span)",
+        f"min clearance: obstacles {f(r['min_obstacle_clearance_m'], '.2f')} m, "
+        f"drones {f(r['min_drone_distance_m'], '.2f')} m (the mock's truth)",
+        f"flight time {f(r['flight_time_s'], '.1f')} s "
+        f"(crossing {f(r['crossing_time_s'], '.1f')} s)",
+        f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
+        f"p99 {f(sp.get('p99'), '.1f')} ms, max {f(sp.get('max'), '.1f')} ms",
+    ]
+    if r.get("formation_change_reached_s") is not None:
+        lines.append(f"new formation reached after {f(r['formation_change_reached_s'], '.1f')} s")
+    lines.append(f"flight directory: {r['flight_dir']} (report in report/)")
+    return "\n".join(lines)
+
+
+demo = demo_command()

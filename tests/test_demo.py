@@ -1,0 +1,147 @@
+"""``swarm-gcs demo``: the real stack (mock fleet, one flight service per drone, the ground
+station) through a small forest, headless; and no process left behind after Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gcs.demo import Demo, DemoConfig, DemoError, parse_change, run_demo
+
+DEMO = "import sys; from gcs.demo import demo; sys.argv[0] = 'swarm-gcs demo'; demo()"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is not running (its parent, the demo, has not reaped it)
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except OSError:
+        return False
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _wait_for(cond: Any, timeout_s: float, what: str, proc: subprocess.Popen[str]) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if proc.poll() is not None:
+            raise AssertionError(f"the demo ended ({proc.returncode}) before {what}")
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.1)
+
+
+def test_parse_change_and_config_errors(tmp_path: Path) -> None:
+    assert parse_change("arrow-7@20") == ("arrow-7", 20.0)
+    assert parse_change("my@shape.yaml@2.5") == ("my@shape.yaml", 2.5)
+    assert parse_change(None) is None
+    for bad in ("arrow-7", "@3", "arrow-7@x", "arrow-7@-1"):
+        with pytest.raises(ValueError, match="NAME@SECONDS"):
+            parse_change(bad)
+    with pytest.raises(DemoError, match="has 7 points, not 3"):
+        Demo(DemoConfig(drones=3, formation="hexagon-7", out_dir=tmp_path / "a"))
+    with pytest.raises(DemoError, match="no file named 'nope'"):
+        Demo(DemoConfig(drones=3, formation="triangle-3", formation_change=("nope", 1.0),
+                        out_dir=tmp_path / "b"))  # fmt: skip
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
+def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None:
+    """Ctrl-C and SIGTERM: the demo stops its processes and exits 130. SIGKILL (no cleanup
+    possible in the demo): its children get SIGTERM from the kernel and end too."""
+    out = tmp_path / "flight"
+    args = ["--drones", "3", "--formation", "triangle-3", "--world", "forest-small",
+            "--out", str(out), "-q"]  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", DEMO, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    info: dict[str, Any] = {}
+    try:
+        pfile = out / "logs" / "processes.json"
+
+        def all_started() -> bool:
+            if not pfile.is_file():
+                return False
+            try:
+                info.update(json.loads(pfile.read_text()))
+            except ValueError:  # being written
+                return False
+            return len(info.get("pids", {})) == 4  # the mock and three services
+
+        _wait_for(all_started, 120.0, "every process to start", proc)
+        pids = list(info["pids"].values())
+        assert all(_alive(p) for p in pids)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=60.0)
+        if signum == signal.SIGKILL:
+            assert proc.returncode == -signal.SIGKILL
+        else:
+            assert proc.returncode == 130, err
+            assert "interrupted: every process stopped" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    end = time.monotonic() + 30.0  # orphans take a moment to stop after their SIGTERM
+    while [p for p in pids if _alive(p)] and time.monotonic() < end:
+        time.sleep(0.1)
+    assert not [p for p in pids if _alive(p)]
+    if signum != signal.SIGKILL:
+        assert not _group_alive(int(info["pgid"]))
+
+
+@pytest.mark.timeout(300)
+def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
+    """The whole stack, headless, in-process ground station: take off, form a triangle, cross
+    forest-small, change to a line in flight, land; no collision; report written; nothing left
+    running."""
+    out = tmp_path / "flight"
+    line = tmp_path / "line-3.yaml"  # a user file: three abreast, 1.5 m apart
+    line.write_text("points: [[0, -1.5, 0], [0, 0, 0], [0, 1.5, 0]]\n")
+    cfg = DemoConfig(
+        drones=3,
+        formation="triangle-3",
+        world="forest-small",
+        seed=2,
+        formation_change=(str(line), 8.0),
+        out_dir=out,
+        startup_timeout_s=150.0,
+    )
+    result = run_demo(cfg)
+    procs = json.loads((out / "logs" / "processes.json").read_text())
+    assert not [p for p in procs["pids"].values() if _alive(p)]
+    assert not _group_alive(int(procs["pgid"]))
+    assert result["success"], json.dumps(result, indent=1, default=str)
+    assert result["arrived"] and result["collisions"] == 0
+    assert result["min_obstacle_clearance_m"] > 0.2 and result["min_drone_distance_m"] > 0.4
+    assert all(rc == 0 for rc in result["exit_codes"].values())
+    mission = json.loads((out / "mission.json").read_text())
+    assert [c["ok"] for c in mission["commands"]] == [True] * len(mission["commands"])
+    assert [a["name"] for a in mission["assignments"]] == ["triangle-3", "line-3"]
+    e1, e2 = (a["epoch"] for a in mission["assignments"])
+    assert e2 > e1
+    assert len(list(out.glob("drone*.mcap"))) == 3
+    for name in ("top_view.png", "formation_error.png", "summary.json"):
+        assert (out / "report" / name).is_file()
+    summary = json.loads((out / "report" / "summary.json").read_text())
+    assert summary["n_drones"] == 3 and summary["arrived"]
+    assert summary["setpoint_period_ms"]["count"] > 1000
