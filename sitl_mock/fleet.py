@@ -254,6 +254,7 @@ class Fleet:
         self._next_truth = 0.0
         self._latest_truth: dict[int, TruthSample] = {}
         self._truth_snapshot: tuple[Any, ...] | None = None
+        self.truth_sink_errors = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._reset_stats = threading.Event()
@@ -540,7 +541,8 @@ class Fleet:
             try:
                 sink.publish_poses(samples)
             except Exception:  # noqa: BLE001 - a broken sink must not stop the vehicles
-                log.warning("truth sink failed", exc_info=True)
+                self.truth_sink_errors += 1  # counted and logged with its traceback
+                log.exception("truth sink %r failed", sink)
 
     @staticmethod
     def _truth_samples(snap: tuple[Any, ...]) -> list[TruthSample]:
@@ -599,6 +601,8 @@ class Fleet:
             "skipped_ticks": st.skipped_ticks,
             "max_lateness_ms": st.max_lateness_s * 1e3,
             "loop_cpu_s": st.loop_cpu_s,
+            "loop_error": None if self.loop_error is None else repr(self.loop_error),
+            "truth_sink_errors": self.truth_sink_errors,
             "collisions": [
                 {
                     "t_s": c.t_s,

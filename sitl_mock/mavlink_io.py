@@ -62,6 +62,7 @@ from sitl_mock.frames import (
     yaw_enu_ned,
 )
 from sitl_mock.px4_dialect import (
+    MessageDecoder,
     MessageEncoder,
     frame,
     mavlink,
@@ -537,6 +538,9 @@ E_PARAM_VALUE = _enc("PARAM_VALUE")
 E_PARAM_ERROR = _enc("PARAM_ERROR")
 E_MESSAGE_INTERVAL = _enc("MESSAGE_INTERVAL")
 
+_SETPOINT_DECODER = MessageDecoder(
+    message_class(mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED)
+)
 _NAN21 = [math.nan] + [0.0] * 20
 _ZERO4 = [0.0, 0.0, 0.0, 0.0]
 
@@ -742,16 +746,20 @@ class VehicleLink:
         st.rx_datagrams += 1
         self.rx_bytes += len(data)
         mav = self.mav
-        mav.buf = bytearray()
-        mav.buf_index = 0
-        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
-        rejected_before = mav.signing.reject_count
-        try:
-            msgs = mav.parse_buffer(data) or []
-        except mavlink.MAVError:  # robust parsing turns these into BAD_DATA; count it anyway
-            msgs = []
-            st.rx_bad += 1
-        st.rx_rejected_unsigned += mav.signing.reject_count - rejected_before
+        fast = None if self.signing is not None else _SETPOINT_DECODER.decode(data)
+        if fast is not None:  # the setpoint stream: one unsigned frame per datagram
+            msgs = [fast]
+        else:
+            mav.buf = bytearray()
+            mav.buf_index = 0
+            mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+            rejected_before = mav.signing.reject_count
+            try:
+                msgs = mav.parse_buffer(data) or []
+            except mavlink.MAVError:  # robust parsing turns these into BAD_DATA; count anyway
+                msgs = []
+                st.rx_bad += 1
+            st.rx_rejected_unsigned += mav.signing.reject_count - rejected_before
         for msg in msgs:
             mtype = msg.get_type()
             if mtype == "BAD_DATA":

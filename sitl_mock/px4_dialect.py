@@ -15,7 +15,11 @@ added: importing this module never changes how a known message is decoded).
 
 ``MessageEncoder`` / ``frame`` build MAVLink 2 frames straight from field values, byte for byte
 what pymavlink's ``encode(...).pack(mav)`` produces (a test compares them), without creating a
-message object per frame: the mock sends ~400 frames per second per vehicle.
+message object per frame: the mock sends ~400 frames per second per vehicle. ``MessageDecoder``
+is the reverse for the one message a companion streams at tens of hertz
+(SET_POSITION_TARGET_LOCAL_NED): a datagram holding exactly one unsigned frame of it is decoded
+into the same message object pymavlink would make (a test compares them), anything else is
+left to pymavlink's parser.
 """
 
 from __future__ import annotations
@@ -323,3 +327,42 @@ def frame(mav: Any, enc: MessageEncoder, args: Sequence[Any]) -> bytes:
         buf = body + _CRC.pack(_mcrf4xx(body[1:] + enc._crc_extra, 0xFFFF))
     mav.seq = (mav.seq + 1) % 256
     return buf
+
+
+class MessageDecoder:
+    """Decodes a datagram that holds exactly one unsigned MAVLink 2 frame of one message type
+    (no arrays or strings), checking the CRC as pymavlink does; None for anything else."""
+
+    __slots__ = ("cls", "msg_id", "_crc_extra", "_unpack", "_size", "_orders")
+
+    def __init__(self, cls: type[Any]) -> None:
+        if any(length != 1 for length in cls.lengths):
+            raise ValueError(f"{cls.msgname}: arrays are not supported by the fast decoder")
+        self.cls = cls
+        self.msg_id = int(cls.id)
+        self._crc_extra = bytes([cls.crc_extra])
+        self._unpack = cls.unpacker.unpack
+        self._size = int(cls.unpacker.size)
+        self._orders = tuple(int(o) for o in cls.orders)
+
+    def decode(self, data: bytes) -> Any | None:
+        n = len(data)
+        if n < 12 or data[0] != 253 or data[2] != 0 or n != data[1] + 12 or _mcrf4xx is None:
+            return None  # not one unsigned MAVLink 2 frame
+        if data[7] | (data[8] << 8) | (data[9] << 16) != self.msg_id:
+            return None
+        if _mcrf4xx(data[1:-2] + self._crc_extra, 0xFFFF) != data[-2] | (data[-1] << 8):
+            return None  # let pymavlink's parser count it
+        payload = data[10:-2]
+        if len(payload) < self._size:
+            payload += bytes(self._size - len(payload))  # MAVLink 2 trimmed trailing zeros
+        t = self._unpack(payload[: self._size])
+        msg = self.cls(*[t[o] for o in self._orders])
+        msg._header = mavlink.MAVLink_header(
+            self.msg_id, 0, data[3], data[1], data[4], data[5], data[6]
+        )
+        msg._msgbuf = bytearray(data)
+        msg._payload = data[6:-2]
+        msg._crc = data[-2] | (data[-1] << 8)
+        msg._signed = False
+        return msg

@@ -88,15 +88,12 @@ def local_ned(f: Fleet, i: int = 0) -> np.ndarray:
     return np.array([est[1], est[0], -est[2]])
 
 
-_SEEN: dict[int, int] = {}
-
-
 def texts(f: Fleet, i: int = 0) -> list[tuple[Severity, str]]:
-    """Status events of vehicle ``i`` since the previous call."""
+    """Status events of vehicle ``i`` since the previous call (on this fleet)."""
     log = list(f.autopilots[i].event_log)
-    key = id(f.autopilots[i])
-    start = _SEEN.get(key, 0)
-    _SEEN[key] = len(log)
+    seen: dict[int, int] = f.__dict__.setdefault("_test_texts_seen", {})
+    start = seen.get(i, 0)
+    seen[i] = len(log)
     return [(e.severity, e.text) for _, e in log[start:]]
 
 

@@ -49,7 +49,7 @@ def test_bench_sitl_small(tmp_path: Path) -> None:
     from gcs.bench_sitl import sitl
 
     js = tmp_path / "bench.json"
-    args = ["--vehicles", "2", "--seconds", "1", "--speedup", "4", "--step-m", "1"]
+    args = ["--vehicles", "2", "--seconds", "1", "--speedup", "2", "--step-m", "1"]
     args += ["--step-seconds", "3", "--json", str(js)]
     out = CliRunner().invoke(sitl, args)
     assert out.exit_code == 0, out.output

@@ -27,7 +27,9 @@ from sitl_mock.frames import (
 from sitl_mock.px4_dialect import (
     MAVLink_link_node_status_message,
     MAVLink_protocol_version_message,
+    MessageDecoder,
     mavlink,
+    message_class,
     new_mavlink,
 )
 
@@ -321,3 +323,37 @@ def test_messages_pymavlink_lacks_match_their_definitions(tmp_path: Path) -> Non
         got = rx.parse_char(m.pack(tx))
         assert got.get_type() == m.msgname
         assert got.to_dict() == m.to_dict()
+
+
+def test_fast_setpoint_decoder_matches_pymavlink() -> None:
+    dec = MessageDecoder(message_class(mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED))
+    rng = np.random.default_rng(9)
+    tx = new_mavlink(77, 191)
+    for k in range(200):
+        vals = rng.normal(0, 10, 11)
+        vals[rng.random(11) < 0.3] = 0.0  # zeros at the end are trimmed on the wire
+        msg = tx.set_position_target_local_ned_encode(
+            int(rng.integers(0, 2**32)),
+            k % 3,
+            1,
+            int(rng.integers(0, 13)),
+            int(rng.integers(0, 4096)),
+            *vals,
+        )
+        buf = bytes(msg.pack(tx))
+        tx.seq = (tx.seq + 1) % 256
+        ref = new_mavlink(1, 1).parse_buffer(buf)[0]
+        got = dec.decode(buf)
+        assert got is not None and got.to_dict() == ref.to_dict()
+        assert (got.get_srcSystem(), got.get_srcComponent(), got.get_seq()) == (77, 191, k % 256)
+    good = bytes(tx.set_position_target_local_ned_encode(0, 1, 1, 1, 0, *([1.0] * 11)).pack(tx))
+    bad_crc = good[:-1] + bytes([good[-1] ^ 1])
+    other = bytes(tx.heartbeat_encode(6, 8, 0, 0, 0, 3).pack(tx))
+    signer = new_mavlink(1, 1)
+    signer.signing.secret_key = bytes(32)
+    signer.signing.sign_outgoing = True
+    signed = bytes(
+        signer.set_position_target_local_ned_encode(0, 1, 1, 1, 0, *([1.0] * 11)).pack(signer)
+    )
+    for junk in (b"", good[:-1], good + good, bad_crc, other, signed, b"\xfe" + good[1:]):
+        assert dec.decode(junk) is None
