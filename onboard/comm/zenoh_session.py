@@ -7,11 +7,14 @@ A router (``mode="client"`` with ``connect`` naming it) is the option for field 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+from onboard.comm.security import SwarmAccessControl, TlsConfig, security_items
 
 MODES = ("peer", "client", "router")
 
@@ -23,7 +26,9 @@ class ZenohEndpoints:
     listen / connect: endpoints such as ``tcp/127.0.0.1:7447``; mode: 'peer' (default), 'client'
     (through a router) or 'router'; multicast_scouting: discover peers on the LAN (off: only the
     named endpoints are used); extra: further Zenoh configuration keys, JSON5 values as text
-    (``{"transport/link/tls/root_ca_certificate": '"/etc/swarm/ca.pem"'}``).
+    (``{"transport/link/tls/root_ca_certificate": '"/etc/swarm/ca.pem"'}``); tls: TLS with
+    mutual authentication (``tls/HOST:PORT`` endpoints need it); access_control: who may
+    publish what (needs ``tls``). See ``onboard.comm.security``.
     """
 
     listen: tuple[str, ...] = ()
@@ -31,6 +36,8 @@ class ZenohEndpoints:
     mode: str = "peer"
     multicast_scouting: bool = False
     extra: Mapping[str, str] = field(default_factory=dict)
+    tls: TlsConfig | None = None
+    access_control: SwarmAccessControl | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -42,6 +49,17 @@ class ZenohEndpoints:
             for ep in eps:
                 if not isinstance(ep, str) or "/" not in ep:
                     raise ValueError(f"zenoh {name} endpoint {ep!r} is not like 'tcp/HOST:PORT'")
+                if self.tls is not None and not ep.startswith("tls/"):
+                    raise ValueError(
+                        f"zenoh {name} endpoint {ep!r}: with tls every endpoint must be tls/..."
+                    )
+                if (
+                    self.tls is None
+                    and ep.startswith("tls/")
+                    and not any(k.startswith("transport/link/tls") for k in self.extra)
+                ):
+                    raise ValueError(f"zenoh {name} endpoint {ep!r} needs the tls settings")
+        security_items(self.tls, self.access_control)  # access control needs mutual TLS
 
     def config(self) -> Any:
         """The ``zenoh.Config`` for these settings."""
@@ -52,9 +70,27 @@ class ZenohEndpoints:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        for key, value in self.extra.items():
+        for key, value in {**security_items(self.tls, self.access_control), **self.extra}.items():
             cfg.insert_json5(key, value)
         return cfg
+
+    def secured(
+        self, tls: TlsConfig, access_control: SwarmAccessControl | None = None
+    ) -> ZenohEndpoints:
+        """These endpoints over TLS (``tcp/`` endpoints become ``tls/``) with ``tls`` and
+        ``access_control``."""
+        return dataclasses.replace(
+            self,
+            listen=tuple(_as_tls(ep) for ep in self.listen),
+            connect=tuple(_as_tls(ep) for ep in self.connect),
+            tls=tls,
+            access_control=access_control,
+        )
+
+
+def _as_tls(endpoint: str) -> str:
+    proto, _, rest = endpoint.partition("/")
+    return f"tls/{rest}" if proto in ("tcp", "tls") else endpoint
 
 
 def open_session(endpoints: ZenohEndpoints | None = None, **kw: Any) -> Any:
@@ -98,7 +134,8 @@ def loopback_endpoints(n: int) -> list[str]:
 
 def peer_mesh(n: int) -> list[ZenohEndpoints]:
     """Endpoints for ``n`` peers on loopback: each listens on its own port and connects to all
-    the others' (a full mesh that needs no scouting)."""
+    the others' (a full mesh that needs no scouting). ``.secured(tls, acl)`` turns one into
+    TLS."""
     ports = loopback_endpoints(n)
     return [
         ZenohEndpoints(listen=(ports[i],), connect=tuple(p for j, p in enumerate(ports) if j != i))
