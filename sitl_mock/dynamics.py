@@ -439,6 +439,28 @@ def attitude_fleet(
         out[i, A_THRUST] = min(max(fn / f_max, 0.0), 1.0) * (1.0 if fz > 0.0 else 0.0)
 
 
+@njit(cache=True, nogil=True)
+def close_pairs(pos: np.ndarray, threshold: float, out: np.ndarray) -> tuple[int, float]:
+    """Vehicle pairs (a < b) closer than ``threshold``: written to ``out`` (M, 2) as indices
+    (at most M); returns their number and the smallest distance of any pair (inf if < 2)."""
+    n = pos.shape[0]
+    count = 0
+    d_min = math.inf
+    for a in range(n):
+        for b in range(a + 1, n):
+            dx = pos[a, 0] - pos[b, 0]
+            dy = pos[a, 1] - pos[b, 1]
+            dz = pos[a, 2] - pos[b, 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d < d_min:
+                d_min = d
+            if d < threshold and count < out.shape[0]:
+                out[count, 0] = a
+                out[count, 1] = b
+                count += 1
+    return count, d_min
+
+
 # ---------------------------------------------------------------------------------------------
 # Offline helpers: the same kernel driven without any autopilot or network
 

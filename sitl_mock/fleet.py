@@ -242,7 +242,8 @@ class Fleet:
         # compile (or load) the telemetry kernel now, not in the first tick
         tm.telemetry_fleet(self.state, self.att, self._origins, self.ground_z, self._geo, self._tel)
         self.loop_error: BaseException | None = None  # what stopped the background loop
-        self._pairs = np.triu_indices(n, 1)  # every vehicle pair (a < b), for collisions
+        self._pairs = np.zeros((n * (n - 1) // 2, 2), dtype=np.int64)  # pairs in contact
+        dyn.close_pairs(self.state[:, dyn.S_P : dyn.S_P + 3], 0.0, self._pairs)  # compile now
         self.collision_counts = np.zeros(n, dtype=np.int64)
         self.collisions: list[CollisionEvent] = []
         self._in_contact_obstacle = np.zeros(n, dtype=bool)
@@ -462,10 +463,11 @@ class Fleet:
         pos = s[:, dyn.S_P : dyn.S_P + 3]
         r = cfg.body_radius_m
         # ground impacts
-        hard = np.flatnonzero(s[:, dyn.S_IMPACT] > cfg.crash_speed_m_s)
-        for i in hard:
-            self._collision(t, "ground", (int(i),), float(s[i, dyn.S_IMPACT]), pos[i])
-        s[:, dyn.S_IMPACT] = 0.0
+        impact = s[:, dyn.S_IMPACT]
+        if impact.max() > cfg.crash_speed_m_s:
+            for i in np.flatnonzero(impact > cfg.crash_speed_m_s):
+                self._collision(t, "ground", (int(i),), float(impact[i]), pos[i])
+        impact[:] = 0.0
         # obstacles
         if self._obstacles is not None:
             d, _ = self._obstacles.distance(pos)
@@ -477,17 +479,14 @@ class Fleet:
         # vehicle pairs
         n = pos.shape[0]
         if n > 1:
-            ia, ib = self._pairs
-            diff = pos[ia] - pos[ib]
-            dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-            self.min_vehicle_distance_m = min(self.min_vehicle_distance_m, float(dist.min()))
-            close = np.flatnonzero(dist < 2.0 * r)
-            if close.size or self._in_contact_pair:
-                close_d = {(int(ia[k]), int(ib[k])): float(dist[k]) for k in close}
-                now_pairs = set(close_d)
+            count, d_min = dyn.close_pairs(pos, 2.0 * r, self._pairs)
+            self.min_vehicle_distance_m = min(self.min_vehicle_distance_m, d_min)
+            if count or self._in_contact_pair:
+                now_pairs = {(int(a), int(b)) for a, b in self._pairs[:count]}
                 for a, b in sorted(now_pairs - self._in_contact_pair):
                     mid = 0.5 * (pos[a] + pos[b])
-                    self._collision(t, "vehicle", (a, b), close_d[(a, b)], mid)
+                    dist = float(np.linalg.norm(pos[a] - pos[b]))
+                    self._collision(t, "vehicle", (a, b), dist, mid)
                 self._in_contact_pair = now_pairs
 
     def _collision(
