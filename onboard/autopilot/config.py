@@ -159,6 +159,17 @@ class LinkConfig:
     stop_streaming_on_offboard_loss: bool = True
     """Yield at once when the vehicle leaves OFFBOARD without this link asking."""
 
+    signing_key_file: str | None = None
+    """MAVLink 2 signing key (32 raw bytes or 64 hex digits, mode 0600; see
+    ``onboard.autopilot.signing``): every message this link sends is signed. Only the pymavlink
+    implementation signs (MAVSDK 4.x cannot). Autopilots that sign: PX4 v1.17+ (not v1.16)."""
+    signing_required: bool | None = None
+    """With a key: refuse unsigned or wrongly signed telemetry (counted) and refuse to connect
+    to an autopilot that does not sign. None: True when a key is given. False: sign, but accept
+    unsigned telemetry (counted; for a migration only)."""
+    signing_link_id: int = 1
+    """The link id in this link's signatures (0..255; PX4's own links use their own)."""
+
     def __post_init__(self) -> None:
         parse_url(self.url, self.baud)
         if self.implementation not in ("pymavlink", "mavsdk"):
@@ -215,6 +226,28 @@ class LinkConfig:
                     f"geofence_max_enu_m: {axis} must exceed geofence_min_enu_m's "
                     f"({self.geofence_max_enu_m[k]} <= {self.geofence_min_enu_m[k]})"
                 )
+
+        _int_range("signing_link_id", self.signing_link_id, 0, 255)
+        if self.signing_key_file is not None:
+            if self.implementation != "pymavlink":
+                raise ValueError(
+                    "signing_key_file: the mavsdk implementation cannot sign (MAVSDK 4.x has no "
+                    "MAVLink signing API); use implementation: pymavlink"
+                )
+            from onboard.autopilot.signing import load_signing_key
+
+            load_signing_key(self.signing_key_file)  # checks permissions and format now
+        elif self.signing_required:
+            raise ValueError("signing_required: needs signing_key_file")
+        if self.signing_required is not None and not isinstance(self.signing_required, bool):
+            raise ValueError(
+                f"signing_required: expected true or false, got {self.signing_required!r}"
+            )
+
+    @property
+    def requires_signing(self) -> bool:
+        """True if this link refuses unsigned telemetry (a key given, not opted out)."""
+        return self.signing_key_file is not None and self.signing_required is not False
 
     @property
     def endpoint(self) -> Endpoint:

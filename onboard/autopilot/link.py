@@ -527,6 +527,9 @@ class AutopilotLink(ABC):
             late_ticks=c["late_ticks"],
             link_losses=c["link_losses"],
             offboard_losses=c["offboard_losses"],
+            unsigned_rejected=c["unsigned_rejected"],
+            bad_signatures=c["bad_signatures"],
+            unsigned_accepted=c["unsigned_accepted"],
             rejected_by_reason=dict(self._rejected),
         )
 

@@ -271,6 +271,12 @@ class LinkCounters:
     """Streamer ticks that started more than one period late (ticks were skipped)."""
     link_losses: int = 0
     offboard_losses: int = 0
+    unsigned_rejected: int = 0
+    """(signing required) unsigned frames refused."""
+    bad_signatures: int = 0
+    """Signed frames whose signature or timestamp did not verify (wrong key, replay)."""
+    unsigned_accepted: int = 0
+    """(signing not required) unsigned frames let through."""
     rejected_by_reason: dict[str, int] = field(default_factory=dict)
 
 

@@ -18,7 +18,14 @@ from onboard.autopilot import px4
 from onboard.autopilot.config import LinkConfig
 from onboard.autopilot.frames import NedSetpoint
 from onboard.autopilot.link import AutopilotLink
-from onboard.autopilot.model import CommandResult, LinkError
+from onboard.autopilot.model import CommandResult, LinkError, VehicleState
+from onboard.autopilot.signing import (
+    SIGNING_VERSIONS,
+    Verifier,
+    frame_origin,
+    load_signing_key,
+    signing_timestamp_now,
+)
 from onboard.autopilot.transport import Address, Transport, open_transport
 
 _UINT16_MAX = 65535
@@ -61,6 +68,11 @@ class PymavlinkLink(AutopilotLink):
         )
         self._parser = mavlink.MAVLink(None)
         self._parser.robust_parsing = True
+        self._signing = config.signing_key_file is not None
+        self._autopilot_unsigned = 0
+        self._autopilot_badsig = 0
+        if config.signing_key_file is not None:
+            self._setup_signing(load_signing_key(config.signing_key_file))
         self._tx_lock = threading.Lock()
         self._ack_cond = threading.Condition()
         self._pending: _Pending | None = None
@@ -74,6 +86,40 @@ class PymavlinkLink(AutopilotLink):
             "HOME_POSITION": self._on_home_position,
             "COMMAND_ACK": self._on_command_ack,
         }
+
+    def _setup_signing(self, key: bytes) -> None:
+        """Sign everything sent; verify what arrives (the key stays in the codecs only)."""
+        out = self._mav.signing
+        out.secret_key = key
+        out.sign_outgoing = True
+        out.link_id = self.config.signing_link_id
+        out.timestamp = signing_timestamp_now()
+        inp = self._parser.signing
+        inp.secret_key = key
+        self._parser.check_signature = Verifier(key).verify
+        if not self.config.requires_signing:
+            inp.allow_unsigned_callback = lambda _mav, _msg_id: True
+
+    def connect(self, timeout_s: float | None = None) -> VehicleState:
+        """As ``AutopilotLink.connect``; with signing required, an autopilot that sends only
+        unsigned frames (PX4 v1.16) or frames signed with another key is named as such."""
+        try:
+            return super().connect(timeout_s)
+        except LinkError as e:
+            cfg = self.config
+            who = f"{self.name}: the autopilot (system {cfg.system_id})"
+            if cfg.requires_signing and self._autopilot_unsigned:
+                raise LinkError(
+                    f"{who} sends unsigned MAVLink ({self._autopilot_unsigned} frames refused) "
+                    f"and signing_required is set: MAVLink signing needs {SIGNING_VERSIONS}, "
+                    "with the same key"
+                ) from e
+            if self._autopilot_badsig:
+                raise LinkError(
+                    f"{who} signs, but {self._autopilot_badsig} frames did not verify: another "
+                    "key (or replayed frames)"
+                ) from e
+            raise
 
     @property
     def transport_description(self) -> str:
@@ -112,17 +158,23 @@ class PymavlinkLink(AutopilotLink):
             p.buf = bytearray()
             p.buf_index = 0
             p.expected_length = mavlink.HEADER_LEN_V1 + 2
+        unsigned_before = p.signing.unsigned_count
         try:
             msgs = p.parse_buffer(data) or []
         except Exception:  # noqa: BLE001 - malformed input must never stop the receiver
             self._rx_decode_error()
             return
+        if p.signing.unsigned_count != unsigned_before:
+            self._c["unsigned_accepted"] += p.signing.unsigned_count - unsigned_before
         now = time.monotonic()
         cfg = self.config
         for m in msgs:
             kind = m.get_type()
             if kind == "BAD_DATA":
-                self._rx_decode_error()
+                if self._signing and "signature" in str(getattr(m, "reason", "")):
+                    self._rx_signing_reject(m.data)
+                else:
+                    self._rx_decode_error()
                 continue
             if m.get_srcSystem() != cfg.system_id:
                 continue
@@ -139,6 +191,17 @@ class PymavlinkLink(AutopilotLink):
                     handler(now, m)
                 except Exception:  # noqa: BLE001 - a malformed field: count, go on
                     self._rx_decode_error()
+
+    def _rx_signing_reject(self, frame: Any) -> None:
+        origin = frame_origin(bytes(frame))
+        signed = origin is not None and origin[2]
+        self._c["bad_signatures" if signed else "unsigned_rejected"] += 1
+        cfg = self.config
+        if origin is not None and origin[:2] == (cfg.system_id, cfg.autopilot_component_id):
+            if signed:
+                self._autopilot_badsig += 1
+            else:
+                self._autopilot_unsigned += 1
 
     def _on_heartbeat(self, now: float, m: Any) -> None:
         self._rx_heartbeat(now, int(m.custom_mode), int(m.base_mode), int(m.system_status))
@@ -199,6 +262,8 @@ class PymavlinkLink(AutopilotLink):
             return False
         with self._tx_lock:
             mav = self._mav
+            if self._signing:  # never behind the wall clock (a restarted link stays fresh)
+                mav.signing.timestamp = max(mav.signing.timestamp, signing_timestamp_now())
             buf = bytes(msg.pack(mav))
             mav.seq = (mav.seq + 1) % 256
             return t.write(buf)
