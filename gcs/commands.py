@@ -1,11 +1,13 @@
 """Operator commands of ``swarm-gcs`` over the Zenoh swarm bus (the same commands fly real drones
 and the local demo): ``status``, ``formation``, ``goal``, ``waypoints``, ``takeoff``, ``land``,
-``abort``, ``resume``.
+``abort``, ``resume``, ``view`` (and, from their own modules, ``report`` and ``demo``).
 
-Every command joins the bus (``--swarm``, ``--connect`` / ``--listen``, ``--mode``), waits up to
-``--wait`` seconds to see the drones' liveliness tokens, sends, and reports each drone's answer;
-it exits 1 when a drone refused or did not answer within ``--timeout`` (the ids are printed),
-so that scripts can rely on the exit status. ``--json`` prints the outcome as one JSON object.
+Every bus command joins the bus (``--swarm``, ``--connect`` / ``--listen``, ``--mode``; over
+mutual TLS with ``--tls-ca``, ``--tls-cert``, ``--tls-key``: ``swarm-gcs certs`` makes a demo
+PKI), waits up to ``--wait`` seconds to see the drones' liveliness tokens, sends, and reports
+each drone's answer; it exits 1 when a drone refused or did not answer within ``--timeout``
+(the ids are printed), so that scripts can rely on the exit status. ``--json`` prints the
+outcome as one JSON object.
 
 Register them on the ``swarm-gcs`` group with ``for c in COMMANDS: main.add_command(c)``.
 """
@@ -51,9 +53,27 @@ class BusOptions:
     timeout_s: float = 3.0
     wait_s: float = 3.0
     expect: int | None = None
+    tls_ca: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
 
     def endpoints(self) -> ZenohEndpoints:
-        return ZenohEndpoints(listen=self.listen, connect=self.connect, mode=self.mode)
+        """The Zenoh endpoints; over TLS (``tcp/`` becomes ``tls/``) with the station's
+        certificate when ``tls_ca``/``tls_cert``/``tls_key`` are given."""
+        eps = ZenohEndpoints(listen=self.listen, connect=self.connect, mode=self.mode)
+        given = [x is not None for x in (self.tls_ca, self.tls_cert, self.tls_key)]
+        if not any(given):
+            return eps
+        if not all(given):
+            raise click.UsageError("TLS needs all three of --tls-ca, --tls-cert and --tls-key")
+        from onboard.comm.security import TlsConfig
+
+        assert self.tls_ca is not None and self.tls_cert is not None and self.tls_key is not None
+        try:
+            tls = TlsConfig(self.tls_ca, self.tls_cert, self.tls_key)
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--tls-*") from e
+        return eps.secured(tls)
 
 
 def _split(value: str | None) -> tuple[str, ...]:
@@ -109,6 +129,24 @@ def bus_options(f: F) -> F:
             help="Seconds to wait for the drones to show up on the bus.",
         ),
         click.option(
+            "--tls-ca",
+            default=None,
+            envvar=f"{ENV_PREFIX}_TLS_CA",
+            help="Swarm CA certificate (PEM): join over mutual TLS (with --tls-cert/--tls-key).",
+        ),
+        click.option(
+            "--tls-cert",
+            default=None,
+            envvar=f"{ENV_PREFIX}_TLS_CERT",
+            help="This ground station's certificate (PEM, common name 'gcs').",
+        ),
+        click.option(
+            "--tls-key",
+            default=None,
+            envvar=f"{ENV_PREFIX}_TLS_KEY",
+            help="Its private key (PEM, mode 0600).",
+        ),
+        click.option(
             "--expect",
             type=click.IntRange(min=1),
             default=None,
@@ -135,6 +173,9 @@ def _bus(kw: dict[str, Any]) -> BusOptions:
         timeout_s=kw.pop("timeout_s"),
         wait_s=kw.pop("wait_s"),
         expect=kw.pop("expect"),
+        tls_ca=kw.pop("tls_ca"),
+        tls_cert=kw.pop("tls_cert"),
+        tls_key=kw.pop("tls_key"),
     )
     if not bus.connect and not bus.listen:
         raise click.UsageError(
@@ -155,8 +196,9 @@ def open_station(
     """A ground station on the bus that has waited for the drones: ``drones`` (all of them),
     ``bus.expect`` of them, or whoever is up once the set has not grown for a short while."""
     cfg = config if config is not None else StationConfig(ack_timeout_s=bus.timeout_s)
+    endpoints = bus.endpoints()
     try:
-        gs = GroundStation(bus.swarm, bus.endpoints(), config=cfg)
+        gs = GroundStation(bus.swarm, endpoints, config=cfg)
     except (RuntimeError, ValueError) as e:
         raise click.ClickException(str(e)) from e
     try:

@@ -4,6 +4,7 @@ that never answers."""
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -11,6 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -305,7 +307,6 @@ def test_cli_commands_report_acks(
     drones_only: Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]],
     tmp_path: Any,
 ) -> None:
-    import json
 
     drones, connect = drones_only({0: "answer", 1: "answer", 2: "silent"})
     for i, d in drones.items():
@@ -351,7 +352,6 @@ def test_cli_commands_report_acks(
 def test_cli_status_and_usage_errors(
     drones_only: Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]],
 ) -> None:
-    import json
 
     drones, connect = drones_only({0: "answer", 1: "answer"})
     for i, d in drones.items():
@@ -371,3 +371,26 @@ def test_cli_status_and_usage_errors(
     assert r.exit_code == 2 and "drone ids" in r.output
     r = _run(["land", "--swarm", "bad swarm*", "--connect", connect])
     assert r.exit_code == 2 and "swarm name" in r.output
+
+
+def test_cli_over_mutual_tls(tmp_path: Path) -> None:
+    """The same command over TLS with the station's certificate; refused without it."""
+    from gcs.certs import make_demo_pki
+    from onboard.comm.security import TlsConfig
+
+    pki = make_demo_pki(tmp_path / "pki", 1, days=2)
+    d = pki["ca"].parent
+    (ep,) = peer_mesh(1)
+    tls = TlsConfig(str(d / "ca.pem"), str(d / "drone-0.pem"), str(d / "drone-0.key"))
+    with SwarmNode(SWARM, 0, ep.secured(tls)) as node:
+        drone = FakeDrone(node, "answer")
+        connect = ep.listen[0]
+        ca, cert, key = (str(d / n) for n in ("ca.pem", "gcs.pem", "gcs.key"))
+        r = _run(["land", "--swarm", SWARM, "--connect", connect, "--tls-ca", ca,
+                  "--tls-cert", cert, "--tls-key", key, "--expect", "1", "--json"])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        assert json.loads(r.output)["accepted"] == [0] and len(drone.commands()) == 1
+        r = _run(["land", "--swarm", SWARM, "--connect", connect, "--tls-ca", ca, "--wait", "1"])
+        assert r.exit_code == 2 and "needs all three" in r.output
+        r = _run(["land", "--swarm", SWARM, "--connect", connect, "--wait", "1"])  # plain TCP
+        assert r.exit_code == 1 and "no drone is up" in r.output
