@@ -425,7 +425,7 @@ def _goal_of(a: Analysis, f: DroneFlight) -> np.ndarray | None:
     assignment, else its last planned goal."""
     g = a.mission.get("goal_m")
     assignments = a.mission.get("assignments") or []
-    if g is not None and assignments:
+    if g is not None and assignments and np.all(np.isfinite(np.asarray(g, dtype=np.float64))):
         last = max(assignments, key=lambda x: float(x["effective_s"]))
         slot = last["slots"].get(str(f.drone_id), last["slots"].get(f.drone_id))
         if slot is not None:
@@ -495,6 +495,7 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "collisions_reported_by_mock": a.mission.get("sitl", {}).get("collisions"),
         "e_dist_m": e_dist_s,
         "e_sim": e_sim_s,
+        "cluttered": _cluttered(a),
         "setpoint_period_ms": _stat_ms(periods),
         "plan_ms": _stat(np.concatenate([f.plan_ms for f in a.flights]) if a.flights else []),
         "assignments": [
@@ -503,6 +504,22 @@ def summarise(a: Analysis) -> dict[str, Any]:
         ],
     }
     return out
+
+
+def _cluttered(a: Analysis) -> dict[str, Any] | None:
+    """e_dist and e_sim while the swarm's centroid is inside the cluttered x span (how the
+    fast-time simulator and the paper average them); None without a span."""
+    span = a.mission.get("cluttered_x")
+    if not span or not a.t.size:
+        return None
+    with np.errstate(invalid="ignore"):
+        cx = np.nanmean(np.where(a.airborne, a.pos[:, :, 0], np.nan), axis=1)
+    inside = (cx >= float(span[0])) & (cx <= float(span[1]))
+    return {
+        "x_span_m": [float(span[0]), float(span[1])],
+        "e_dist_m": _stat(a.e_dist[inside]),
+        "e_sim": _stat(a.e_sim[inside]),
+    }
 
 
 def _record_collisions(a: Analysis) -> dict[str, int]:
@@ -537,7 +554,13 @@ def summary_text(s: Mapping[str, Any]) -> str:
         f"min clearance: obstacles {f(s['min_obstacle_clearance_m'])} m, "
         f"drones {f(s['min_drone_distance_m'])} m",
         f"e_dist mean {f(s['e_dist_m']['mean'], '.3f')} m (max {f(s['e_dist_m']['max'], '.3f')}), "
-        f"e_sim mean {f(s['e_sim']['mean'], '.4f')} (max {f(s['e_sim']['max'], '.4f')})",
+        f"e_sim mean {f(s['e_sim']['mean'], '.4f')} (max {f(s['e_sim']['max'], '.4f')})"
+        + (
+            f"; in the cluttered span: e_dist {f(s['cluttered']['e_dist_m']['mean'], '.3f')} m, "
+            f"e_sim {f(s['cluttered']['e_sim']['mean'], '.4f')}"
+            if s.get("cluttered")
+            else ""
+        ),
         f"setpoint period: median {f(s['setpoint_period_ms']['median'], '.1f')} ms, "
         f"p99 {f(s['setpoint_period_ms']['p99'], '.1f')} ms, "
         f"max {f(s['setpoint_period_ms']['max'], '.1f')} ms "
@@ -590,10 +613,11 @@ def plot_top(a: Analysis, path: Path) -> Path:
             ax.plot(p[-1, 0], p[-1, 1], "s", color=c, markersize=5)
             pts.append(p[:, :2])
         g = _goal_of(a, f)
-        if g is not None:
+        if g is not None and np.all(np.isfinite(g)):
             ax.plot(g[0], g[1], "x", color=c, markersize=7, mew=2)
             pts.append(g[None, :2])
     allp = np.concatenate(pts)
+    allp = allp[np.isfinite(allp).all(axis=1)]
     if allp.shape[0]:
         ax.set_xlim(float(allp[:, 0].min()) - 1.5, float(allp[:, 0].max()) + 1.5)
         ax.set_ylim(float(allp[:, 1].min()) - 1.5, float(allp[:, 1].max()) + 1.5)

@@ -149,6 +149,10 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert np.nanmax(a.e_sim[intact]) < 1e-9 and np.nanmax(a.e_dist[intact]) < 1e-6
     assert np.nanmax(a.e_dist) > 0.5 and s["e_dist_m"]["max"] == pytest.approx(np.nanmax(a.e_dist))
     assert np.isnan(a.e_dist[rel < 1.5]).all()  # on the ground: not flying the formation
+    # in the cluttered span (x 0..10 of forest-small: t = 9..29 s) the swerve is included
+    cl = s["cluttered"]
+    assert cl["x_span_m"] == [0.0, 10.0] and cl["e_dist_m"]["max"] == s["e_dist_m"]["max"]
+    assert cl["e_dist_m"]["count"] == pytest.approx(201, abs=2)
     # obstacle clearance: the minimum over airborne samples of the mock's world
     w = mission_world(mission)
     assert w is not None and w.cylinders.shape[0] == 8
