@@ -14,7 +14,6 @@ import numpy as np
 from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory
 from onboard.planner.trajectory import Trajectory
 from onboard.service.config import GeofenceSection
 from onboard.service.ports import PeerInfo, SwarmBusPort
@@ -105,15 +104,42 @@ def inside_box(
 
 
 def warm_up(params: PlannerParams) -> float:
-    """Plan a small formation problem once (numba's cache loaded, kernels hot); seconds taken."""
-    from onboard.planner.field import AnalyticField
+    """Run every planning path once before READY, so that no kernel is loaded from numba's cache
+    (or compiled) in flight, where loading holds the interpreter for a long time: one cycle of a
+    ``DroneAgent`` (the class the service flies) on a sampled grid field (the mapped ESDF's kind)
+    with a trunk on the straight line (A* guess) and an avoided-only peer (edge-masked template),
+    then one on the exact ground field. Seconds taken."""
+    from onboard.agent import DroneAgent, StaticMap
+    from onboard.comm.bus import InMemoryBus
+    from onboard.comm.messages import TrajectoryMsg
+    from onboard.planner.field import AnalyticField, GridField
     from onboard.world import World
 
     t0 = time.perf_counter()
+    world = World(np.array([[2.0, 0.0, 0.3, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    res = 0.2
+    origin = np.array([-2.0, -3.0, -0.4])
+    shape = (40, 30, 16)
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1)
+    centres = origin + (idx.reshape(-1, 3) + 0.5) * res
+    values = world.distance(centres)[0].reshape(shape)
+    grid = GridField(values, origin, res, np.ones(shape, dtype=bool))
     formation = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
-    pl = FormationPlanner(params, formation, slot=1)
     start = np.array([0.0, 0.0, 1.0])
-    peers = [PeerTrajectory(k, k, Trajectory.hover(start + formation[k], 0.0, 5.0)) for k in (0, 2)]
-    z = np.zeros(3)
-    pl.plan(0.0, start, z, z, np.array([3.0, 0.0, 1.0]), peers, AnalyticField(World.empty(0.0)))
+    for field in (grid, AnalyticField(World.empty(0.0))):
+        bus = InMemoryBus()
+        for k, epoch in ((0, 0), (2, 1)):  # drone 2 flies another epoch: avoided only
+            hover = Trajectory.hover(start + formation[k], 0.0, 5.0)
+            bus.publish(TrajectoryMsg(k, 0, k, hover, epoch), 0.0)
+        agent = DroneAgent(
+            1,
+            params,
+            formation,
+            1,
+            Trajectory.hover(start, 0.0, 1.0),
+            bus,
+            StaticMap(field),
+            goal=np.array([4.0, 0.0, 1.0]),
+        )
+        agent.replan(0.0)
     return time.perf_counter() - t0

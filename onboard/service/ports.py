@@ -5,7 +5,6 @@ the depth source and the replanner. The process wires real implementations
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -164,11 +163,3 @@ def climb_trajectory(
     m.set_conditions(np.stack([s, z, z]), np.stack([s + [0.0, 0.0, height_m], z, z]))
     m.set_parameters(np.zeros((0, 3)), np.array([T]))
     return Trajectory(t0_s, m.coeffs, np.array([T]))
-
-
-def heading_of(v: np.ndarray, previous: float, min_speed_m_s: float = 0.2) -> float:
-    """ENU yaw that faces the direction of horizontal motion (the camera looks ahead), or the
-    previous yaw when slower than ``min_speed_m_s``."""
-    if math.hypot(float(v[0]), float(v[1])) < min_speed_m_s:
-        return previous
-    return math.atan2(float(v[1]), float(v[0]))

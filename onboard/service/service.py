@@ -32,6 +32,7 @@ replaces it.
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import queue
@@ -48,6 +49,7 @@ from onboard.agent import DroneAgent, PlanReport
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
+from onboard.sensors.simulated import heading_yaw
 from onboard.service.config import OnboardConfig
 from onboard.service.logs import event
 from onboard.service.planning import FieldSource, PortPeerBus, inside_box, peer_roles, warm_up
@@ -60,7 +62,6 @@ from onboard.service.ports import (
     VehicleSnapshot,
     braking_trajectory,
     climb_trajectory,
-    heading_of,
 )
 from onboard.service.sdnotify import Notifier
 from onboard.service.state import (
@@ -261,7 +262,9 @@ class FlightService:
             return None
         traj = self.agent.advance(t_s)
         p, v, a = traj.state(t_s)
-        self._yaw = heading_of(v, self._yaw)
+        # the camera looks where the drone flies, or towards its goal while it waits (the same
+        # policy as the simulated drones: what the planner needs observed is ahead)
+        self._yaw = heading_yaw(v, p, self.agent.goal, self._yaw)
         self.counters["setpoints_sampled"] += 1
         rec = self.recorder
         if rec is not None:
@@ -953,6 +956,11 @@ class FlightService:
                     waited_s=ready_timeout_s,
                 )
                 return 1
+        # the objects made so far (modules, kernels, the warm-up) live as long as the process:
+        # keep them out of the collector's full passes, which would otherwise pause every
+        # thread (the setpoint stream too) for longer as the heap grows
+        gc.collect()
+        gc.freeze()
         self.ready = True
         ready_s = time.monotonic() - t0
         self.notifier.ready(f"drone {self.id} ready")

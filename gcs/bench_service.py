@@ -1,0 +1,744 @@
+"""Flight service benchmark (``swarm-gcs bench service``): one ``swarm-onboard run`` process
+against the SITL mock (``swarm-sitl``, its own process) with depth frames at 30 frames/s over
+Zenoh, flying back and forth through a small forest, so that it maps and replans all the time.
+
+Measured:
+
+- the setpoint stream's period *as the mock receives it*: a UDP tap between the service and the
+  mock (``SetpointTap``) forwards every datagram both ways and timestamps the arrival of each
+  SET_POSITION_TARGET_LOCAL_NED (message 84) on its way to the mock; p50 / p99 / max of the
+  intervals during the measurement window (target: p99 < 25 ms, max < 50 ms at 50 Hz);
+- the service's CPU (its process CPU time over the window's wall time, in cores; goal <= 0.5)
+  and memory (RSS at the end of the window, and the peak);
+- start to READY with a warm numba cache: the time from starting the process to its
+  ``READY=1`` on a ``NOTIFY_SOCKET`` datagram socket the benchmark creates (``NotifySocket``),
+  after a first start that warmed every cache (target < 5 s);
+- for context: depth frames the service ingested per second, replans, plan times, the mock's
+  collisions and the machine's load average.
+
+The helpers (tap, notify socket, service process, configs, world file) are used by the service
+integration tests too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+import yaml
+
+SET_POSITION_TARGET_LOCAL_NED = 84
+TARGETS = {
+    "setpoint_p99_ms": 25.0,
+    "setpoint_max_ms": 50.0,
+    "start_to_ready_s": 5.0,
+    "cpu_cores": 0.5,
+}
+BIN = Path(sys.executable).parent
+
+
+# ---- MAVLink on the wire ------------------------------------------------------------------------
+def mavlink_msgids(data: bytes) -> list[int]:
+    """Message ids of the MAVLink 1/2 frames in one datagram (stops at the first byte that does
+    not start a frame)."""
+    ids: list[int] = []
+    i = 0
+    n = len(data)
+    while i < n:
+        magic = data[i]
+        if magic == 0xFD and i + 10 <= n:
+            plen = data[i + 1]
+            signed = data[i + 2] & 0x01
+            ids.append(data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16)
+            i += 10 + plen + 2 + (13 if signed else 0)
+        elif magic == 0xFE and i + 6 <= n:
+            plen = data[i + 1]
+            ids.append(data[i + 5])
+            i += 6 + plen + 2
+        else:
+            break
+    return ids
+
+
+class SetpointTap:
+    """A UDP forwarder between an autopilot (the mock) and the service.
+
+    The mock sends its telemetry to ``front_port`` (its ``--base-port``); the tap forwards it to
+    the service at ``service_addr`` from its own back socket, and forwards whatever the service
+    answers to the mock's address (learned from the mock's datagrams). The arrival time
+    (``time.monotonic()``) of every datagram from the service that carries message ``msgid``
+    is kept in ``arrivals``. Runs in its own thread; ``close`` stops it.
+    """
+
+    def __init__(
+        self, service_addr: tuple[str, int], msgid: int = SET_POSITION_TARGET_LOCAL_NED
+    ) -> None:
+        self.service_addr = service_addr
+        self.msgid = msgid
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back.bind(("127.0.0.1", 0))
+        self.front_port = int(self.front.getsockname()[1])
+        self.mock_addr: tuple[str, int] | None = None
+        self.arrivals: list[float] = []
+        self.to_service = 0
+        self.to_mock = 0
+        self.dropped = 0  # datagrams from the service before the mock was heard
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="setpoint-tap", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self.front, selectors.EVENT_READ, "front")
+        sel.register(self.back, selectors.EVENT_READ, "back")
+        try:
+            while not self._stop.is_set():
+                for key, _ in sel.select(0.2):
+                    sock = key.fileobj
+                    assert isinstance(sock, socket.socket)
+                    try:
+                        data, addr = sock.recvfrom(65535)
+                    except OSError:
+                        continue
+                    t = time.monotonic()
+                    if key.data == "front":
+                        self.mock_addr = addr
+                        self.back.sendto(data, self.service_addr)
+                        self.to_service += 1
+                    else:
+                        if self.msgid in mavlink_msgids(data):
+                            with self._lock:
+                                self.arrivals.append(t)
+                        if self.mock_addr is None:
+                            self.dropped += 1
+                        else:
+                            self.front.sendto(data, self.mock_addr)
+                            self.to_mock += 1
+        finally:
+            sel.close()
+
+    def arrivals_between(self, t0: float, t1: float) -> np.ndarray:
+        with self._lock:
+            a = np.array(self.arrivals)
+        return a[(a >= t0) & (a <= t1)]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.front.close()
+        self.back.close()
+
+    def __enter__(self) -> SetpointTap:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ---- systemd's notify socket -------------------------------------------------------------------
+class NotifySocket:
+    """A datagram socket for ``NOTIFY_SOCKET`` (what systemd gives a ``Type=notify`` service):
+    every datagram received is kept with its arrival time (``time.monotonic()``)."""
+
+    def __init__(self) -> None:
+        self._dir = tempfile.mkdtemp(prefix="notify-")
+        self.path = os.path.join(self._dir, "notify")
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.setblocking(False)
+        self.received: list[tuple[float, str]] = []
+
+    def poll(self, timeout_s: float = 0.0) -> list[tuple[float, str]]:
+        """Read what arrived (waiting up to ``timeout_s`` for the first datagram)."""
+        sel = selectors.DefaultSelector()
+        sel.register(self.sock, selectors.EVENT_READ)
+        try:
+            new: list[tuple[float, str]] = []
+            wait = timeout_s
+            while sel.select(wait):
+                try:
+                    data = self.sock.recv(65535)
+                except BlockingIOError:
+                    break
+                new.append((time.monotonic(), data.decode(errors="replace")))
+                wait = 0.0
+            self.received.extend(new)
+            return new
+        finally:
+            sel.close()
+
+    def first(self, key: str) -> float | None:
+        """Arrival time of the first datagram that holds the line ``key`` (e.g. ``READY=1``)."""
+        for t, text in self.received:
+            if key in text.splitlines():
+                return t
+        return None
+
+    def close(self) -> None:
+        self.sock.close()
+        try:
+            os.unlink(self.path)
+            os.rmdir(self._dir)
+        except OSError:
+            pass
+
+
+# ---- the service as a process -------------------------------------------------------------------
+def service_config(
+    *,
+    swarm: str,
+    autopilot_port: int,
+    zenoh_listen: Sequence[str],
+    zenoh_connect: Sequence[str],
+    record_dir: str | Path,
+    depth: Mapping[str, Any] | None = None,
+    port_plus_id: bool = False,
+    implementation: str = "pymavlink",
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """A ``config/onboard.yaml`` mapping for a service on loopback: autopilot on UDP
+    ``autopilot_port`` (+ id with ``port_plus_id``), the swarm bus on the given endpoints,
+    ``depth`` (None: no camera), records in ``record_dir``, JSON log lines; ``extra`` is merged
+    in last (nested mappings key by key)."""
+    from onboard.config import merge_mappings
+
+    data: dict[str, Any] = {
+        "drone": {"swarm": swarm},
+        "autopilot": {
+            "implementation": implementation,
+            "url": f"udp://127.0.0.1:{autopilot_port}",
+            "port_plus_id": port_plus_id,
+        },
+        "zenoh": {"listen": list(zenoh_listen), "connect": list(zenoh_connect)},
+        "depth": dict(depth) if depth is not None else {"source": "none"},
+        "record": {"directory": str(record_dir)},
+        "logging": {"format": "json"},
+    }
+    return merge_mappings(data, extra or {})
+
+
+def proc_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process, all its threads (Linux ``/proc``)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def proc_memory_kb(pid: int) -> dict[str, int]:
+    """``VmRSS`` (now) and ``VmHWM`` (peak) of a process, kB."""
+    out = {}
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                out[key] = int(value.split()[0])
+    return out
+
+
+class ServiceProcess:
+    """``swarm-onboard run --id ID --config FILE`` with a notify socket; output to ``log_path``.
+    Use as a context manager: it is always stopped (SIGTERM, then SIGKILL) on exit."""
+
+    def __init__(
+        self,
+        drone_id: int,
+        config: Mapping[str, Any],
+        workdir: Path,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
+        self.drone_id = drone_id
+        self.workdir = Path(workdir)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.config_path = self.workdir / f"onboard-{drone_id}.yaml"
+        self.config_path.write_text(yaml.safe_dump(dict(config), sort_keys=False))
+        self.log_path = self.workdir / f"service-{drone_id}.log"
+        self.env = dict(env or {})
+        self.notify = NotifySocket()
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.started_at = 0.0
+        self.returncode: int | None = None
+
+    def start(self) -> ServiceProcess:
+        env = {
+            **os.environ,
+            "OPENBLAS_NUM_THREADS": "1",
+            "NOTIFY_SOCKET": self.notify.path,
+            **self.env,
+        }
+        with open(self.log_path, "ab") as log:
+            self.started_at = time.monotonic()
+            self.proc = subprocess.Popen(
+                [
+                    str(BIN / "swarm-onboard"),
+                    "run",
+                    "--id",
+                    str(self.drone_id),
+                    "--config",
+                    str(self.config_path),
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        return self
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def wait_ready(self, timeout_s: float) -> float:
+        """Seconds from the start of the process to its READY=1 (raises if it exits first or
+        the time is up)."""
+        deadline = time.monotonic() + timeout_s
+        while self.notify.first("READY=1") is None:
+            if not self.alive():
+                raise RuntimeError(
+                    f"service {self.drone_id} exited ({self.proc and self.proc.returncode}) "
+                    f"before READY:\n{self.log_tail()}"
+                )
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"service {self.drone_id} not READY in {timeout_s} s")
+            self.notify.poll(0.05)
+        t = self.notify.first("READY=1")
+        assert t is not None
+        return t - self.started_at
+
+    def log_tail(self, chars: int = 3000) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")[-chars:]
+        except OSError:
+            return ""
+
+    def log_events(self, name: str) -> list[dict[str, Any]]:
+        """The service's JSON log lines of ``event`` ``name``."""
+        out = []
+        for line in self.log_path.read_text(errors="replace").splitlines():
+            if f'"event": "{name}"' in line:
+                try:
+                    out.append(json.loads(line))
+                except json.JSONDecodeError:
+                    continue
+        return out
+
+    def stop(self, timeout_s: float = 10.0) -> int | None:
+        """SIGTERM, wait, SIGKILL if needed; the exit code."""
+        p = self.proc
+        if p is not None and p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5.0)
+        if p is not None:
+            self.returncode = p.returncode
+        self.notify.close()
+        return self.returncode
+
+    def __enter__(self) -> ServiceProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def write_world(
+    path: Path,
+    cylinders: Sequence[Sequence[float]],
+    starts: Sequence[Sequence[float]],
+    goals: Sequence[Sequence[float]],
+) -> Path:
+    """A world file (``cylinders: [[x, y, r, z_min, z_max], ...]``, per-drone starts/goals)."""
+    xs = [c[0] for c in cylinders] or [0.0]
+    data = {
+        "description": "benchmark/test forest",
+        "cylinders": [[float(v) for v in c] for c in cylinders],
+        "cluttered_x": [float(min(xs)), float(max(xs))],
+        "starts": [[float(v) for v in p] for p in starts],
+        "goals": [[float(v) for v in p] for p in goals],
+        "ground_z": 0.0,
+    }
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def stop_process(p: subprocess.Popen[Any], timeout_s: float = 10.0) -> None:
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5.0)
+
+
+def poll_until(
+    cond: Callable[[], bool],
+    timeout_s: float,
+    what: str,
+    alive: Callable[[], bool] | None = None,
+    period_s: float = 0.05,
+) -> None:
+    """Wait (real time) for ``cond``; TimeoutError naming ``what``; RuntimeError when
+    ``alive()`` turns False first."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if alive is not None and not alive():
+            raise RuntimeError(f"a process died while waiting for {what}")
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(period_s)
+
+
+# ---- the benchmark ------------------------------------------------------------------------------
+# a small forest across the back-and-forth leg (x from 0 to 8 m at y = 0)
+BENCH_TRUNKS = (
+    (2.0, 0.4, 0.25, 0.0, 3.0),
+    (3.5, -0.5, 0.2, 0.0, 3.0),
+    (5.0, 0.3, 0.3, 0.0, 3.0),
+    (6.5, -0.6, 0.2, 0.0, 3.0),
+    (4.0, 2.0, 0.3, 0.0, 3.0),
+    (4.5, -2.2, 0.25, 0.0, 3.0),
+)
+LEG_A = (-0.5, 0.0, 1.0)
+LEG_B = (8.5, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ServiceBenchConfig:
+    seconds: float = 30.0
+    """Measurement window, while the drone flies back and forth."""
+    depth_rate_hz: float = 30.0
+    v_max_m_s: float = 1.0
+    implementation: str = "pymavlink"
+    setpoint_rate_hz: float = 50.0
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0.0:
+            raise ValueError("seconds must be > 0")
+        if not 1.0 <= self.depth_rate_hz <= 90.0:
+            raise ValueError("depth_rate_hz must be in [1, 90]")
+
+
+def _stats(x: np.ndarray) -> dict[str, float | None]:
+    if x.size == 0:
+        return {"n": 0, "p50": None, "p99": None, "max": None, "mean": None}
+    return {
+        "n": int(x.size),
+        "p50": float(np.percentile(x, 50)),
+        "p99": float(np.percentile(x, 99)),
+        "max": float(x.max()),
+        "mean": float(x.mean()),
+    }
+
+
+def run_service_bench(
+    cfg: ServiceBenchConfig, workdir: Path, progress: Callable[[str], None] = lambda s: None
+) -> dict[str, Any]:
+    """Run the benchmark in ``workdir``; the report as a JSON-ready dict."""
+    from gcs.station import GroundStation, StationConfig
+    from onboard.comm import wire
+    from onboard.comm.zenoh_session import free_loopback_endpoint, peer_mesh
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    swarm = f"bench{os.getpid()}"
+    truth_ep = free_loopback_endpoint()
+    prefix = f"{swarm}/sim"
+    world = write_world(workdir / "world.yaml", BENCH_TRUNKS, [(0.0, 0.0, 0.0)], [LEG_B])
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        service_port = int(s.getsockname()[1])
+    load0 = os.getloadavg()
+    tap = SetpointTap(("127.0.0.1", service_port))
+    stats_json = workdir / "sitl-stats.json"
+    mock = subprocess.Popen(
+        [
+            str(BIN / "swarm-sitl"),
+            "--count",
+            "1",
+            "--world",
+            str(world),
+            "--base-port",
+            str(tap.front_port),
+            "--local-port-offset",
+            "-1",
+            "--truth",
+            "zenoh",
+            "--zenoh-listen",
+            truth_ep,
+            "--zenoh-prefix",
+            prefix,
+            "--depth",
+            "--depth-rate",
+            str(cfg.depth_rate_hz),
+            "--set",
+            "local_origin=world",
+            "--set",
+            "spawn_yaw_deg=0",
+            "--set",
+            "autopilot.boot_time_s=0.5",
+            "--stats-json",
+            str(stats_json),
+            "--quiet",
+        ],
+        stdout=open(workdir / "sitl.log", "wb"),  # noqa: SIM115 - closed with the process
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
+    mesh = peer_mesh(2)
+    svc_ep, gcs_ep = mesh
+    config = service_config(
+        swarm=swarm,
+        autopilot_port=service_port,
+        zenoh_listen=svc_ep.listen,
+        zenoh_connect=svc_ep.connect,
+        record_dir=workdir / "records",
+        depth={
+            "source": "zenoh-sim",
+            "rate_hz": cfg.depth_rate_hz,
+            "sim_prefix": prefix,
+            "sim_connect": [truth_ep],
+        },
+        implementation=cfg.implementation,
+        extra={
+            "planner": {"v_max_m_s": cfg.v_max_m_s},
+            "autopilot": {"setpoint_rate_hz": cfg.setpoint_rate_hz},
+            "flight": {"takeoff_speed_m_s": 1.0},
+            "geofence": {"min_enu_m": [-5.0, -5.0, 0.0], "max_enu_m": [14.0, 5.0, 3.0]},
+        },
+    )
+    report: dict[str, Any] = {"benchmark": "service", "config": dataclasses.asdict(cfg)}
+    station = None
+    try:
+        # a first start warms every numba cache (planner, mapping); the second is measured
+        progress("first start (warming the caches)")
+        with ServiceProcess(0, config, workdir / "warm") as warm:
+            report["first_start_to_ready_s"] = warm.wait_ready(120.0)
+        svc = ServiceProcess(0, config, workdir)
+        with svc:
+            progress("measured start")
+            ready_s = svc.wait_ready(60.0)
+            report["start_to_ready_s"] = ready_s
+            ev = svc.log_events("ready")
+            report["service_ready_event"] = ev[0] if ev else None
+            station = GroundStation(swarm, gcs_ep, config=StationConfig(lead_s=0.5))
+            up = station.wait_for_drones(ids=[0], timeout_s=15.0, with_state=True)
+            if 0 not in up:
+                raise RuntimeError("the service did not show up on the bus")
+
+            def state() -> str:
+                v = station.views().get(0)
+                return "" if v is None or v.flight_state is None else str(v.flight_state)
+
+            def ok(outcome: Any) -> None:
+                if not outcome.ok:
+                    raise RuntimeError(outcome.describe())
+
+            ok(
+                station.send(
+                    wire.FormationAssignment(
+                        [(0.0, 0.0, 0.0), (0.0, 3.0, 0.0)],
+                        1.0,
+                        0.0,
+                        {0: 0},
+                        1,
+                        time.time(),
+                    ),
+                    [0],
+                )
+            )
+            progress("take-off")
+            ok(station.takeoff(1.0, [0]))
+            poll_until(lambda: state() == "hover", 30.0, "hover", svc.alive)
+            # the formation's centre is 1.5 m north of slot 0: goals for the centre
+            legs = [LEG_B, LEG_A] * 20
+            centre = [(x, y + 1.5, z) for x, y, z in legs]
+            ok(station.waypoints(centre, [0]))
+            poll_until(lambda: state() == "formation-flight", 10.0, "flight", svc.alive)
+            progress(f"measuring for {cfg.seconds:g} s")
+            c0 = station.views()[0].counters
+            t0 = time.monotonic()
+            cpu0 = proc_cpu_s(svc.pid)
+            states: set[str] = set()
+            while time.monotonic() - t0 < cfg.seconds:
+                time.sleep(0.25)
+                states.add(state())
+                if not svc.alive():
+                    raise RuntimeError(f"the service died:\n{svc.log_tail()}")
+            t1 = time.monotonic()
+            cpu1 = proc_cpu_s(svc.pid)
+            mem = proc_memory_kb(svc.pid)
+            time.sleep(1.2)  # one more status
+            view = station.views()[0]
+            c1 = view.counters
+            arr = tap.arrivals_between(t0, t1)
+            periods_ms = np.diff(arr) * 1e3
+            wall = t1 - t0
+            frames = (c1.get("service.frames", 0) - c0.get("service.frames", 0)) / wall
+            report.update(
+                {
+                    "window_s": wall,
+                    "states_seen": sorted(states),
+                    "setpoint_period_ms": _stats(periods_ms),
+                    "setpoints_in_window": int(arr.size),
+                    "setpoint_rate_hz": float(arr.size / wall),
+                    "periods_over_25ms": int(np.sum(periods_ms > 25.0)),
+                    "periods_over_50ms": int(np.sum(periods_ms > 50.0)),
+                    "cpu_cores": (cpu1 - cpu0) / wall,
+                    "rss_mb": mem.get("VmRSS", 0) / 1024.0,
+                    "peak_rss_mb": mem.get("VmHWM", 0) / 1024.0,
+                    "depth_frames_per_s": frames,
+                    "replans": c1.get("service.replans", 0) - c0.get("service.replans", 0),
+                    "plans_failed": c1.get("service.plans_failed", 0)
+                    - c0.get("service.plans_failed", 0),
+                    "plan_ms_max_last_status": view.plan_ms_max,
+                    "tap": {
+                        "to_service": tap.to_service,
+                        "to_mock": tap.to_mock,
+                        "dropped": tap.dropped,
+                    },
+                }
+            )
+            progress("landing")
+            station.land([0])
+            poll_until(lambda: state() == "landed", 30.0, "landed", svc.alive)
+        report["service_exit_code"] = svc.returncode
+    finally:
+        if station is not None:
+            station.close()
+        stop_process(mock)
+        tap.close()
+    try:
+        sitl = json.loads(stats_json.read_text())
+        report["mock"] = {
+            "collisions": sitl.get("collisions", []),
+            "min_obstacle_distance_m": sitl.get("min_obstacle_distance_m"),
+            "depth": sitl.get("depth"),
+            "process_cpu_s": sitl.get("process_cpu_s"),
+        }
+    except (OSError, json.JSONDecodeError) as e:
+        report["mock"] = {"error": str(e)}
+    sp = report.get("setpoint_period_ms", {})
+    report["targets"] = TARGETS
+    report["met"] = {
+        "setpoint_p99_ms": sp.get("p99") is not None and sp["p99"] < TARGETS["setpoint_p99_ms"],
+        "setpoint_max_ms": sp.get("max") is not None and sp["max"] < TARGETS["setpoint_max_ms"],
+        "start_to_ready_s": report.get("start_to_ready_s", 1e9) < TARGETS["start_to_ready_s"],
+        "cpu_cores": report.get("cpu_cores", 1e9) <= TARGETS["cpu_cores"],
+    }
+    report["load_average"] = {"start": list(load0), "end": list(os.getloadavg())}
+    report["host"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
+    report["when"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    return report
+
+
+def _fmt(x: Any, spec: str = ".1f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+@click.command("service")
+@click.option(
+    "--seconds",
+    default=30.0,
+    show_default=True,
+    type=click.FloatRange(min=1.0),
+    help="Measurement window while the drone flies back and forth.",
+)
+@click.option("--depth-rate", default=30.0, show_default=True, help="Depth frames per second.")
+@click.option(
+    "--implementation",
+    type=click.Choice(["pymavlink", "mavsdk"]),
+    default="pymavlink",
+    show_default=True,
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option(
+    "--workdir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Keep configs, logs and records here (default: a temporary directory).",
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_service(
+    seconds: float,
+    depth_rate: float,
+    implementation: str,
+    json_path: Path | None,
+    workdir: Path | None,
+    quiet: bool,
+) -> None:
+    """One flight service against the SITL mock with depth frames: setpoint period at the mock,
+    CPU, memory, start to READY."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(quiet=quiet, highlight=False)
+    cfg = ServiceBenchConfig(
+        seconds=seconds, depth_rate_hz=depth_rate, implementation=implementation
+    )
+    tmp = None
+    if workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench-service-")
+        workdir = Path(tmp.name)
+    try:
+        with console.status("bench service") as status:
+            try:
+                report = run_service_bench(cfg, workdir, lambda s: status.update(s))
+            except (RuntimeError, TimeoutError) as e:
+                raise click.ClickException(str(e)) from e
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(report, indent=2) + "\n")
+    sp = report["setpoint_period_ms"]
+    t = Table(title=f"flight service: {implementation}, {depth_rate:g} depth frames/s, "
+              f"{report['window_s']:.0f} s window")  # fmt: skip
+    t.add_column("measure")
+    t.add_column("value", justify="right")
+    t.add_column("target", justify="right")
+    t.add_row("setpoint period p50, ms", _fmt(sp["p50"], ".2f"), "20 (50 Hz)")
+    t.add_row("setpoint period p99, ms", _fmt(sp["p99"], ".2f"), "< 25")
+    t.add_row("setpoint period max, ms", _fmt(sp["max"], ".2f"), "< 50")
+    t.add_row("setpoints received per s", _fmt(report["setpoint_rate_hz"]), "50")
+    t.add_row("service CPU, cores", _fmt(report["cpu_cores"], ".2f"), "<= 0.5")
+    t.add_row("service RSS / peak, MB", f"{report['rss_mb']:.0f} / {report['peak_rss_mb']:.0f}", "")
+    t.add_row("start to READY (warm cache), s", _fmt(report["start_to_ready_s"], ".2f"), "< 5")
+    t.add_row("first start to READY, s", _fmt(report["first_start_to_ready_s"], ".2f"), "")
+    t.add_row("depth frames mapped per s", _fmt(report["depth_frames_per_s"]), f"{depth_rate:g}")
+    t.add_row("replans (failed)", f"{report['replans']} ({report['plans_failed']})", "")
+    t.add_row("mock collisions", str(len(report["mock"].get("collisions", []))), "0")
+    console.print(t)
+    console.print(
+        "targets: "
+        + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in report["met"].items())
+    )
+    la = report["load_average"]
+    console.print(
+        f"load average {la['start'][0]:.1f} -> {la['end'][0]:.1f} on {os.cpu_count()} CPUs"
+    )

@@ -1,0 +1,271 @@
+"""Flight service processes on mapped perception: the SITL mock renders depth frames from the true
+poses and publishes them (and the poses) over Zenoh; each ``swarm-onboard run`` process maps
+them (``depth: zenoh-sim``) and plans on its own map only. A ground-station client
+(``gcs.station.GroundStation``) sends the commands over the swarm bus.
+
+Judged on the mock's ground truth (collision count, clearances, true positions) and on the
+services' flight records, not on exit codes alone.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from gcs.bench_service import ServiceProcess, poll_until, service_config
+from gcs.station import GroundStation, StationConfig
+from onboard.comm import wire
+from onboard.comm.zenoh_session import free_loopback_endpoint, peer_mesh
+from onboard.record import read_record
+from onboard.world import World
+from sitl_mock.autopilot import AutopilotParams
+from sitl_mock.client import bind_consecutive_udp
+from sitl_mock.fleet import Fleet, FleetConfig
+from sitl_mock.truth import ZenohTruth, simulated_d435
+
+BODY_RADIUS_M = 0.2
+DEPTH_HZ = 15.0
+
+
+@contextmanager
+def mapped_fleet(
+    world: World, spawns: Sequence[Sequence[float]], prefix: str
+) -> Iterator[tuple[Fleet, int, str]]:
+    """Mock vehicles (system ids 1..N) in ``world`` with depth frames and true poses published
+    over Zenoh under ``prefix``; yields (fleet, UDP base port, the truth's Zenoh endpoint).
+    The vehicles' local frame is the world frame (as the frames are), facing +x."""
+    n = len(spawns)
+    socks = bind_consecutive_udp(n)
+    port = socks[0].getsockname()[1]
+    endpoint = free_loopback_endpoint()
+    sink = ZenohTruth(prefix, [endpoint])
+    fleet = Fleet(
+        FleetConfig(
+            count=n,
+            base_port=port,
+            local_port_offset=None,
+            spawn_enu_m=tuple(tuple(float(v) for v in p) for p in spawns),
+            spawn_yaw_deg=0.0,
+            local_origin="world",
+            body_radius_m=BODY_RADIUS_M,
+            autopilot=AutopilotParams(boot_time_s=0.5),
+        ),
+        world,
+        [sink],
+        {i + 1: simulated_d435(world, seed=i, step=2) for i in range(n)},
+        depth_rate_hz=DEPTH_HZ,
+    )
+    for s in socks:
+        s.close()
+    fleet.start()
+    try:
+        yield fleet, port, endpoint
+    finally:
+        fleet.stop()  # closes the truth sink too
+
+
+def _config(
+    swarm: str, port: int, ep: Any, truth_ep: str, prefix: str, record_dir: Path
+) -> dict[str, Any]:
+    return service_config(
+        swarm=swarm,
+        autopilot_port=port,
+        port_plus_id=True,
+        zenoh_listen=ep.listen,
+        zenoh_connect=ep.connect,
+        record_dir=record_dir,
+        depth={
+            "source": "zenoh-sim",
+            "rate_hz": DEPTH_HZ,
+            "sim_prefix": prefix,
+            "sim_connect": [truth_ep],
+        },
+        extra={
+            "planner": {"v_max_m_s": 0.8},
+            "flight": {"takeoff_speed_m_s": 1.0},
+            "geofence": {"min_enu_m": [-5.0, -6.0, 0.0], "max_enu_m": [15.0, 6.0, 3.0]},
+        },
+    )
+
+
+def _states(gs: GroundStation) -> dict[int, str]:
+    return {d: str(v.flight_state or "") for d, v in gs.views().items()}
+
+
+def _ok(outcome: Any) -> None:
+    assert outcome.ok, outcome.describe()
+
+
+def _world(cylinders: Sequence[Sequence[float]]) -> World:
+    return World(np.array(cylinders, dtype=np.float64), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+
+
+def _fly(
+    gs: GroundStation,
+    fleet: Fleet,
+    drones: list[int],
+    points: list[tuple[float, float, float]],
+    centre: tuple[float, float, float],
+    alive: Any,
+    flight_timeout_s: float,
+) -> np.ndarray:
+    """Formation, take-off, goal; the true positions (T, N, 3) sampled until every drone hovers
+    at its own goal (a hover elsewhere is a hold: the flight goes on after it)."""
+    goals = np.array(centre) + np.array(points)[drones] - np.mean(points, axis=0)
+    _ok(
+        gs.send(
+            wire.FormationAssignment(points, 1.0, 0.0, {d: d for d in drones}, 1, time.time()),
+            drones,
+        )
+    )
+    _ok(gs.takeoff(1.0, drones))
+    poll_until(
+        lambda: all(_states(gs).get(d) == "hover" for d in drones), 40.0, "hover", alive, 0.1
+    )
+    _ok(gs.goal(centre, targets=drones))
+    poll_until(
+        lambda: all(_states(gs).get(d) == "formation-flight" for d in drones),
+        10.0,
+        "formation flight",
+        alive,
+        0.05,
+    )
+    track = []
+    deadline = time.monotonic() + flight_timeout_s
+    while True:
+        truth = fleet.latest_truth()
+        pos = np.array([truth[d + 1].position_m for d in drones], dtype=np.float64)
+        track.append(pos)
+        states = _states(gs)
+        at_goal = np.linalg.norm(pos - goals, axis=1) < 0.4
+        if all(states.get(d) == "hover" for d in drones) and np.all(at_goal):
+            break
+        assert alive(), "a service died in flight"
+        assert time.monotonic() < deadline, f"not arrived in {flight_timeout_s} s: {states}, {pos}"
+        time.sleep(0.05)
+    return np.array(track, dtype=np.float64)
+
+
+def _land(gs: GroundStation, fleet: Fleet, drones: list[int], alive: Any) -> None:
+    _ok(gs.land(drones))
+    poll_until(
+        lambda: all(_states(gs).get(d) == "landed" for d in drones), 30.0, "landed", alive, 0.1
+    )
+    poll_until(
+        lambda: not any(fleet.latest_truth()[d + 1].armed for d in drones),
+        10.0,
+        "disarmed",
+        alive,
+        0.1,
+    )
+
+
+@pytest.mark.timeout(150)
+def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: Path) -> None:
+    trunk = (2.5, 0.0, 0.25, 0.0, 3.0)  # on the straight line from the start to the goal
+    world = _world([trunk])
+    swarm = f"m{os.getpid()}"
+    prefix = f"{swarm}/sim"
+    points = [(0.0, 0.0, 0.0), (0.0, 3.0, 0.0)]  # drone 0 alone in slot 0 (no peer needed)
+    own_goal = np.array([5.0, 0.0, 1.0])
+    centre = tuple(float(v) for v in own_goal - (np.array(points[0]) - np.mean(points, axis=0)))
+    svc_ep, gcs_ep = peer_mesh(2)
+    with ExitStack() as stack:
+        fleet, port, truth_ep = stack.enter_context(mapped_fleet(world, [(0.0, 0.0, 0.0)], prefix))
+        svc = stack.enter_context(
+            ServiceProcess(0, _config(swarm, port, svc_ep, truth_ep, prefix, tmp_path), tmp_path)
+        )
+        gs = stack.enter_context(
+            GroundStation(swarm, gcs_ep, config=StationConfig(lead_s=0.5, ack_timeout_s=5.0))
+        )
+        svc.wait_ready(60.0)
+        assert gs.wait_for_drones(ids=[0], timeout_s=15.0, with_state=True) == {0}
+        track = _fly(gs, fleet, [0], points, centre, svc.alive, 60.0)[:, 0, :]
+        final = np.array(fleet.latest_truth()[1].position_m)
+        assert np.linalg.norm(final - own_goal) < 0.4
+        # the straight line went through the trunk: the flight went around it, with room
+        assert fleet.collision_events() == []
+        assert fleet.min_obstacle_distance_m > 0.1  # body surface to trunk surface
+        near = track[np.abs(track[:, 0] - trunk[0]) < 0.3]
+        assert near.size and np.min(np.abs(near[:, 1] - trunk[1])) > trunk[2] + BODY_RADIUS_M
+        _land(gs, fleet, [0], svc.alive)
+    assert svc.returncode == 0, svc.log_tail()
+    (rec_path,) = tmp_path.glob("drone0-*.mcap")
+    rec = read_record(rec_path)
+    maps = rec.messages("/map")
+    assert maps and max(m["occupied_cells"] for m in maps) > 100
+    # the map put the trunk where it is: the nearest mapped surface, seen from near it, lies on
+    # the trunk's surface (within the map's resolution and inflation)
+    on_trunk = [
+        m
+        for m in maps
+        if m["nearest_obstacle_m"] < 1.5
+        and abs(np.hypot(*(np.array(m["nearest_obstacle_enu_m"][:2]) - trunk[:2])) - trunk[2]) < 0.2
+    ]
+    assert on_trunk, [(m["camera_enu_m"], m["nearest_obstacle_enu_m"]) for m in maps]
+    plans = rec.messages("/plan")
+    assert plans and all(p["n_peers"] == 0 for p in plans)
+
+
+@pytest.mark.timeout(180)
+def test_three_services_cross_a_small_forest_in_formation(tmp_path: Path) -> None:
+    """Three service processes, a three-vehicle mock fleet, a few trunks in the way, each drone
+    on its own map: all arrive, the mock reports no collision."""
+    trunks = [
+        (3.0, -1.5, 0.2, 0.0, 3.0),  # on drone 0's straight line
+        (4.5, 0.1, 0.25, 0.0, 3.0),  # on drone 1's
+        (3.6, 2.4, 0.2, 0.0, 3.0),
+        (6.0, 1.4, 0.2, 0.0, 3.0),  # on drone 2's
+    ]
+    world = _world(trunks)
+    swarm = f"f{os.getpid()}"
+    prefix = f"{swarm}/sim"
+    drones = [0, 1, 2]
+    points = [(0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0)]
+    spawns = [(0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0)]
+    centre = (8.0, 0.0, 1.0)
+    goals = np.array(centre) + np.array(points) - np.mean(points, axis=0)
+    mesh = peer_mesh(4)
+    services: list[ServiceProcess] = []
+    with ExitStack() as stack:
+        fleet, port, truth_ep = stack.enter_context(mapped_fleet(world, spawns, prefix))
+        for d in drones:
+            cfg = _config(swarm, port, mesh[d], truth_ep, prefix, tmp_path / f"d{d}")
+            services.append(stack.enter_context(ServiceProcess(d, cfg, tmp_path / f"d{d}")))
+        gs = stack.enter_context(
+            GroundStation(swarm, mesh[3], config=StationConfig(lead_s=1.0, ack_timeout_s=5.0))
+        )
+
+        def alive() -> bool:
+            return all(s.alive() for s in services)
+
+        for s in services:
+            s.wait_ready(90.0)
+        assert gs.wait_for_drones(ids=drones, timeout_s=20.0, with_state=True) == set(drones)
+        track = _fly(gs, fleet, drones, points, centre, alive, 90.0)
+        truth = fleet.latest_truth()
+        for d in drones:
+            p = np.array(truth[d + 1].position_m)
+            assert np.linalg.norm(p - goals[d]) < 0.4, (d, p, goals[d])
+        assert fleet.collision_events() == []
+        assert list(fleet.collision_counts) == [0, 0, 0]
+        assert fleet.min_obstacle_distance_m > 0.05
+        assert fleet.min_vehicle_distance_m > 2 * BODY_RADIUS_M + 0.1
+        # every drone crossed the forest (its true x went from 0 past the last trunk)
+        assert np.all(track[0, :, 0] < 0.5) and np.all(track[-1, :, 0] > 7.5)
+        _land(gs, fleet, drones, alive)
+    for d, s in enumerate(services):
+        assert s.returncode == 0, s.log_tail()
+        (rec_path,) = (tmp_path / f"d{d}").glob(f"drone{d}-*.mcap")
+        rec = read_record(rec_path)
+        assert max(m["occupied_cells"] for m in rec.messages("/map")) > 100
+        plans = rec.messages("/plan")
+        # the peers were heard and flown with: some plans had both others in the formation
+        assert max(p["n_peers"] for p in plans) == 2
