@@ -89,14 +89,18 @@ def fly(f: Fleet, seconds: float, target: tuple[float, float, float] | None) -> 
 
 
 class Tap:
-    """Decodes every frame a link emits (its socket need not exist)."""
+    """Decodes every frame a link emits (its socket need not exist), or only those of the
+    message ids in ``only``."""
 
-    def __init__(self) -> None:
+    def __init__(self, only: tuple[int, ...] = ()) -> None:
         self.mav = new_mavlink(245, 190)
+        self.only = set(only)
         self.frames: list[bytes] = []
         self.msgs: list[Any] = []
 
     def __call__(self, buf: bytes) -> None:
+        if self.only and buf[7] | (buf[8] << 8) | (buf[9] << 16) not in self.only:
+            return
         self.frames.append(buf)
         self.mav.buf = bytearray()
         self.mav.buf_index = 0
@@ -206,7 +210,7 @@ def test_home_position_reset_at_arming_and_after_takeoff() -> None:
     vehicle landed 3 m north of its first home and armed again reports home there."""
     f = make_fleet()
     ap = f.autopilots[0]
-    tap = Tap()
+    tap = Tap(only=(mavlink.MAVLINK_MSG_ID_HOME_POSITION,))
     f.links[0].tap = tap
     fly(f, 5.0, None)
     homes = tap.of("HOME_POSITION")
