@@ -71,7 +71,7 @@ $(STAMP310): pyproject.toml
 
 ifeq ($(strip $(PYTHON310)),)
 pytest310:
-	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PY) -V) only"
+	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PYTHON) -V 2>&1) only"
 else
 pytest310: $(STAMP310) | system-deps
 	$(VENV310)/bin/pytest -q -p no:cacheprovider
