@@ -387,6 +387,9 @@ class AutopilotLink(ABC):
             self._emit(ModeChanged(now, prev, cur, commanded))
 
     def _rx_local_position(self, now: float, pos_ned: Vec3, vel_ned: Vec3) -> None:
+        if not all(math.isfinite(v) for v in (*pos_ned, *vel_ned)):
+            self._rx_decode_error()  # a NaN estimate is no position: keep the last one
+            return
         tel = self._tel
         with tel.lock:
             tel.position_ned = pos_ned
@@ -394,6 +397,9 @@ class AutopilotLink(ABC):
             tel.position_t = now
 
     def _rx_attitude(self, now: float, roll: float, pitch: float, yaw_ned: float) -> None:
+        if not (math.isfinite(roll) and math.isfinite(pitch) and math.isfinite(yaw_ned)):
+            self._rx_decode_error()
+            return
         tel = self._tel
         with tel.lock:
             tel.attitude = (roll, pitch, yaw_ned)
@@ -418,6 +424,9 @@ class AutopilotLink(ABC):
             self._tel.battery_voltage_v = voltage_v
 
     def _rx_home(self, now: float, altitude_amsl_m: float) -> None:
+        if not math.isfinite(altitude_amsl_m):
+            self._rx_decode_error()
+            return
         with self._tel.lock:
             self._tel.home_alt_amsl_m = altitude_amsl_m
 
