@@ -151,6 +151,19 @@ class ProcessGroup:
     def pids(self) -> list[int]:
         return [p.pid for p in self.procs.values()]
 
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds (user + system) each running child has used so far (Linux /proc)."""
+        tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        out = {}
+        for name, p in self.procs.items():
+            try:
+                with open(f"/proc/{p.pid}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        return out
+
     def check(self, expected_running: Sequence[str] | None = None) -> None:
         """Raise :class:`DemoError` if a child that should run has exited."""
         for name in expected_running if expected_running is not None else list(self.procs):
@@ -348,6 +361,7 @@ class Demo:
     # -- start-up --
 
     def start(self) -> None:
+        self.t_start = time.monotonic()
         cfg = self.cfg
         n = cfg.drones
         sitl_ep = free_loopback_endpoint()
@@ -625,6 +639,8 @@ class Demo:
         report; returns the result."""
         names = [f"drone{i}" for i in range(self.cfg.drones)]
         live_collisions = self.truth.collisions() if self.truth else None
+        self.cpu = self.procs.cpu_s()
+        self.wall_s = time.monotonic() - self.t_start
         if self.view is not None:
             self.view.close()
             self.view = None
@@ -686,6 +702,8 @@ class Demo:
             "collisions": collisions,
             "e_dist_m": flown["e_dist_m"],
             "e_sim": flown["e_sim"],
+            # the mock's truth: from the body (radius body_radius_m, 0.2 m) to the nearest
+            # obstacle surface, and between vehicle centres (a collision below 2 radii)
             "min_obstacle_clearance_m": sitl["min_obstacle_distance_m"],
             "min_drone_distance_m": sitl["min_vehicle_distance_m"],
             "flight_time_s": (self.t_landed - self.t_takeoff)
@@ -697,6 +715,8 @@ class Demo:
             "plan_ms": {k: summary.get("plan_ms", {}).get(k) for k in ("median", "p90", "max")},
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
+            "wall_s": getattr(self, "wall_s", None),
+            "cpu_s": getattr(self, "cpu", {}),
             "flight_dir": str(self.out),
         }
         (self.out / "result.json").write_text(json.dumps(_json_safe(result), indent=2) + "\n")
@@ -869,8 +889,9 @@ def result_text(r: dict[str, Any]) -> str:
         f"arrived: {'yes' if r['arrived'] else 'no'}; collisions reported by the mock: "
         f"{f(r['collisions'], 'd') if isinstance(r['collisions'], int) else '-'}",
         f"e_dist {f(r['e_dist_m'])} m, e_sim {f(r['e_sim'], '.4f')} (mean over the cluttered span)",
-        f"min clearance: obstacles {f(r['min_obstacle_clearance_m'], '.2f')} m, "
-        f"drones {f(r['min_drone_distance_m'], '.2f')} m (the mock's truth)",
+        f"min clearance (the mock's truth): body to obstacle "
+        f"{f(r['min_obstacle_clearance_m'], '.2f')} m, between drone centres "
+        f"{f(r['min_drone_distance_m'], '.2f')} m",
         f"flight time {f(r['flight_time_s'], '.1f')} s "
         f"(crossing {f(r['crossing_time_s'], '.1f')} s)",
         f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
