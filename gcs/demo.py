@@ -482,7 +482,7 @@ class Demo:
             if now - last >= 0.5:
                 last = now
                 self.progress(what, info() if info is not None else {})
-            time.sleep(0.05)
+            time.sleep(0.1)
 
     def _need(self, outcome: CommandOutcome) -> CommandOutcome:
         self.outcomes.append(outcome)
@@ -587,7 +587,7 @@ class Demo:
                 self._assign(change[0])
                 changed = True
                 self._event(f"formation changed to {change[0]} in flight")
-            time.sleep(0.05)
+            time.sleep(0.1)
         self.t_arrived = time.time()
         self._event(f"arrived after {self.t_arrived - self.t_goal:.1f} s")
         self._need(gs.land())
