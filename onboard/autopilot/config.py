@@ -19,6 +19,11 @@ DEFAULT_TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = (
     ("SYS_STATUS", 5.0),
 )
 
+MAX_ABS_COORD_M = 10_000.0
+"""Largest geofence / origin coordinate (the swarm bus's bound too)."""
+MAX_SPEED_M_S = 30.0
+MAX_ACCEL_M_S2 = 30.0
+
 BAUD_RATES = (
     9600,
     19200,
@@ -220,6 +225,18 @@ class LinkConfig:
             v = getattr(self, name)
             if len(v) != 3 or not all(math.isfinite(float(x)) for x in v):
                 raise ValueError(f"{name}: expected 3 finite numbers, got {v!r}")
+            if any(abs(float(x)) > MAX_ABS_COORD_M for x in v):
+                raise ValueError(
+                    f"{name}: expected coordinates within {MAX_ABS_COORD_M:g} m, got {v!r}"
+                )
+        if self.max_speed_m_s > MAX_SPEED_M_S:
+            raise ValueError(
+                f"max_speed_m_s: expected at most {MAX_SPEED_M_S:g}, got {self.max_speed_m_s}"
+            )
+        if self.max_accel_m_s2 > MAX_ACCEL_M_S2:
+            raise ValueError(
+                f"max_accel_m_s2: expected at most {MAX_ACCEL_M_S2:g}, got {self.max_accel_m_s2}"
+            )
         for k, axis in enumerate("xyz"):
             if not self.geofence_min_enu_m[k] < self.geofence_max_enu_m[k]:
                 raise ValueError(
