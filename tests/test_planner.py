@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from onboard.planner.field import AnalyticField
+from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
@@ -115,6 +115,61 @@ def test_emergency_stop_brakes_from_speed() -> None:
     tr = res.trajectory
     np.testing.assert_allclose(tr.sample(tr.t0_s, order=1), v, atol=1e-9)
     np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
+
+
+def test_a_start_inside_the_check_distance_backs_out() -> None:
+    # At rest 0.15 m from a trunk surface (check distance 0.22 m), goal on the far side of it.
+    # Every trajectory starts inside the band; the planner must accept one that never comes
+    # closer than the start and leaves the band, not stop for ever.
+    world = _world([[2.0, 0.0, 0.5, 0.0, 3.0]])
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([1.35, 0.0, 1.0])
+    field = AnalyticField(world)
+    assert field.distance(start[None, :])[0][0] == pytest.approx(0.15)
+    res = planner.plan(0.0, start, ZERO, ZERO, np.array([5.0, 0.0, 1.0]), [], field)
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
+    tr = res.trajectory
+    d, _ = world.distance(tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 800)))
+    assert d.min() >= 0.15 - 1e-3
+    assert d[-1] >= params.check_obstacle_m
+    # the same rule refuses a trajectory that goes closer from inside the band
+    into = Trajectory.hover(start, 0.0, 1.0)
+    closer = planner.plan(0.0, start, ZERO, ZERO, np.array([1.45, 0.0, 1.0]), [], field, into)
+    d2, _ = world.distance(closer.trajectory.sample(np.linspace(0.0, 1.0, 50)))
+    assert closer.status in (PlanStatus.KEPT_PREVIOUS, PlanStatus.EMERGENCY)
+    assert d2.min() >= 0.15 - 1e-3
+
+
+def _half_known_field(known_below_x: float) -> GridField:
+    """Free space over a ground plane on a 0.1 m grid, observed only where x < known_below_x."""
+    exact = AnalyticField(World.empty(0.0))
+    grid = GridField.from_function(exact.distance, [-2.0, -2.0, 0.0], [8.0, 2.0, 2.0], 0.1)
+    xs = grid.cell_centres()[..., 0]
+    return GridField(grid.values, grid.origin, grid.res, known=xs < known_below_x)
+
+
+def test_no_plan_enters_unobserved_space_before_the_next_replan() -> None:
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
+    # observed up to 5 m ahead: the plan is accepted
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], _half_known_field(5.0))
+    assert res.status == PlanStatus.OK
+    # observed only up to 0.1 m ahead: every plan would enter the unknown within check_known_s
+    field = _half_known_field(0.1)
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field)
+    assert res.status == PlanStatus.EMERGENCY
+    assert "unobserved" in res.message
+    # the emergency stop itself is the last resort and is not held to the rule; a hover is safe
+    assert planner.check(Trajectory.hover(start, 0.0, 3.0), 0.0, field, [])[0]
+    # with the test switched off the plan goes through
+    off = FormationPlanner(PlannerParams(v_max_m_s=1.0, check_known_s=0.0), LINE3, slot=1)
+    assert off.plan(0.0, start, ZERO, ZERO, goal, [], field).status == PlanStatus.OK
+    # a start in unobserved space may be left for observed space
+    back = planner.plan(0.0, np.array([0.5, 0.0, 1.0]), ZERO, ZERO, np.array([-1.5, 0, 1]), [],
+                        field)  # fmt: skip
+    assert back.status == PlanStatus.OK, back.message
 
 
 def test_cancel_before_the_solve_returns_the_start() -> None:

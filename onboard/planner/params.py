@@ -74,6 +74,11 @@ class PlannerParams:
     """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
     check_step_s: float = 0.05
     """Time step of the safety check of a new trajectory."""
+    check_known_s: float = 1.0
+    """A trajectory may not enter space the map has not observed during its first this many
+    seconds: the part flown before the next replan replaces it (the agent's replan period, 1 s;
+    a trajectory kept by that replan is checked again on the newer map); 0 disables the test.
+    Exact (analytic) fields are observed everywhere."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
     z_limits_m: tuple[float, float] = (0.4, 3.0)
@@ -118,6 +123,7 @@ class PlannerParams:
             "w_formation",
             "check_obstacle_m",
             "check_drone_m",
+            "check_known_s",
         )
         for name in nonneg:
             value = getattr(self, name)

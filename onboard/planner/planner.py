@@ -164,6 +164,21 @@ def _resample_polyline(path: np.ndarray, n_pieces: int) -> tuple[np.ndarray, np.
     return pts, targets
 
 
+def _band_check(d: np.ndarray, threshold: float) -> tuple[bool, str]:
+    """Distances d (K,) along a trajectory, d[0] at its start: (ok, reason suffix).
+
+    Clear of ``threshold`` everywhere; or, starting inside it, never closer than the start
+    (1 mm tolerance) and outside the threshold at some point (the trajectory backs out)."""
+    d0 = float(d[0])
+    if d0 >= threshold:
+        return bool(np.min(d) >= threshold), ""
+    if np.min(d) < d0 - 1e-3:
+        return False, f" (started inside at {d0:.2f} m and comes closer)"
+    if np.max(d) < threshold:
+        return False, f" (started inside at {d0:.2f} m and does not back out)"
+    return True, ""
+
+
 def _polyline_length(path: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
 
@@ -397,7 +412,16 @@ class FormationPlanner:
         field: DistanceField,
         peers: Sequence[PeerTrajectory],
     ) -> tuple[bool, str]:
-        """Is ``traj`` clear of obstacles and peers from ``t_from_s`` to its end?"""
+        """Is ``traj`` safe to fly from ``t_from_s`` on?
+
+        Safe means: (1) clear of obstacles by ``check_obstacle_m`` and of every peer by
+        ``check_drone_m`` to its end; a drone that is already closer than that at ``t_from_s``
+        (pushed in by a peer, a late-mapped trunk, an emergency stop) may fly a trajectory that
+        never comes closer than it starts and leaves the band, so it can always back out; (2)
+        during the first ``check_known_s`` (the part flown before the next replan can replace
+        it) it does not enter space the field has not observed (``field.is_known``); a start in
+        unobserved space may be left.
+        """
         p = self.params
         t_end = max(traj.t_end_s, t_from_s)
         ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
@@ -405,17 +429,28 @@ class FormationPlanner:
         if not np.all(np.isfinite(pos)):
             return False, "non-finite trajectory"
         d, _ = field.distance(pos)
-        k = int(np.argmin(d))
-        if d[k] < p.check_obstacle_m:
-            return False, f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s"
+        ok, why = _band_check(d, p.check_obstacle_m)
+        if not ok:
+            k = int(np.argmin(d))
+            return False, f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
         for pt in peers:
             other = pt.trajectory.sample(ts)
             dd = np.linalg.norm(pos - other, axis=1)
-            k = int(np.argmin(dd))
-            if dd[k] < p.check_drone_m:
+            ok, why = _band_check(dd, p.check_drone_m)
+            if not ok:
+                k = int(np.argmin(dd))
                 return False, (
-                    f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s"
+                    f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
                 )
+        if p.check_known_s > 0.0:
+            n = int(np.searchsorted(ts, t_from_s + p.check_known_s, side="right"))
+            known = field.is_known(pos[:n])
+            if not np.all(known):
+                first_known = int(np.argmax(known)) if np.any(known) else n
+                entered = np.nonzero(~known[first_known:])[0]
+                if entered.size:
+                    k = first_known + int(entered[0])
+                    return False, f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
         return True, ""
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
