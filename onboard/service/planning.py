@@ -143,3 +143,34 @@ def warm_up(params: PlannerParams) -> float:
         )
         agent.replan(0.0)
     return time.perf_counter() - t0
+
+
+class WarmUp:
+    """``warm_up`` in a thread of its own, started early (while the process still connects to
+    the autopilot and the bus, mostly waiting); ``wait`` joins it and returns its seconds, or
+    raises what it raised."""
+
+    def __init__(self, params: PlannerParams) -> None:
+        import threading
+
+        self.params = params
+        self.seconds: float | None = None
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="svc-warm-up", daemon=True)
+
+    def start(self) -> WarmUp:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        try:
+            self.seconds = warm_up(self.params)
+        except BaseException as e:  # handed to the caller of wait()
+            self.error = e
+
+    def wait(self) -> float:
+        self._thread.join()
+        if self.error is not None:
+            raise self.error
+        assert self.seconds is not None
+        return self.seconds

@@ -52,7 +52,14 @@ from onboard.record import FlightRecorder, flight_file_name
 from onboard.sensors.simulated import heading_yaw
 from onboard.service.config import OnboardConfig
 from onboard.service.logs import event
-from onboard.service.planning import FieldSource, PortPeerBus, inside_box, peer_roles, warm_up
+from onboard.service.planning import (
+    FieldSource,
+    PortPeerBus,
+    WarmUp,
+    inside_box,
+    peer_roles,
+    warm_up,
+)
 from onboard.service.ports import (
     AutopilotPort,
     CommandFailed,
@@ -112,7 +119,8 @@ class Health:
 
 class FlightService:
     """One drone's service. Edges are passed in (``autopilot``, ``bus``, ``depth`` a
-    ``onboard.sensors.DepthSource`` or None); ``clock`` is global time (seconds)."""
+    ``onboard.sensors.DepthSource`` or None); ``clock`` is global time (seconds); ``warming``:
+    a planner warm-up already started (``WarmUp``), waited for before READY."""
 
     def __init__(
         self,
@@ -123,6 +131,7 @@ class FlightService:
         clock: Callable[[], float] = time.time,
         notifier: Notifier | None = None,
         record_dir: Path | None = None,
+        warming: WarmUp | None = None,
     ) -> None:
         self.cfg = config
         self.id = config.drone.id
@@ -185,6 +194,7 @@ class FlightService:
         self._ground_field: Any = None
         self.mapper: Any = None
         self._last_frame_s = -math.inf
+        self._last_frame_stamp = -math.inf
         self._last_esdf_s = -math.inf
         self._offboard_seen = False
         self._land_seen = False
@@ -210,6 +220,7 @@ class FlightService:
             "monitor_brakes": 0,
             "frames": 0,
             "frames_rejected": 0,
+            "frames_missed": 0,
             "esdf_builds": 0,
             "commands": 0,
             "commands_rejected": 0,
@@ -218,10 +229,17 @@ class FlightService:
             "plans_superseded": 0,
             "announcements": 0,
             "map_occupied_cells": 0,
+            # CPU time of each worker thread, microseconds (time.thread_time)
+            "cpu_us.depth_ingest": 0,
+            "cpu_us.esdf": 0,
+            "cpu_us.planner": 0,
+            "cpu_us.monitor": 0,
+            "cpu_us.main": 0,
         }
         self.ready = False
         self._threads: list[threading.Thread] = []
         self._warm_s = 0.0
+        self._warming = warming
         self._last_watchdog = -math.inf
 
     # ---- geometry helpers --------------------------------------------------------------------
@@ -423,6 +441,7 @@ class FlightService:
         """Read and ingest one frame if there is one; refresh the ESDF when due."""
         if self.depth is None:
             return False
+        c0 = time.thread_time()
         frame = self.depth.read()
         if frame is None:
             return False
@@ -430,19 +449,33 @@ class FlightService:
             self.mapper = self._make_mapper()
         res = self.mapper.ingest(frame, step=self.cfg.depth.step)
         now = self.clock()
+        c1 = time.thread_time()
+        self._cpu("depth_ingest", c1 - c0)
         if not res.accepted:
             self.counters["frames_rejected"] += 1
             return True
         self.counters["frames"] += 1
+        stamp = float(frame.stamp_s)
+        if math.isfinite(self._last_frame_stamp):
+            # frames the camera made that this thread never saw (it was busy, or starved)
+            gap = (stamp - self._last_frame_stamp) * self.cfg.depth.rate_hz
+            self.counters["frames_missed"] += max(0, int(round(gap)) - 1)
+        self._last_frame_stamp = stamp
         self._last_frame_s = now
         if now - self._last_esdf_s >= 1.0 / self.cfg.mapping.esdf_rate_hz - 1e-3:
             self._field = self.mapper.planning_field()
             self._last_esdf_s = now
             self.counters["esdf_builds"] += 1
+            self._cpu("esdf", time.thread_time() - c1)
             if now - self._last_map_record_s >= 0.5:
                 self._last_map_record_s = now
                 self._record_map(now, np.asarray(frame.position, dtype=np.float64))
         return True
+
+    def _cpu(self, name: str, seconds: float) -> None:
+        """Add a worker's CPU time (its thread's) to the ``cpu_us.<name>`` counter."""
+        key = f"cpu_us.{name}"
+        self.counters[key] = self.counters.get(key, 0) + int(seconds * 1e6)
 
     def _record_map(self, now: float, camera: np.ndarray) -> None:
         """Twice a second: what the map holds (occupied cells; the nearest mapped surface to the
@@ -816,9 +849,10 @@ class FlightService:
                 self.recorder.counters(now, counters)
 
     def all_counters(self) -> dict[str, int]:
-        out = {f"service.{k}": int(v) for k, v in self.counters.items()}
+        out = {f"service.{k}": int(v) for k, v in dict(self.counters).items()}
         out.update({f"bus.{k}": int(v) for k, v in self.bus.counters().items()})
         out.update({f"autopilot.{k}": int(v) for k, v in self.ap.counters().items()})
+        out.update({f"agent.{k}": int(v) for k, v in self.agent.counters().items()})
         return out
 
     # ---- flight records ----------------------------------------------------------------------
@@ -859,8 +893,11 @@ class FlightService:
         return self.depth is None or self._field is not None
 
     def warm(self) -> float:
-        """Warm the planner (numba's cache) unless the config says not to."""
-        if self.cfg.planning.warm_up:
+        """Warm the planner (numba's cache) unless the config says not to; waits for the
+        warm-up started early (``warming``) when there is one. Seconds it took."""
+        if self._warming is not None:
+            self._warm_s = self._warming.wait()
+        elif self.cfg.planning.warm_up:
             self._warm_s = warm_up(self.cfg.planner)
         return self._warm_s
 
@@ -868,11 +905,13 @@ class FlightService:
         next_t = time.monotonic()
         while not self._stop.is_set():
             self.health.beat(name)
+            c0 = time.thread_time()
             try:
                 step()
             except Exception:  # a worker that dies silently is worse: log, count, go on
                 log.exception("%s step failed", name)
                 self.counters[f"{name}_errors"] = self.counters.get(f"{name}_errors", 0) + 1
+            self._cpu(name, time.thread_time() - c0)
             next_t += period_s
             delay = next_t - time.monotonic()
             if delay < 0:
@@ -893,12 +932,14 @@ class FlightService:
             self._wake.clear()
             if self._stop.is_set():
                 return
+            c0 = time.thread_time()
             try:
                 self.plan_step()
             except Exception:
                 log.exception("planner step failed")
                 self.counters["planner_errors"] = self.counters.get("planner_errors", 0) + 1
                 self._stop.wait(0.1)
+            self._cpu("planner", time.thread_time() - c0)
 
     def _depth_loop(self) -> None:
         period = 1.0 / (2.0 * self.cfg.depth.rate_hz)
@@ -970,7 +1011,9 @@ class FlightService:
         next_t = time.monotonic()
         while not self._stop.is_set() and time.monotonic() < end:
             self.health.beat("main")
+            c0 = time.thread_time()
             self.main_step()
+            self._cpu("main", time.thread_time() - c0)
             self._feed_watchdog()
             next_t += period
             self._stop.wait(max(next_t - time.monotonic(), 0.0))
