@@ -571,7 +571,17 @@ def run_mutation(
     """Run ``target`` on its seeds, then ``n`` mutated (and some random) inputs in this
     process. Crashes are counted and up to ``keep`` kept (input and traceback)."""
     rng = random.Random(seed)
+    previous = logging.root.manager.disable
     logging.disable(logging.WARNING)  # every refusal is logged by its layer: not measured here
+    try:
+        return _run_mutation(target, n, rng, hang_s, keep)
+    finally:
+        logging.disable(previous)
+
+
+def _run_mutation(
+    target: FuzzTarget, n: int, rng: random.Random, hang_s: float, keep: int
+) -> FuzzResult:
     seeds = target.seeds()
     if not seeds:
         raise RuntimeError(f"{target.name}: no seed inputs")
