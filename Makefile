@@ -27,12 +27,15 @@ export MPLBACKEND := Agg
 
 .PHONY: demo test lint typecheck pytest pytest310 bench check-target system-deps clean
 
-# Debian packages: venv support for the interpreter and the shared libraries Open3D loads.
+# Debian packages: venv support for the interpreter, the shared libraries Open3D loads,
+# systemd-analyze (the tests verify the units) and openssl (swarm-gcs certs makes the demo CA).
 system-deps:
 	@need=""; \
 	$(PYTHON) -c "import venv, ensurepip" 2>/dev/null || need="$$need python3-venv"; \
 	ldconfig -p 2>/dev/null | grep -q libgomp.so.1 || need="$$need libgomp1"; \
 	ldconfig -p 2>/dev/null | grep -q libGL.so.1 || need="$$need libgl1"; \
+	command -v systemd-analyze >/dev/null 2>&1 || need="$$need systemd"; \
+	command -v openssl >/dev/null 2>&1 || need="$$need openssl"; \
 	if [ -n "$$need" ]; then \
 		echo "installing Debian packages:$$need"; \
 		if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
