@@ -87,7 +87,7 @@ test: lint typecheck
 	@$(MAKE) --no-print-directory -j$(TEST_JOBS) --output-sync=target pytest pytest310
 
 demo: $(STAMP)
-	$(VENV)/bin/swarm-gcs sim --formation hexagon-7 --world forest-medium --seed 1
+	$(VENV)/bin/swarm-gcs demo
 
 bench: $(STAMP)
 	$(VENV)/bin/swarm-gcs bench planner --json out/bench_planner.json

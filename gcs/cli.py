@@ -767,5 +767,16 @@ def _register_bench_plugins() -> None:
 
 _register_bench_plugins()
 
+
+def _register_operator_commands() -> None:
+    """The ground station's operator commands, the live view, the report and the demo."""
+    from gcs.commands import COMMANDS
+
+    for command in COMMANDS:
+        main.add_command(command)
+
+
+_register_operator_commands()
+
 if __name__ == "__main__":  # pragma: no cover
     main()
