@@ -369,7 +369,11 @@ class FlightService:
         goal = None if m.goal is None else self._own_goal(np.asarray(m.goal, dtype=float))
         # the agent first (thread-safe setters), then the intent the other threads read
         if a is not None and slot is not None and a is not self._agent_assignment:
-            self.agent.set_formation(np.asarray(a.points, dtype=np.float64), slot, a.epoch)
+            points = np.asarray(a.points, dtype=np.float64)
+            if np.array_equal(points, self.agent.formation):
+                self.agent.set_slot(slot, a.epoch)  # same template, new epoch
+            else:
+                self.agent.set_formation(points, slot, a.epoch)
             self._agent_assignment = a
         target = goal if flying_to else None
         current = self.agent.goal
