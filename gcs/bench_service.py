@@ -441,8 +441,8 @@ class ServiceBenchConfig:
     def __post_init__(self) -> None:
         if not self.seconds > 0.0:
             raise ValueError("seconds must be > 0")
-        if not 1.0 <= self.depth_rate_hz <= 90.0:
-            raise ValueError("depth_rate_hz must be in [1, 90]")
+        if not (self.depth_rate_hz == 0.0 or 1.0 <= self.depth_rate_hz <= 90.0):
+            raise ValueError("depth_rate_hz must be 0 (no camera) or in [1, 90]")
 
 
 def _stats(x: np.ndarray) -> dict[str, float | None]:
@@ -474,7 +474,10 @@ def run_service_bench(
     swarm = f"bench{os.getpid()}"
     truth_ep = free_loopback_endpoint()
     prefix = f"{swarm}/sim"
-    world = write_world(workdir / "world.yaml", BENCH_TRUNKS, [(0.0, 0.0, 0.0)], [LEG_B])
+    depth = cfg.depth_rate_hz > 0.0
+    # without a camera the service plans on the ground alone: no trunks then (a baseline)
+    trunks = BENCH_TRUNKS if depth else ()
+    world = write_world(workdir / "world.yaml", trunks, [(0.0, 0.0, 0.0)], [LEG_B])
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         service_port = int(s.getsockname()[1])
@@ -498,9 +501,7 @@ def run_service_bench(
             truth_ep,
             "--zenoh-prefix",
             prefix,
-            "--depth",
-            "--depth-rate",
-            str(cfg.depth_rate_hz),
+            *(["--depth", "--depth-rate", str(cfg.depth_rate_hz)] if depth else []),
             "--set",
             "local_origin=world",
             "--set",
@@ -528,7 +529,9 @@ def run_service_bench(
             "rate_hz": cfg.depth_rate_hz,
             "sim_prefix": prefix,
             "sim_connect": [truth_ep],
-        },
+        }
+        if depth
+        else None,
         implementation=cfg.implementation,
         extra={
             "planner": {"v_max_m_s": cfg.v_max_m_s},
@@ -688,7 +691,13 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
     type=click.FloatRange(min=1.0),
     help="Measurement window while the drone flies back and forth.",
 )
-@click.option("--depth-rate", default=30.0, show_default=True, help="Depth frames per second.")
+@click.option(
+    "--depth-rate",
+    default=30.0,
+    show_default=True,
+    type=click.FloatRange(0.0, 90.0),
+    help="Depth frames per second (0: no camera and no trunks, a baseline).",
+)
 @click.option(
     "--implementation",
     type=click.Choice(["pymavlink", "mavsdk"]),

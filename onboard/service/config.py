@@ -165,9 +165,13 @@ class MappingSection:
     esdf_rate_hz: float = 10.0
     """The planner's field is rebuilt at least this often while frames arrive."""
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
+    thread_nice: int = 5
+    """Niceness added to the mapping thread (Linux, per thread): when the CPU is short, the
+    setpoint stream and the planner go first and frames are dropped instead (0: as the rest)."""
 
     def __post_init__(self) -> None:
         _in_range("esdf_rate_hz", self.esdf_rate_hz, 10.0, 100.0)
+        _in_range("thread_nice", self.thread_nice, 0, 19)
 
 
 @dataclass(frozen=True)

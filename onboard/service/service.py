@@ -35,6 +35,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -947,6 +948,13 @@ class FlightService:
 
     def _depth_loop(self) -> None:
         period = 1.0 / (2.0 * self.cfg.depth.rate_hz)
+        nice = self.cfg.mapping.thread_nice
+        if nice and hasattr(os, "setpriority"):
+            try:  # Linux: a thread's niceness is set through its own id
+                tid = threading.get_native_id()
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+            except OSError as e:
+                event(log, "thread_nice_failed", logging.WARNING, why=str(e))
         while not self._stop.is_set():
             self.health.beat("depth")
             try:
