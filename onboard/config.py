@@ -59,8 +59,30 @@ def config_dir() -> Path:
 # YAML reading
 
 
+# Bounds that keep a file from asking for what no flight can use (and no loader should build).
+MAX_COORDINATE_M = 10_000.0
+"""No template point, start, goal or centre farther than this from the origin (10 km)."""
+MAX_FORMATION_POINTS = 64
+"""Largest formation (the swarm bus carries at most this many points)."""
+MAX_GENERATED_OBSTACLES = 100_000
+MAX_SPACING_M = 1_000.0
+
+
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e4`` / ``5E-3`` as floats (YAML 1.1 wants a dot)."""
+    """SafeLoader that also reads ``1e4`` / ``5E-3`` as floats (YAML 1.1 wants a dot), and
+    refuses aliases: a few nested aliases expand into gigabytes (a "billion laughs" file took
+    minutes to load) and a self-referencing one builds a recursive structure."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None,
+                None,
+                f"aliases (*{event.anchor}) are not accepted in configuration files",
+                event.start_mark,
+            )
+        return super().compose_node(parent, index)
 
 
 _Loader.add_implicit_resolver(
@@ -84,6 +106,8 @@ def read_yaml(path: Path | str) -> Any:
         text = p.read_text(encoding="utf-8")
     except OSError as e:
         raise ConfigError(f"{p}: cannot read ({e.strerror or e})") from e
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not UTF-8 text (byte {e.start})") from e
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - SafeLoader subclass
     except yaml.YAMLError as e:
@@ -516,8 +540,16 @@ class Formation:
             raise ConfigError(f"{self.name}.points: expected shape (N, 3), got {p.shape}")
         if p.shape[0] < 2:
             raise ConfigError(f"{self.name}.points: expected at least 2 points, got {p.shape[0]}")
+        if p.shape[0] > MAX_FORMATION_POINTS:
+            raise ConfigError(
+                f"{self.name}.points: at most {MAX_FORMATION_POINTS} points, got {p.shape[0]}"
+            )
         if not np.all(np.isfinite(p)):
             raise ConfigError(f"{self.name}.points: values must be finite")
+        if np.max(np.abs(p)) > MAX_COORDINATE_M:
+            raise ConfigError(
+                f"{self.name}.points: coordinates must be within {MAX_COORDINATE_M:.0f} m"
+            )
         if np.max(np.linalg.norm(p - p.mean(axis=0), axis=1)) < 1e-6:
             raise ConfigError(f"{self.name}.points: all points coincide")
         p.setflags(write=False)
@@ -589,16 +621,23 @@ class ForestGenerator:
     keep_clear_m: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.n_cylinders < 0 or self.n_rings < 0:
-            raise ValueError("n_cylinders and n_rings must be >= 0")
+        for key in ("n_cylinders", "n_rings"):
+            n = getattr(self, key)
+            if not 0 <= n <= MAX_GENERATED_OBSTACLES:
+                raise ValueError(f"{key}: expected 0 to {MAX_GENERATED_OBSTACLES}, got {n}")
+        for key in ("x_range", "y_range"):
+            if max(abs(v) for v in getattr(self, key)) > MAX_COORDINATE_M:
+                raise ValueError(f"{key}: must be within {MAX_COORDINATE_M:.0f} m")
         for key in ("x_range", "y_range", "diameter_range", "height_range", "ring_radius_range"):
             lo, hi = getattr(self, key)
             if hi < lo:
                 raise ValueError(f"{key}: upper bound below lower bound")
         if self.diameter_range[0] <= 0.0:
             raise ValueError("diameter_range: diameters must be positive")
-        if self.min_spacing_m < 0.0 or self.keep_clear_m < 0.0:
-            raise ValueError("min_spacing_m and keep_clear_m must be >= 0")
+        for key in ("min_spacing_m", "keep_clear_m"):
+            v = getattr(self, key)
+            if not 0.0 <= v <= MAX_SPACING_M:
+                raise ValueError(f"{key}: expected 0 to {MAX_SPACING_M:.0f} m, got {v}")
 
 
 @dataclass(frozen=True)
@@ -667,6 +706,10 @@ class WorldSpec:
             raise ValueError(
                 "start_center and goal_center are required unless starts and goals are given"
             )
+        for key in ("start_center", "goal_center", "starts", "goals"):
+            v = getattr(self, key)
+            if v is not None and np.max(np.abs(np.asarray(v, dtype=np.float64))) > MAX_COORDINATE_M:
+                raise ValueError(f"{key}: coordinates must be within {MAX_COORDINATE_M:.0f} m")
 
     def endpoints(self, formation: Formation) -> tuple[np.ndarray, np.ndarray]:
         """(starts (N, 3), goals (N, 3)) for ``formation``."""
