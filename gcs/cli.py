@@ -757,12 +757,14 @@ def bench_planner(
 def _register_bench_plugins() -> None:
     """Benchmarks that live in their own modules (their dependencies load only when run)."""
     from gcs.bench_bus import bench_bus
+    from gcs.bench_fuzz import fuzz_command
     from gcs.bench_mapping import bench_mapping
     from gcs.bench_sitl import sitl
 
     bench.add_command(sitl)
     bench.add_command(bench_mapping)
     bench.add_command(bench_bus)
+    bench.add_command(fuzz_command)
 
 
 _register_bench_plugins()
@@ -770,10 +772,12 @@ _register_bench_plugins()
 
 def _register_operator_commands() -> None:
     """The ground station's operator commands, the live view, the report and the demo."""
+    from gcs.certs import certs_command
     from gcs.commands import COMMANDS
 
     for command in COMMANDS:
         main.add_command(command)
+    main.add_command(certs_command)
 
 
 _register_operator_commands()
