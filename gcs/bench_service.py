@@ -394,6 +394,106 @@ def stop_process(p: subprocess.Popen[Any], timeout_s: float = 10.0) -> None:
             p.wait(5.0)
 
 
+class MockProcess:
+    """``swarm-sitl`` in a process of its own (its loop and depth renderer never share an
+    interpreter with the caller): vehicles in the world file ``world`` (spawned at its
+    ``starts``), telemetry to UDP ``base_port + i``, their local frame the world frame (as the
+    depth frames are), facing +x; true poses (and depth frames at ``depth_rate_hz``, 0: none)
+    over Zenoh on ``truth_endpoint`` under ``prefix``. ``latest_truth()`` gives the newest pose
+    of every vehicle (system id -> ``TruthSample``, with its collision count); after ``stop()``,
+    ``summary`` holds the mock's own report (collisions, clearances, depth frames)."""
+
+    def __init__(
+        self,
+        world: Path,
+        count: int,
+        base_port: int,
+        truth_endpoint: str,
+        prefix: str,
+        workdir: Path,
+        depth_rate_hz: float = 0.0,
+        extra_args: Sequence[str] = (),
+    ) -> None:
+        self.workdir = Path(workdir)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.stats_path = self.workdir / "sitl-stats.json"
+        self.log_path = self.workdir / "sitl.log"
+        self.prefix = prefix
+        self.truth_endpoint = truth_endpoint
+        self.summary: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self._truth: dict[int, Any] = {}
+        self._sub: Any = None
+        self._session: Any = None
+        depth = ["--depth", "--depth-rate", str(depth_rate_hz)] if depth_rate_hz > 0 else []
+        self.args = [
+            str(BIN / "swarm-sitl"),
+            *("--count", str(count), "--world", str(world), "--base-port", str(base_port)),
+            *("--local-port-offset", "-1", "--truth", "zenoh"),
+            *("--zenoh-listen", truth_endpoint, "--zenoh-prefix", prefix),
+            *depth,
+            *("--set", "local_origin=world", "--set", "spawn_yaw_deg=0"),
+            *("--set", "autopilot.boot_time_s=0.5"),
+            *("--stats-json", str(self.stats_path), "--quiet"),
+            *extra_args,
+        ]
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> MockProcess:
+        from onboard.comm.zenoh_session import ZenohEndpoints, open_session
+
+        with open(self.log_path, "ab") as log:
+            self.proc = subprocess.Popen(
+                self.args,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+            )
+        # poses only (the depth frames are the services' business)
+        self._session = open_session(ZenohEndpoints(connect=(self.truth_endpoint,)))
+        self._sub = self._session.declare_subscriber(f"{self.prefix}/*/pose", self._on_pose)
+        return self
+
+    def _on_pose(self, sample: Any) -> None:
+        from onboard.sensors.zenoh_depth import DecodeError, TruthSample
+
+        try:
+            t = TruthSample.from_bytes(sample.payload.to_bytes())
+        except DecodeError:
+            return
+        with self._lock:
+            self._truth[t.system_id] = t
+
+    def latest_truth(self) -> dict[int, Any]:
+        with self._lock:
+            return dict(self._truth)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self) -> dict[str, Any]:
+        """Stop the mock (SIGINT: it writes its report) and the subscriber; the report."""
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        if self.proc is not None:
+            stop_process(self.proc)
+        try:
+            self.summary = json.loads(self.stats_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            self.summary = {"error": f"no report from the mock: {e}"}
+        return self.summary
+
+    def __enter__(self) -> MockProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
 def poll_until(
     cond: Callable[[], bool],
     timeout_s: float,
@@ -483,39 +583,15 @@ def run_service_bench(
         service_port = int(s.getsockname()[1])
     load0 = os.getloadavg()
     tap = SetpointTap(("127.0.0.1", service_port))
-    stats_json = workdir / "sitl-stats.json"
-    mock = subprocess.Popen(
-        [
-            str(BIN / "swarm-sitl"),
-            "--count",
-            "1",
-            "--world",
-            str(world),
-            "--base-port",
-            str(tap.front_port),
-            "--local-port-offset",
-            "-1",
-            "--truth",
-            "zenoh",
-            "--zenoh-listen",
-            truth_ep,
-            "--zenoh-prefix",
-            prefix,
-            *(["--depth", "--depth-rate", str(cfg.depth_rate_hz)] if depth else []),
-            "--set",
-            "local_origin=world",
-            "--set",
-            "spawn_yaw_deg=0",
-            "--set",
-            "autopilot.boot_time_s=0.5",
-            "--stats-json",
-            str(stats_json),
-            "--quiet",
-        ],
-        stdout=open(workdir / "sitl.log", "wb"),  # noqa: SIM115 - closed with the process
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
-    )
+    mock = MockProcess(
+        world,
+        1,
+        tap.front_port,
+        truth_ep,
+        prefix,
+        workdir,
+        depth_rate_hz=cfg.depth_rate_hz,
+    ).start()
     mesh = peer_mesh(2)
     svc_ep, gcs_ep = mesh
     config = service_config(
@@ -653,18 +729,13 @@ def run_service_bench(
     finally:
         if station is not None:
             station.close()
-        stop_process(mock)
+        sitl = mock.stop()
         tap.close()
-    try:
-        sitl = json.loads(stats_json.read_text())
-        report["mock"] = {
-            "collisions": sitl.get("collisions", []),
-            "min_obstacle_distance_m": sitl.get("min_obstacle_distance_m"),
-            "depth": sitl.get("depth"),
-            "process_cpu_s": sitl.get("process_cpu_s"),
-        }
-    except (OSError, json.JSONDecodeError) as e:
-        report["mock"] = {"error": str(e)}
+    report["mock"] = {
+        k: sitl.get(k)
+        for k in ("collisions", "min_obstacle_distance_m", "depth", "process_cpu_s", "error")
+        if k in sitl
+    }
     sp = report.get("setpoint_period_ms", {})
     report["targets"] = TARGETS
     report["met"] = {

@@ -19,56 +19,43 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs.bench_service import ServiceProcess, poll_until, service_config
+from gcs.bench_service import MockProcess, ServiceProcess, poll_until, service_config, write_world
 from gcs.station import GroundStation, StationConfig
 from onboard.comm import wire
 from onboard.comm.zenoh_session import free_loopback_endpoint, peer_mesh
 from onboard.record import read_record
-from onboard.world import World
-from sitl_mock.autopilot import AutopilotParams
 from sitl_mock.client import bind_consecutive_udp
-from sitl_mock.fleet import Fleet, FleetConfig
-from sitl_mock.truth import ZenohTruth, simulated_d435
 
-BODY_RADIUS_M = 0.2
-DEPTH_HZ = 10.0  # rendered in this process for every vehicle: kept low on a shared machine
+BODY_RADIUS_M = 0.2  # the mock's default
+DEPTH_HZ = 15.0
 
 
 @contextmanager
-def mapped_fleet(
-    world: World, spawns: Sequence[Sequence[float]], prefix: str
-) -> Iterator[tuple[Fleet, int, str]]:
-    """Mock vehicles (system ids 1..N) in ``world`` with depth frames and true poses published
-    over Zenoh under ``prefix``; yields (fleet, UDP base port, the truth's Zenoh endpoint).
-    The vehicles' local frame is the world frame (as the frames are), facing +x."""
-    n = len(spawns)
-    socks = bind_consecutive_udp(n)
+def mapped_mock(
+    tmp_path: Path,
+    cylinders: Sequence[Sequence[float]],
+    spawns: Sequence[Sequence[float]],
+    prefix: str,
+) -> Iterator[tuple[MockProcess, int]]:
+    """``swarm-sitl`` (its own process) with vehicles 1..N at ``spawns`` among ``cylinders``,
+    rendering depth frames and publishing them with the true poses over Zenoh under
+    ``prefix``; yields (the mock, the UDP base port the services bind)."""
+    world = write_world(tmp_path / "world.yaml", cylinders, spawns, spawns)
+    socks = bind_consecutive_udp(len(spawns))
     port = socks[0].getsockname()[1]
-    endpoint = free_loopback_endpoint()
-    sink = ZenohTruth(prefix, [endpoint])
-    fleet = Fleet(
-        FleetConfig(
-            count=n,
-            base_port=port,
-            local_port_offset=None,
-            spawn_enu_m=tuple(tuple(float(v) for v in p) for p in spawns),
-            spawn_yaw_deg=0.0,
-            local_origin="world",
-            body_radius_m=BODY_RADIUS_M,
-            autopilot=AutopilotParams(boot_time_s=0.5),
-        ),
-        world,
-        [sink],
-        {i + 1: simulated_d435(world, seed=i, step=2) for i in range(n)},
-        depth_rate_hz=DEPTH_HZ,
-    )
     for s in socks:
         s.close()
-    fleet.start()
-    try:
-        yield fleet, port, endpoint
-    finally:
-        fleet.stop()  # closes the truth sink too
+    mock = MockProcess(
+        world,
+        len(spawns),
+        port,
+        free_loopback_endpoint(),
+        prefix,
+        tmp_path / "mock",
+        depth_rate_hz=DEPTH_HZ,
+    )
+    with mock:
+        yield mock, port
 
 
 def _config(
@@ -103,13 +90,9 @@ def _ok(outcome: Any) -> None:
     assert outcome.ok, outcome.describe()
 
 
-def _world(cylinders: Sequence[Sequence[float]]) -> World:
-    return World(np.array(cylinders, dtype=np.float64), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
-
-
 def _fly(
     gs: GroundStation,
-    fleet: Fleet,
+    mock: MockProcess,
     drones: list[int],
     points: list[tuple[float, float, float]],
     centre: tuple[float, float, float],
@@ -140,7 +123,7 @@ def _fly(
     track = []
     deadline = time.monotonic() + flight_timeout_s
     while True:
-        truth = fleet.latest_truth()
+        truth = mock.latest_truth()
         pos = np.array([truth[d + 1].position_m for d in drones], dtype=np.float64)
         track.append(pos)
         states = _states(gs)
@@ -158,13 +141,13 @@ def _fly(
     return np.array(track, dtype=np.float64)
 
 
-def _land(gs: GroundStation, fleet: Fleet, drones: list[int], alive: Any) -> None:
+def _land(gs: GroundStation, mock: MockProcess, drones: list[int], alive: Any) -> None:
     _ok(gs.land(drones))
     poll_until(
         lambda: all(_states(gs).get(d) == "landed" for d in drones), 30.0, "landed", alive, 0.1
     )
     poll_until(
-        lambda: not any(fleet.latest_truth()[d + 1].armed for d in drones),
+        lambda: not any(mock.latest_truth()[d + 1].armed for d in drones),
         10.0,
         "disarmed",
         alive,
@@ -175,7 +158,6 @@ def _land(gs: GroundStation, fleet: Fleet, drones: list[int], alive: Any) -> Non
 @pytest.mark.timeout(150)
 def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: Path) -> None:
     trunk = (2.5, 0.0, 0.25, 0.0, 3.0)  # on the straight line from the start to the goal
-    world = _world([trunk])
     swarm = f"m{os.getpid()}"
     prefix = f"{swarm}/sim"
     points = [(0.0, 0.0, 0.0), (0.0, 3.0, 0.0)]  # drone 0 alone in slot 0 (no peer needed)
@@ -183,25 +165,26 @@ def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: 
     centre = tuple(float(v) for v in own_goal - (np.array(points[0]) - np.mean(points, axis=0)))
     svc_ep, gcs_ep = peer_mesh(2)
     with ExitStack() as stack:
-        fleet, port, truth_ep = stack.enter_context(mapped_fleet(world, [(0.0, 0.0, 0.0)], prefix))
-        svc = stack.enter_context(
-            ServiceProcess(0, _config(swarm, port, svc_ep, truth_ep, prefix, tmp_path), tmp_path)
-        )
+        mock, port = stack.enter_context(mapped_mock(tmp_path, [trunk], [(0, 0, 0)], prefix))
+        cfg = _config(swarm, port, svc_ep, mock.truth_endpoint, prefix, tmp_path)
+        svc = stack.enter_context(ServiceProcess(0, cfg, tmp_path))
         gs = stack.enter_context(
             GroundStation(swarm, gcs_ep, config=StationConfig(lead_s=0.5, ack_timeout_s=5.0))
         )
         svc.wait_ready(60.0)
         assert gs.wait_for_drones(ids=[0], timeout_s=15.0, with_state=True) == {0}
-        track = _fly(gs, fleet, [0], points, centre, svc.alive, 60.0)[:, 0, :]
-        final = np.array(fleet.latest_truth()[1].position_m)
-        assert np.linalg.norm(final - own_goal) < 0.4
-        # the straight line went through the trunk: the flight went around it, with room
-        assert fleet.collision_events() == []
-        assert fleet.min_obstacle_distance_m > 0.1  # body surface to trunk surface
+        track = _fly(gs, mock, [0], points, centre, svc.alive, 60.0)[:, 0, :]
+        final = mock.latest_truth()[1]
+        assert np.linalg.norm(np.array(final.position_m) - own_goal) < 0.4
+        assert final.collisions == 0
+        # the straight line went through the trunk: the flight went around it
         near = track[np.abs(track[:, 0] - trunk[0]) < 0.3]
         assert near.size and np.min(np.abs(near[:, 1] - trunk[1])) > trunk[2] + BODY_RADIUS_M
-        _land(gs, fleet, [0], svc.alive)
+        _land(gs, mock, [0], svc.alive)
     assert svc.returncode == 0, svc.log_tail()
+    report = mock.summary
+    assert report["collisions"] == []
+    assert report["min_obstacle_distance_m"] > 0.1  # body surface to trunk surface, all flight
     (rec_path,) = tmp_path.glob("drone0-*.mcap")
     rec = read_record(rec_path)
     maps = rec.messages("/map")
@@ -229,7 +212,6 @@ def test_three_services_cross_a_small_forest_in_formation(tmp_path: Path) -> Non
         (3.6, 2.4, 0.2, 0.0, 3.0),
         (6.0, 1.4, 0.2, 0.0, 3.0),  # on drone 2's
     ]
-    world = _world(trunks)
     swarm = f"f{os.getpid()}"
     prefix = f"{swarm}/sim"
     drones = [0, 1, 2]
@@ -240,32 +222,33 @@ def test_three_services_cross_a_small_forest_in_formation(tmp_path: Path) -> Non
     mesh = peer_mesh(4)
     services: list[ServiceProcess] = []
     with ExitStack() as stack:
-        fleet, port, truth_ep = stack.enter_context(mapped_fleet(world, spawns, prefix))
+        mock, port = stack.enter_context(mapped_mock(tmp_path, trunks, spawns, prefix))
         for d in drones:
-            cfg = _config(swarm, port, mesh[d], truth_ep, prefix, tmp_path / f"d{d}")
+            cfg = _config(swarm, port, mesh[d], mock.truth_endpoint, prefix, tmp_path / f"d{d}")
             services.append(stack.enter_context(ServiceProcess(d, cfg, tmp_path / f"d{d}")))
         gs = stack.enter_context(
             GroundStation(swarm, mesh[3], config=StationConfig(lead_s=1.0, ack_timeout_s=5.0))
         )
 
         def alive() -> bool:
-            return all(s.alive() for s in services)
+            return all(s.alive() for s in services) and mock.alive()
 
         for s in services:
             s.wait_ready(90.0)
         assert gs.wait_for_drones(ids=drones, timeout_s=20.0, with_state=True) == set(drones)
-        track = _fly(gs, fleet, drones, points, centre, alive, 90.0)
-        truth = fleet.latest_truth()
+        track = _fly(gs, mock, drones, points, centre, alive, 90.0)
+        truth = mock.latest_truth()
         for d in drones:
             p = np.array(truth[d + 1].position_m)
             assert np.linalg.norm(p - goals[d]) < 0.4, (d, p, goals[d])
-        assert fleet.collision_events() == []
-        assert list(fleet.collision_counts) == [0, 0, 0]
-        assert fleet.min_obstacle_distance_m > 0.05
-        assert fleet.min_vehicle_distance_m > 2 * BODY_RADIUS_M + 0.1
+            assert truth[d + 1].collisions == 0
         # every drone crossed the forest (its true x went from 0 past the last trunk)
         assert np.all(track[0, :, 0] < 0.5) and np.all(track[-1, :, 0] > 7.0)
-        _land(gs, fleet, drones, alive)
+        _land(gs, mock, drones, alive)
+    report = mock.summary
+    assert report["collisions"] == []
+    assert report["min_obstacle_distance_m"] > 0.05
+    assert report["min_vehicle_distance_m"] > 2 * BODY_RADIUS_M + 0.1
     for d, s in enumerate(services):
         assert s.returncode == 0, s.log_tail()
         (rec_path,) = (tmp_path / f"d{d}").glob(f"drone{d}-*.mcap")
