@@ -669,11 +669,19 @@ def run_service_bench(
             t0 = time.monotonic()
             cpu0 = proc_cpu_s(svc.pid)
             states: set[str] = set()
+            cut_short = ""
             while time.monotonic() - t0 < cfg.seconds:
-                time.sleep(0.25)
-                states.add(state())
+                time.sleep(0.1)
+                st = state()
+                states.add(st)
                 if not svc.alive():
                     raise RuntimeError(f"the service died:\n{svc.log_tail()}")
+                if st not in ("formation-flight", "hover", "emergency"):
+                    # the stream stops (PX4 lands by itself, or the link or the pilot took
+                    # over): measure what was streamed until then
+                    cut_short = f"window ended early: the service went to {st!r}"
+                    progress(cut_short)
+                    break
             t1 = time.monotonic()
             cpu1 = proc_cpu_s(svc.pid)
             mem = proc_memory_kb(svc.pid)
@@ -698,6 +706,7 @@ def run_service_bench(
             report.update(
                 {
                     "window_s": wall,
+                    "window_cut_short": cut_short,
                     "states_seen": sorted(states),
                     "setpoint_period_ms": _stats(periods_ms),
                     "setpoints_in_window": int(arr.size),
@@ -852,6 +861,8 @@ def bench_service(
         "targets: "
         + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in report["met"].items())
     )
+    if report["window_cut_short"]:
+        console.print(report["window_cut_short"])
     la = report["load_average"]
     console.print(
         f"load average {la['start'][0]:.1f} -> {la['end'][0]:.1f} on {os.cpu_count()} CPUs"
