@@ -172,6 +172,30 @@ def test_no_plan_enters_unobserved_space_before_the_next_replan() -> None:
     assert back.status == PlanStatus.OK, back.message
 
 
+def test_a_drone_ahead_of_its_slot_slows_down_for_the_swarm() -> None:
+    # LINE3 across the y axis, flying +x: the two peers hover 2 m behind the own drone's slot.
+    start, goal = np.array([2.0, 0.0, 1.0]), np.array([20.0, 0.0, 1.0])
+    peers = [
+        PeerTrajectory(0, 0, Trajectory.hover(np.array([0.0, -1.5, 1.0]), 0.0, 30.0)),
+        PeerTrajectory(2, 2, Trajectory.hover(np.array([0.0, 1.5, 1.0]), 0.0, 30.0)),
+    ]
+    field = AnalyticField(_world([]))
+    off = FormationPlanner(PlannerParams(v_max_m_s=1.0, lead_slowdown_m=0.0), LINE3, slot=1)
+    on = FormationPlanner(PlannerParams(v_max_m_s=1.0, lead_slowdown_m=2.0), LINE3, slot=1)
+    # the centroid is at x = 2/3, the slot's offset from it 0: the lead is 4/3 m
+    assert on._lead(0.0, start, goal, peers) == pytest.approx(4.0 / 3.0)
+    assert on._lead(0.0, np.array([0.0, 0.0, 1.0]), goal, peers) == pytest.approx(0.0, abs=1e-12)
+    fast = off.plan(0.0, start, ZERO, ZERO, goal, peers, field)
+    slow = on.plan(0.0, start, ZERO, ZERO, goal, peers, field)
+    assert fast.status == slow.status == PlanStatus.OK
+    v_fast, v_slow = _speeds(fast.trajectory).max(), _speeds(slow.trajectory).max()
+    assert v_fast > 0.9
+    assert v_slow < 0.45  # limit scaled to 1/3 (the soft penalty overshoots it a little)
+    # a drone behind its slot is not slowed
+    behind = on.plan(0.0, np.array([-2.0, 0.0, 1.0]), ZERO, ZERO, goal, peers, field)
+    assert _speeds(behind.trajectory).max() > 0.9
+
+
 def test_cancel_before_the_solve_returns_the_start() -> None:
     planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
     problem = planner.prepare(

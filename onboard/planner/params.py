@@ -79,6 +79,21 @@ class PlannerParams:
     seconds: the part flown before the next replan replaces it (the agent's replan period, 1 s;
     a trajectory kept by that replan is checked again on the newer map); 0 disables the test.
     Exact (analytic) fields are observed everywhere."""
+    lead_slowdown_m: float = 0.0
+    """Time-consistent formation: a drone ahead of its slot (relative to the centroid of itself
+    and its peers, along its way to the goal) by ``lead`` metres plans with the speed limit of
+    J_d scaled by ``1 - lead / lead_slowdown_m`` (at least ``lead_min_speed_frac``), so the
+    swarm waits for a drone left behind instead of flying on at full speed; 0 disables. Off by
+    default: with 1.5 (and ``astar_keeps_formation``) the 20 medium forests of the table went
+    from mean e_sim 0.0209 (max 0.066) to 0.0152 (max 0.037), but the dense ones from 0.0207
+    to 0.0232 (16 seeds), sparse 0.0110 to 0.0116, and flights took 8-10 s longer."""
+    lead_min_speed_frac: float = 0.3
+    """Lower bound of that scale."""
+    astar_keeps_formation: bool = False
+    """When the first attempt fails the check, retry from an A* path with the formation term
+    before the retry without it (the latter flies its own way around and can split the shape).
+    Off by default: alone it took one medium forest from e_sim 0.048 to 0.139 (a drone left
+    behind); see ``lead_slowdown_m``."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
     z_limits_m: tuple[float, float] = (0.4, 3.0)
@@ -124,11 +139,16 @@ class PlannerParams:
             "check_obstacle_m",
             "check_drone_m",
             "check_known_s",
+            "lead_slowdown_m",
         )
         for name in nonneg:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if not 0.0 < self.lead_min_speed_frac <= 1.0:
+            raise ValueError(
+                f"lead_min_speed_frac must be in (0, 1], got {self.lead_min_speed_frac!r}"
+            )
         if self.kappa < 1 or self.max_pieces < 1:
             raise ValueError("kappa and max_pieces must be at least 1")
         if self.formation_stride < 1 or self.kappa % self.formation_stride != 0:

@@ -4,9 +4,12 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 (the previous trajectory, else a straight line, else an A* path when the line is blocked),
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
-peers' trajectories. A failed attempt is retried from an A* path without the formation term;
-failing that the previous trajectory is kept if it is still safe, else an emergency stop is
-returned. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
+peers' trajectories. A failed attempt is retried from an A* path with the formation term
+(``astar_keeps_formation``), then from an A* path without it; failing that the previous
+trajectory is kept if it is still safe, else an emergency stop is returned. A drone ahead of
+its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so the
+swarm waits for a drone left behind rather than stretching the shape for the rest of the
+flight. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
 does no I/O; failure is a status, never an exception (bad *inputs* raise ValueError).
 """
 
@@ -41,7 +44,7 @@ class PlanStatus(str, enum.Enum):
     OK = "ok"
     """New optimised trajectory, formation term on, passed the safety check."""
     OK_NO_FORMATION = "ok-no-formation"
-    """The formation attempt failed the check; the A* retry without formation passed."""
+    """The formation attempts failed the check; the A* retry without formation passed."""
     KEPT_PREVIOUS = "kept-previous"
     """Both attempts failed; the previous trajectory is still safe and is kept."""
     EMERGENCY = "emergency"
@@ -167,10 +170,11 @@ def _resample_polyline(path: np.ndarray, n_pieces: int) -> tuple[np.ndarray, np.
 def _band_check(d: np.ndarray, threshold: float) -> tuple[bool, str]:
     """Distances d (K,) along a trajectory, d[0] at its start: (ok, reason suffix).
 
-    Clear of ``threshold`` everywhere; or, starting inside it, never closer than the start
-    (1 mm tolerance) and outside the threshold at some point (the trajectory backs out)."""
+    Clear of ``threshold`` everywhere; or, starting inside it but not inside the obstacle itself
+    (d[0] >= 0), never closer than the start (1 mm tolerance) and outside the threshold at some
+    point (the trajectory backs out). Inside an obstacle nothing is safe."""
     d0 = float(d[0])
-    if d0 >= threshold:
+    if d0 >= threshold or d0 < 0.0:
         return bool(np.min(d) >= threshold), ""
     if np.min(d) < d0 - 1e-3:
         return False, f" (started inside at {d0:.2f} m and comes closer)"
@@ -343,6 +347,31 @@ class FormationPlanner:
             pt0[k] = tr.t0_s - t_start
         return pc, pT, pt0
 
+    def _lead(
+        self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
+    ) -> float:
+        """How far [m] this drone is ahead of its slot along its way to the goal: its offset
+        from the centroid of itself and its peers (at t_s) minus its slot's offset from the
+        centroid of the same slots of the formation, projected on the direction to the goal."""
+        d = goal - sp
+        dist = float(np.linalg.norm(d))
+        if dist < 1e-6:
+            return 0.0
+        u = d / dist
+        n = self.formation.shape[0]
+        pts = [sp]
+        slots = [self.slot]
+        for pt in peers:
+            if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0:
+                pts.append(pt.trajectory.sample(t_s))
+                slots.append(pt.slot)
+        if len(pts) < 2:
+            return 0.0
+        P = np.asarray(pts)
+        F = self.formation[np.array(slots)]
+        off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
+        return float(off @ u)
+
     def prepare(
         self,
         t_start_s: float,
@@ -398,6 +427,11 @@ class FormationPlanner:
             sdes = np.zeros((1, 1))
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
+        if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
+            lead = self._lead(t_start_s, sp, gl, peers)
+            if lead > 0.0:
+                prm = prm.copy()
+                prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
         prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m, fpts)
         fld = obj.field_args(field.kernel_data())
         problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld, self._lb_prm)
@@ -416,8 +450,9 @@ class FormationPlanner:
 
         Safe means: (1) clear of obstacles by ``check_obstacle_m`` and of every peer by
         ``check_drone_m`` to its end; a drone that is already closer than that at ``t_from_s``
-        (pushed in by a peer, a late-mapped trunk, an emergency stop) may fly a trajectory that
-        never comes closer than it starts and leaves the band, so it can always back out; (2)
+        (pushed in by a peer, a late-mapped trunk, an emergency stop), but not inside an
+        obstacle, may fly a trajectory that never comes closer than it starts and leaves the
+        band, so it can always back out; (2)
         during the first ``check_known_s`` (the part flown before the next replan can replace
         it) it does not enter space the field has not observed (``field.is_known``); a start in
         unobserved space may be left.
@@ -486,7 +521,10 @@ class FormationPlanner:
         iters = evals = 0
         messages = []
         last_status: LbfgsStatus | None = None
-        attempts = ((True, False, PlanStatus.OK), (False, True, PlanStatus.OK_NO_FORMATION))
+        attempts = [(True, False, PlanStatus.OK)]
+        if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
+            attempts.append((True, True, PlanStatus.OK))
+        attempts.append((False, True, PlanStatus.OK_NO_FORMATION))
         for use_formation, force_astar, ok_status in attempts:
             problem = self.prepare(
                 t_start_s,
@@ -529,7 +567,8 @@ class FormationPlanner:
                     "; ".join(messages),
                     problem.cost_terms(x),
                 )
-            messages.append(f"{'formation' if use_formation else 'a* retry'}: {why}")
+            what = "a* retry" if force_astar else "formation"
+            messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
         if previous is not None:
             safe, why = self.check(previous, t_start_s, field, peers)
             if safe:
