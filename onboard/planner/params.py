@@ -84,9 +84,9 @@ class PlannerParams:
     and its peers, along its way to the goal) by ``lead`` metres plans with the speed limit of
     J_d scaled by ``1 - lead / lead_slowdown_m`` (at least ``lead_min_speed_frac``), so the
     swarm waits for a drone left behind instead of flying on at full speed; 0 disables. Off by
-    default: with 1.5 (and ``astar_keeps_formation``) the 20 medium forests of the table went
-    from mean e_sim 0.0209 (max 0.066) to 0.0152 (max 0.037), but the dense ones from 0.0207
-    to 0.0232 (16 seeds), sparse 0.0110 to 0.0116, and flights took 8-10 s longer."""
+    default: with 1.5 (and ``astar_keeps_formation``) the table's 20 forests per density went
+    from mean e_sim 0.0107 / 0.0209 / 0.0218 (max 0.038 / 0.066 / 0.062) to 0.0114 / 0.0152 /
+    0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer (85-88 -> 93-98 s)."""
     lead_min_speed_frac: float = 0.3
     """Lower bound of that scale."""
     astar_keeps_formation: bool = False
