@@ -1,5 +1,7 @@
 """Planner API: plans that arrive and stay clear, fallbacks, failure as a value, bad inputs."""
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -250,7 +252,7 @@ def test_cancel_mid_solve_returns_the_best_point_seen() -> None:
 )
 def test_bad_inputs_raise_value_error(kwargs: dict) -> None:
     planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
-    args = {
+    args: dict[str, Any] = {
         "t_start_s": 0.0,
         "start_p": np.array([0.0, 0, 1]),
         "start_v": ZERO,
