@@ -759,12 +759,14 @@ def _register_bench_plugins() -> None:
     from gcs.bench_bus import bench_bus
     from gcs.bench_fuzz import fuzz_command
     from gcs.bench_mapping import bench_mapping
+    from gcs.bench_service import bench_service
     from gcs.bench_sitl import sitl
 
     bench.add_command(sitl)
     bench.add_command(bench_mapping)
     bench.add_command(bench_bus)
     bench.add_command(fuzz_command)
+    bench.add_command(bench_service)
 
 
 _register_bench_plugins()
