@@ -53,7 +53,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 typecheck: $(STAMP)
-	$(VENV)/bin/mypy onboard/planner onboard/mapping onboard/sensors onboard/config.py
+	$(VENV)/bin/mypy onboard gcs sitl_mock
 
 pytest: $(STAMP)
 	$(VENV)/bin/pytest -q
