@@ -74,6 +74,12 @@ def link_config(cfg: OnboardConfig) -> Any:
         geofence_max_enu_m=(gf.max_enu_m[0] + 1.0, gf.max_enu_m[1] + 1.0, gf.max_enu_m[2] + 1.0),
         max_speed_m_s=max(3.0, 2.0 * cfg.planner.v_max_m_s),
         max_accel_m_s2=max(5.0, 1.5 * cfg.planner.a_max_m_s2),
+        signing_key_file=(
+            ap.signing_key_file.replace("{id}", str(cfg.drone.id))
+            if ap.signing_key_file is not None
+            else None
+        ),
+        signing_required=ap.signing_required,
     )
 
 
@@ -333,7 +339,7 @@ def open_bus(cfg: OnboardConfig, clock: Callable[[], float] = time.time) -> Swar
     node = SwarmNode(
         cfg.drone.swarm,
         cfg.drone.id,
-        cfg.zenoh.endpoints(),
+        cfg.zenoh.endpoints(cfg.drone.id, cfg.drone.swarm),
         config=BusConfig(
             traj_valid_for_s=cfg.reactions.peer_lost.validity_s,
             clock_offset_bound_s=cfg.bus.clock_offset_bound_s,

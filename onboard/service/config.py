@@ -78,8 +78,19 @@ class AutopilotSection:
     """No autopilot HEARTBEAT for this long: the link is lost and the service stops commanding."""
     command_timeout_s: float = 1.5
     command_retries: int = 3
+    signing_key_file: str | None = None
+    """MAVLink 2 signing key file (32 raw bytes or 64 hex digits, mode 0600; ``{id}`` is replaced
+    by the drone id). Needs an autopilot that signs (PX4 v1.17+); PX4 v1.16 has no signing, and
+    the service then refuses to start while signing is required. pymavlink implementation only."""
+    signing_required: bool | None = None
+    """None: required when a key is given; false: unsigned telemetry accepted (and counted)."""
 
     def __post_init__(self) -> None:
+        if self.signing_key_file is not None and self.implementation == "mavsdk":
+            raise ValueError(
+                "signing_key_file: the mavsdk implementation cannot sign (MAVSDK 4.x has no "
+                "MAVLink signing API); use implementation: pymavlink"
+            )
         if not re.match(r"^(udp://[^:/]*:\d{1,5}|serial://.+)$", self.url):
             raise ValueError(
                 f"url: expected 'udp://HOST:PORT' or 'serial:///dev/DEVICE', got {self.url!r}"
@@ -111,29 +122,76 @@ class AutopilotSection:
 
 
 @dataclass(frozen=True)
+class ZenohTlsSection:
+    """Zenoh over TLS with mutual authentication (``onboard.comm.security.TlsConfig``): PEM
+    files, ``{id}`` replaced by the drone id (``swarm-gcs certs`` names them ``drone-<id>``)."""
+
+    root_ca_certificate: str
+    certificate: str
+    private_key: str
+    enable_mtls: bool = True
+    verify_name_on_connect: bool = True
+
+
+@dataclass(frozen=True)
 class ZenohSection:
-    """How the swarm bus joins Zenoh (``onboard.comm.zenoh_session.ZenohEndpoints``)."""
+    """How the swarm bus joins Zenoh (``onboard.comm.zenoh_session.ZenohEndpoints``).
+
+    tls: null for plain TCP. access_control_drones: with TLS, the number of drones of the swarm
+    (ids 0..N-1): every session then enforces that only the ground station publishes commands
+    and each drone only under its own id (``onboard.comm.security.SwarmAccessControl``).
+    """
 
     mode: Literal["peer", "client", "router"] = "peer"
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
+    tls: ZenohTlsSection | None = None
+    access_control_drones: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("listen", "connect"):
             for ep in getattr(self, name):
                 if "/" not in ep:
                     raise ValueError(f"{name}: endpoint {ep!r} is not like 'tcp/HOST:PORT'")
+        if self.access_control_drones is not None:
+            if self.tls is None:
+                raise ValueError(
+                    "access_control_drones: needs tls (identities come from certificates)"
+                )
+            _in_range("access_control_drones", self.access_control_drones, 1, 999)
 
-    def endpoints(self) -> Any:
+    def endpoints(self, drone_id: int | None = None, swarm: str | None = None) -> Any:
+        """The endpoints of drone ``drone_id`` (TLS files and access control need the id and the
+        swarm name; without TLS they are not used)."""
         from onboard.comm.zenoh_session import ZenohEndpoints
 
-        return ZenohEndpoints(
+        plain = ZenohEndpoints(
             listen=self.listen,
             connect=self.connect,
             mode=self.mode,
             multicast_scouting=self.multicast_scouting,
         )
+        if self.tls is None:
+            return plain
+        if drone_id is None or swarm is None:
+            raise ValueError("zenoh.tls: the drone id and swarm name are needed")
+        from onboard.comm.security import SwarmAccessControl, TlsConfig
+
+        t = self.tls
+        tls = TlsConfig(
+            root_ca_certificate=t.root_ca_certificate.replace("{id}", str(drone_id)),
+            certificate=t.certificate.replace("{id}", str(drone_id)),
+            private_key=t.private_key.replace("{id}", str(drone_id)),
+            enable_mtls=t.enable_mtls,
+            verify_name_on_connect=t.verify_name_on_connect,
+        )
+        acl = (
+            SwarmAccessControl.for_count(swarm, self.access_control_drones)
+            if self.access_control_drones is not None
+            else None
+        )
+        return plain.secured(tls, acl)
 
 
 @dataclass(frozen=True)
@@ -244,13 +302,17 @@ class FlightSection:
 
 @dataclass(frozen=True)
 class DepthLostReaction:
-    """No depth frame for ``timeout_s``: stop and hover until frames return."""
+    """No depth frame for ``timeout_s``: stop and hover until frames return, and keep coming
+    for ``recover_s`` (no gap above ``timeout_s`` meanwhile): a camera stuttering around the
+    timeout holds the drone in hover instead of flipping its state at every frame."""
 
     timeout_s: float = 0.5
     action: Literal["hover"] = "hover"
+    recover_s: float = 0.5
 
     def __post_init__(self) -> None:
         _in_range("timeout_s", self.timeout_s, 0.05, 10.0)
+        _in_range("recover_s", self.recover_s, 0.0, 10.0)
 
 
 @dataclass(frozen=True)
