@@ -189,6 +189,38 @@ def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
 
 
+def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
+    tmp_path: Path,
+) -> None:
+    """Frames with gaps just above the timeout: one stop, then hover (no flip at every frame)
+    until frames come steadily for ``recover_s``; the stop itself stays bounded."""
+    h = Harness(tmp_path)
+    h.airborne()
+    goal = np.array([6.0, 0.0, 1.0])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT
+    states = []
+    for _ in range(6):  # 0.1 s of frames, 0.6 s without: 6 gaps above the 0.5 s timeout
+        h.depth.on = True  # type: ignore[union-attr]
+        h.step(2)
+        states.append(h.state)
+        h.depth.on = False  # type: ignore[union-attr]
+        for _ in range(12):
+            h.step()
+            states.append(h.state)
+    assert states[-1] is S.HOVER
+    first_hover = states.index(S.HOVER)
+    assert first_hover * 0.05 <= 0.5 + 0.1 + 0.11  # stopped within the timeout of a gap
+    assert all(s is S.HOVER for s in states[first_hover:]), "state flipped with the frames"
+    h.depth.on = True  # type: ignore[union-attr]
+    t_back = h.clock.t
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "flight resumed")
+    rc = h.cfg.reactions.depth_lost.recover_s
+    assert h.clock.t - t_back == pytest.approx(rc, abs=0.16)
+
+
 def test_autopilot_heartbeat_lost_stops_commanding_and_never_resumes_by_itself(
     tmp_path: Path,
 ) -> None:

@@ -200,6 +200,7 @@ class FlightService:
         self._offboard_seen = False
         self._land_seen = False
         self._depth_lost = False
+        self._depth_back_since: float | None = None  # first frame after a loss
         self._link_ok = True
         self._gcs_ok = True
         self._started_s = clock()
@@ -705,14 +706,21 @@ class FlightService:
         # depth frames
         if self.depth is not None and m.state in COMMANDING:
             silent = now - max(self._last_frame_s, self._started_s)
-            if silent > self.cfg.reactions.depth_lost.timeout_s and not self._depth_lost:
-                self._depth_lost = True
-                event(log, "depth_lost", logging.WARNING, silent_s=silent)
-                m.depth_lost()
-            elif silent <= self.cfg.reactions.depth_lost.timeout_s and self._depth_lost:
-                self._depth_lost = False
-                event(log, "depth_back")
-                m.depth_restored()
+            rx = self.cfg.reactions.depth_lost
+            if silent > rx.timeout_s:
+                self._depth_back_since = None  # (still) lost: the recovery starts over
+                if not self._depth_lost:
+                    self._depth_lost = True
+                    event(log, "depth_lost", logging.WARNING, silent_s=silent)
+                    m.depth_lost()
+            elif self._depth_lost:
+                if self._depth_back_since is None:
+                    self._depth_back_since = self._last_frame_s
+                if self._last_frame_s - self._depth_back_since >= rx.recover_s:
+                    self._depth_lost = False
+                    self._depth_back_since = None
+                    event(log, "depth_back")
+                    m.depth_restored()
         # ground station
         heard = self.bus.gcs_last_heard_s()
         since = now - (heard if heard is not None else self._started_s)
