@@ -315,3 +315,32 @@ def test_depth_source_owning_its_subscriber_on_a_shared_session(
         session.put("t/own/7/pose", _sample(7).to_bytes())
     finally:
         session.close()
+
+
+def test_subscriber_of_one_vehicle_never_receives_the_others_frames(
+    publisher: tuple[Any, ZenohEndpoints],
+) -> None:
+    """A flight service subscribes to its own vehicle's streams: with N drones it would
+    otherwise receive and decode N times the frames it uses."""
+    pub, ep = publisher
+    with pytest.raises(ValueError, match="system_id"):
+        ZenohTruthSubscriber("t/one", endpoints=ep, system_id=0)
+    sub = ZenohTruthSubscriber("t/one", endpoints=ep, system_id=7)
+    try:
+        # a frame of vehicle 3 before every frame of vehicle 7: once 7's last frame is kept,
+        # all of 3's have been delivered (or not) already
+        def put_frames() -> bool:
+            pub.put("t/one/3/depth", _image(sid=3, stamp=time.monotonic()).to_bytes())
+            pub.put("t/one/3/pose", _sample(3).to_bytes())
+            pub.put("t/one/7/depth", _image(sid=7, stamp=time.monotonic()).to_bytes())
+            time.sleep(0.02)
+            return sub.depth_image(7) is not None
+
+        _wait(put_frames, "a frame of vehicle 7")
+        for _ in range(5):
+            put_frames()
+        c = sub.counters()
+        assert sub.depth_image(3) is None and sub.pose(3) is None
+        assert c["depth.rx"] >= 1 and sub.errors == 0
+    finally:
+        sub.close()

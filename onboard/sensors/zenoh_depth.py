@@ -409,6 +409,8 @@ class ZenohTruthSubscriber:
     ``endpoints`` (``ZenohEndpoints``), else with ``connect`` / ``listen`` endpoint lists.
     ``counters()``: ``pose.rx``, ``depth.rx``, ``depth.out-of-order``, ``<stream>.<reason>`` per
     rejection reason, and ``error`` (an unexpected exception in a callback, logged).
+    ``system_id``: subscribe to that vehicle's streams only (a flight service: the other
+    vehicles' frames are neither sent to it nor decoded), else to every vehicle's.
     """
 
     def __init__(
@@ -420,7 +422,10 @@ class ZenohTruthSubscriber:
         endpoints: ZenohEndpoints | None = None,
         session: Any = None,
         limits: CodecLimits = DEFAULT_LIMITS,
+        system_id: int | None = None,
     ) -> None:
+        if system_id is not None and (isinstance(system_id, bool) or not 0 < system_id < 256):
+            raise ValueError(f"system_id must be a MAVLink system id 1..255, got {system_id!r}")
         self.prefix = prefix.rstrip("/")
         self.limits = limits
         self._lock = threading.Lock()
@@ -437,8 +442,13 @@ class ZenohTruthSubscriber:
         self._session = session
         self._subs: list[Any] = []
         try:
-            self._subs.append(session.declare_subscriber(f"{self.prefix}/*/pose", self._on_pose))
-            self._subs.append(session.declare_subscriber(f"{self.prefix}/*/depth", self._on_depth))
+            who = "*" if system_id is None else str(int(system_id))
+            self._subs.append(
+                session.declare_subscriber(f"{self.prefix}/{who}/pose", self._on_pose)
+            )
+            self._subs.append(
+                session.declare_subscriber(f"{self.prefix}/{who}/depth", self._on_depth)
+            )
         except Exception:
             self.close()
             raise
@@ -531,5 +541,7 @@ def open_depth_source(
 ) -> TruthDepthSource:
     """A depth source of one vehicle's frames from the mock that owns its subscriber (closing
     the source closes the subscription, and the session unless ``session`` was given)."""
-    sub = ZenohTruthSubscriber(prefix, endpoints=endpoints or ZenohEndpoints(), session=session)
+    sub = ZenohTruthSubscriber(
+        prefix, endpoints=endpoints or ZenohEndpoints(), session=session, system_id=system_id
+    )
     return TruthDepthSource(lambda: sub.depth_image(system_id), on_close=sub.close)
