@@ -132,6 +132,11 @@ def parse_signing(values: Sequence[str], require: bool) -> tuple[Any, ...]:
 @click.option("--depth", is_flag=True, help="Render simulated D435 depth frames (needs --world).")
 @click.option("--depth-rate", default=15.0, show_default=True, help="Depth frames per second.")
 @click.option("--depth-step", default=2, show_default=True, help="Render every n-th pixel.")
+@click.option(
+    "--depth-armed-only",
+    is_flag=True,
+    help="Render depth only for armed vehicles (none while the fleet waits on the ground).",
+)
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
 @click.option(
     "--stats-json",
@@ -159,6 +164,7 @@ def main(
     depth: bool,
     depth_rate: float,
     depth_step: int,
+    depth_armed_only: bool,
     duration: float | None,
     stats_json: Path | None,
     quiet: bool,
@@ -226,7 +232,7 @@ def main(
         except RuntimeError as e:
             raise click.ClickException(str(e)) from e
 
-    fleet = Fleet(cfg, w, sinks, cameras, depth_rate)
+    fleet = Fleet(cfg, w, sinks, cameras, depth_rate, depth_armed_only)
     try:
         fleet.open()
     except OSError as e:

@@ -183,6 +183,8 @@ class DepthStreamer:
     one frame per selected vehicle from the camera pose of its sample and hands it to the sinks.
     Rendering runs outside the simulation thread, so a slow renderer lowers the frame rate
     (frames are skipped, ``skipped`` counts them) but never the autopilot loop.
+    ``armed_only``: render only for armed vehicles (from take-off to landing): a fleet waiting
+    on the ground, e.g. while its flight services start, costs no rendering.
     """
 
     def __init__(
@@ -192,10 +194,12 @@ class DepthStreamer:
         sinks: Sequence[TruthSink],
         rate_hz: float,
         speedup: float = 1.0,
+        armed_only: bool = False,
     ) -> None:
         if not rate_hz > 0.0:
             raise ValueError("rate_hz must be > 0")
         self.cameras = cameras
+        self.armed_only = armed_only
         self.poses = poses
         self.sinks = list(sinks)
         self.period_wall_s = 1.0 / (rate_hz * max(speedup, 1e-6))
@@ -222,6 +226,8 @@ class DepthStreamer:
         for sid, cam in self.cameras.items():
             s = latest.get(sid)
             if s is None or self._last_stamp.get(sid) == s.t_s:
+                continue
+            if self.armed_only and not s.armed:
                 continue
             self._last_stamp[sid] = s.t_s
             pos, rot = s.camera_pose()
