@@ -381,7 +381,7 @@ class Demo:
             "--spacing", str(cfg.spacing_m), "--base-port", str(base_port),
             "--local-port-offset", "-1", "--truth", "zenoh", "--zenoh-listen", sitl_ep,
             "--zenoh-prefix", prefix, "--depth", "--depth-rate", str(cfg.depth_rate_hz),
-            "--depth-step", str(cfg.depth_step), "--depth-armed-only",
+            "--depth-step", str(cfg.depth_step), "--depth-idle-rate", "1",
             "--set", "local_origin=world",
             "--stats-json", str(self.out / "sitl-stats.json"),
         ]  # fmt: skip

@@ -133,9 +133,10 @@ def parse_signing(values: Sequence[str], require: bool) -> tuple[Any, ...]:
 @click.option("--depth-rate", default=15.0, show_default=True, help="Depth frames per second.")
 @click.option("--depth-step", default=2, show_default=True, help="Render every n-th pixel.")
 @click.option(
-    "--depth-armed-only",
-    is_flag=True,
-    help="Render depth only for armed vehicles (none while the fleet waits on the ground).",
+    "--depth-idle-rate",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Depth frames per second of a disarmed vehicle [default: --depth-rate].",
 )
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
 @click.option(
@@ -164,7 +165,7 @@ def main(
     depth: bool,
     depth_rate: float,
     depth_step: int,
-    depth_armed_only: bool,
+    depth_idle_rate: float | None,
     duration: float | None,
     stats_json: Path | None,
     quiet: bool,
@@ -232,7 +233,7 @@ def main(
         except RuntimeError as e:
             raise click.ClickException(str(e)) from e
 
-    fleet = Fleet(cfg, w, sinks, cameras, depth_rate, depth_armed_only)
+    fleet = Fleet(cfg, w, sinks, cameras, depth_rate, depth_idle_rate)
     try:
         fleet.open()
     except OSError as e:

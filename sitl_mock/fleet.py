@@ -154,8 +154,8 @@ class Fleet:
 
     ``truth_sinks`` receive every vehicle's true pose at ``truth_rate_hz``; ``depth_cameras``
     (system id -> camera, e.g. ``truth.simulated_d435(world)``) get frames rendered at
-    ``depth_rate_hz`` from the true poses, in a separate thread, to the same sinks (for armed
-    vehicles only with ``depth_armed_only``).
+    ``depth_rate_hz`` from the true poses, in a separate thread, to the same sinks (disarmed
+    vehicles at ``depth_idle_rate_hz``).
     Use as a context manager, or ``start()`` / ``stop()``; ``run()`` runs in the caller's thread.
     """
 
@@ -166,7 +166,7 @@ class Fleet:
         truth_sinks: Sequence[TruthSink] = (),
         depth_cameras: dict[int, DepthCamera] | None = None,
         depth_rate_hz: float = 15.0,
-        depth_armed_only: bool = False,
+        depth_idle_rate_hz: float | None = None,
     ) -> None:
         self.config = cfg = config
         self.world = world
@@ -272,7 +272,7 @@ class Fleet:
                 self.truth_sinks,
                 depth_rate_hz,
                 cfg.speedup,
-                armed_only=depth_armed_only,
+                idle_rate_hz=depth_idle_rate_hz,
             )
         self._opened = False
 

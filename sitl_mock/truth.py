@@ -19,6 +19,7 @@ onboard service can consume it through the same kind of interface:
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -183,8 +184,9 @@ class DepthStreamer:
     one frame per selected vehicle from the camera pose of its sample and hands it to the sinks.
     Rendering runs outside the simulation thread, so a slow renderer lowers the frame rate
     (frames are skipped, ``skipped`` counts them) but never the autopilot loop.
-    ``armed_only``: render only for armed vehicles (from take-off to landing): a fleet waiting
-    on the ground, e.g. while its flight services start, costs no rendering.
+    ``idle_rate_hz``: the frame rate of a disarmed vehicle (None: ``rate_hz``): a fleet
+    waiting on the ground, e.g. while its flight services start and build their first map,
+    costs little rendering.
     """
 
     def __init__(
@@ -194,12 +196,17 @@ class DepthStreamer:
         sinks: Sequence[TruthSink],
         rate_hz: float,
         speedup: float = 1.0,
-        armed_only: bool = False,
+        idle_rate_hz: float | None = None,
     ) -> None:
         if not rate_hz > 0.0:
             raise ValueError("rate_hz must be > 0")
+        if idle_rate_hz is not None and not idle_rate_hz > 0.0:
+            raise ValueError("idle_rate_hz must be > 0")
         self.cameras = cameras
-        self.armed_only = armed_only
+        self.idle_period_wall_s = (
+            0.0 if idle_rate_hz is None else 1.0 / (idle_rate_hz * max(speedup, 1e-6))
+        )
+        self._last_wall: dict[int, float] = {}
         self.poses = poses
         self.sinks = list(sinks)
         self.period_wall_s = 1.0 / (rate_hz * max(speedup, 1e-6))
@@ -227,8 +234,10 @@ class DepthStreamer:
             s = latest.get(sid)
             if s is None or self._last_stamp.get(sid) == s.t_s:
                 continue
-            if self.armed_only and not s.armed:
+            now = time.monotonic()
+            if not s.armed and now - self._last_wall.get(sid, -math.inf) < self.idle_period_wall_s:
                 continue
+            self._last_wall[sid] = now
             self._last_stamp[sid] = s.t_s
             pos, rot = s.camera_pose()
             t0 = time.perf_counter()
