@@ -1,0 +1,385 @@
+"""Fault-survival benchmark (``swarm-gcs bench faults``, issue #12): fast-time flights with
+random faults.
+
+Each trial flies the hexagon-7 through a forest (forest-sparse and forest-medium in turn, world
+seeded by the trial) in ``gcs.fastsim`` with faults drawn from the trial's seed, alone or
+combined:
+
+- a **killed** drone (its onboard process dies: it publishes nothing from then on and its
+  vehicle holds its position, PX4's offboard-loss failsafe);
+- a **stuck** drone (its vehicle stops and hovers where it is, still publishing that hover);
+- **bus faults** on every trajectory message: 20 % loss, a uniform delay up to 300 ms,
+  duplication and reordering (each present or not).
+
+Peers drop a silent drone from the formation when its last message's validity (3 s, the
+service's ``reactions.peer_lost.validity_s``) has passed and still avoid its last trajectory for
+10 s more (``avoid_for_s``).
+
+Per trial and in total: collisions (every drone, the hovering faulty ones included: they are
+still in the air), arrivals of the healthy drones, e_sim of the remaining (healthy) formation,
+the minimum obstacle clearance and drone distance, and the audit of peer trajectories used by
+the planner: a message past its validity used in the formation term is a failure
+(``stale_formation_uses``, must be 0); past its validity but only avoided is the designed
+``peer_lost`` reaction (``expired_avoided_uses``, counted).
+
+Trials are shortened by a time limit (``--time-limit``, default 60 s simulated) and flown at
+``--v-max`` (default 1 m/s) so that 100 of them fit in minutes on two cores.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from onboard.comm.faults import BusFaults
+
+WORLDS = ("forest-sparse", "forest-medium")
+FORMATION = "hexagon-7"
+VALIDITY_S = 3.0
+"""Validity of every published trajectory (the service's ``reactions.peer_lost.validity_s``)."""
+AVOID_FOR_S = 10.0
+"""An expired peer is still avoided this long (``reactions.peer_lost.avoid_for_s``)."""
+
+
+@dataclass(frozen=True)
+class FaultTrial:
+    """One trial: which flight and which faults (drawn by ``draw_trial``)."""
+
+    index: int
+    seed: int
+    world: str
+    killed: dict[int, float]
+    stuck: dict[int, float]
+    bus: BusFaults | None
+
+    def kinds(self) -> list[str]:
+        """Names of the faults in this trial ('killed', 'stuck', 'loss', 'delay', ...)."""
+        out = []
+        if self.killed:
+            out.append("killed")
+        if self.stuck:
+            out.append("stuck")
+        b = self.bus
+        if b is not None:
+            if b.loss > 0.0:
+                out.append("loss")
+            if b.delay_max_s > 0.0:
+                out.append("delay")
+            if b.duplicate > 0.0:
+                out.append("duplicate")
+            if b.reorder > 0.0:
+                out.append("reorder")
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        b = self.bus
+        return {
+            "index": self.index,
+            "seed": self.seed,
+            "world": self.world,
+            "killed": {str(k): v for k, v in self.killed.items()},
+            "stuck": {str(k): v for k, v in self.stuck.items()},
+            "bus": None
+            if b is None
+            else {
+                "loss": b.loss,
+                "delay_min_s": b.delay_min_s,
+                "delay_max_s": b.delay_max_s,
+                "duplicate": b.duplicate,
+                "reorder": b.reorder,
+                "reorder_hold_s": b.reorder_hold_s,
+            },
+            "kinds": self.kinds(),
+        }
+
+
+def draw_trial(
+    base_seed: int,
+    index: int,
+    n_drones: int,
+    fault_window_s: tuple[float, float],
+    worlds: Sequence[str] = WORLDS,
+) -> FaultTrial:
+    """Trial ``index``'s flight and faults, drawn from ``(base_seed, index)`` only.
+
+    Each of killed drone, stuck drone and bus faults is present with probability 1/2 (at least
+    one); a killed and a stuck drone are different drones, their fault times uniform in
+    ``fault_window_s``. Bus faults: each of 20 % loss, a delay up to 300 ms (uniform from 0),
+    duplication (20 %) and reordering (10 %, held 1.5 s) with probability 1/2, at least one.
+    """
+    if n_drones < 3:
+        raise ValueError(f"n_drones must be >= 3 (a killed, a stuck and a healthy), got {n_drones}")
+    lo, hi = fault_window_s
+    if not 0.0 <= lo <= hi:
+        raise ValueError(f"fault_window_s must be 0 <= lo <= hi, got {fault_window_s}")
+    if not worlds:
+        raise ValueError("worlds must not be empty")
+    rng = np.random.default_rng([int(base_seed), int(index)])
+    kinds = rng.random(3) < 0.5
+    if not kinds.any():
+        kinds[int(rng.integers(3))] = True
+    drones = rng.permutation(n_drones)
+    times = rng.uniform(lo, hi, size=2)
+    killed = {int(drones[0]): round(float(times[0]), 2)} if kinds[0] else {}
+    stuck = {int(drones[1]): round(float(times[1]), 2)} if kinds[1] else {}
+    bus = None
+    if kinds[2]:
+        parts = rng.random(4) < 0.5
+        if not parts.any():
+            parts[int(rng.integers(4))] = True
+        bus = BusFaults(
+            loss=0.2 if parts[0] else 0.0,
+            delay_max_s=0.3 if parts[1] else 0.0,
+            duplicate=0.2 if parts[2] else 0.0,
+            reorder=0.1 if parts[3] else 0.0,
+        )
+    return FaultTrial(
+        index=int(index),
+        seed=int(base_seed) + int(index),
+        world=worlds[int(index) % len(worlds)],
+        killed=killed,
+        stuck=stuck,
+        bus=bus,
+    )
+
+
+def trial_config(trial: FaultTrial, v_max_m_s: float, time_limit_s: float | None) -> Any:
+    """The ``SimConfig`` of a trial (hexagon-7, its world and seed, its faults)."""
+    from gcs.fastsim import SimConfig
+    from onboard.config import load_formation, load_world_spec
+
+    return SimConfig(
+        load_formation(FORMATION),
+        load_world_spec(trial.world),
+        seed=trial.seed,
+        v_max_m_s=v_max_m_s,
+        time_limit_s=time_limit_s,
+        bus_faults=trial.bus,
+        fault_seed=trial.seed,
+        killed_drones=dict(trial.killed),
+        stuck_drones=dict(trial.stuck),
+        validity_s=VALIDITY_S,
+        peer_forget_s=AVOID_FOR_S,
+    )
+
+
+def remaining_esim(tracks_pos: np.ndarray, formation: np.ndarray, keep: Sequence[int]) -> Any:
+    """e_sim (``onboard.planner.formation.similarity``) of the drones ``keep`` against their
+    template rows at every sample: (T,)."""
+    from onboard.planner.formation import similarity
+
+    idx = list(keep)
+    F = formation[idx]
+    return np.array([similarity(p[idx], F)[0] for p in tracks_pos])
+
+
+def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
+    """One trial's report from its flight (see the module docstring)."""
+    n = cfg.formation.n
+    faulty = set(trial.killed) | set(trial.stuck)
+    healthy = [i for i in range(n) if i not in faulty]
+    f = result.faults
+    e = remaining_esim(result.tracks.pos, cfg.formation.points, healthy)
+    arrived = [bool(result.arrived[i]) for i in healthy]
+    return {
+        **trial.to_json(),
+        "collisions": int(result.collisions),
+        "obstacle_collisions": int(result.obstacle_collisions),
+        "drone_collisions": int(result.drone_collisions),
+        "events": [
+            {"t_s": ev.t_s, "kind": ev.kind, "ids": list(ev.ids), "distance_m": ev.distance_m}
+            for ev in result.events
+        ],
+        "healthy": healthy,
+        "healthy_arrived": int(sum(arrived)),
+        "healthy_total": len(healthy),
+        "healthy_success": bool(all(arrived) and result.collisions == 0),
+        "e_sim_remaining_mean": float(np.mean(e)) if e.size else math.nan,
+        "e_sim_remaining_max": float(np.max(e)) if e.size else math.nan,
+        "min_obstacle_clearance_m": float(result.min_obstacle_clearance_m),
+        "min_drone_distance_m": float(result.min_drone_distance_m),
+        "stale_formation_uses": int(f["stale_formation_uses"]),
+        "expired_avoided_uses": int(f["expired_avoided_uses"]),
+        "peer_uses_audited": int(f["peer_uses_audited"]),
+        "bus_counters": dict(f.get("bus", {})),
+        "flight_time_s": float(result.flight_time_s),
+        "timed_out": bool(result.timed_out),
+        "sim_wall_s": float(result.sim_wall_s),
+    }
+
+
+def _run_one(args: tuple[FaultTrial, float, float | None]) -> dict[str, Any]:
+    from gcs.fastsim import run_sim
+
+    trial, v_max, limit = args
+    cfg = trial_config(trial, v_max, limit)
+    return judge(trial, cfg, run_sim(cfg))
+
+
+def run_bench(
+    trials: int,
+    jobs: int,
+    seed: int,
+    v_max_m_s: float = 1.0,
+    time_limit_s: float | None = 60.0,
+    fault_window_s: tuple[float, float] = (3.0, 25.0),
+    worlds: Sequence[str] = WORLDS,
+    on_trial: Any = None,
+) -> dict[str, Any]:
+    """Fly ``trials`` trials on ``jobs`` processes; the whole report (see ``summarise``)."""
+    from onboard.config import load_formation
+
+    if trials < 1:
+        raise ValueError(f"trials must be >= 1, got {trials}")
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    n = load_formation(FORMATION).n
+    todo = [
+        (draw_trial(seed, k, n, fault_window_s, worlds), v_max_m_s, time_limit_s)
+        for k in range(trials)
+    ]
+    wall0 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    if jobs == 1:
+        for a in todo:
+            rows.append(_run_one(a))
+            if on_trial is not None:
+                on_trial(rows[-1])
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(jobs) as pool:
+            for row in pool.imap_unordered(_run_one, todo):
+                rows.append(row)
+                if on_trial is not None:
+                    on_trial(row)
+    rows.sort(key=lambda r: r["index"])
+    out = summarise(rows)
+    out.update(
+        {
+            "formation": FORMATION,
+            "worlds": list(worlds),
+            "seed": seed,
+            "v_max_m_s": v_max_m_s,
+            "time_limit_s": time_limit_s,
+            "fault_window_s": list(fault_window_s),
+            "validity_s": VALIDITY_S,
+            "avoid_for_s": AVOID_FOR_S,
+            "jobs": jobs,
+            "wall_s": time.perf_counter() - wall0,
+            "trials": rows,
+        }
+    )
+    return out
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Totals over trials."""
+    from gcs.metrics import summary
+
+    kinds: dict[str, int] = {}
+    for r in rows:
+        for k in r["kinds"]:
+            kinds[k] = kinds.get(k, 0) + 1
+    return {
+        "n_trials": len(rows),
+        "fault_counts": kinds,
+        "collisions": int(sum(r["collisions"] for r in rows)),
+        "trials_with_collision": [r["index"] for r in rows if r["collisions"]],
+        "healthy_arrived": int(sum(r["healthy_arrived"] for r in rows)),
+        "healthy_total": int(sum(r["healthy_total"] for r in rows)),
+        "healthy_success_trials": int(sum(r["healthy_success"] for r in rows)),
+        "e_sim_remaining_mean": summary([r["e_sim_remaining_mean"] for r in rows]),
+        "e_sim_remaining_max": summary([r["e_sim_remaining_max"] for r in rows]),
+        "min_obstacle_clearance_m": min(r["min_obstacle_clearance_m"] for r in rows),
+        "min_drone_distance_m": min(r["min_drone_distance_m"] for r in rows),
+        "stale_formation_uses": int(sum(r["stale_formation_uses"] for r in rows)),
+        "expired_avoided_uses": int(sum(r["expired_avoided_uses"] for r in rows)),
+        "timed_out_trials": int(sum(r["timed_out"] for r in rows)),
+        "sim_wall_s": summary([r["sim_wall_s"] for r in rows]),
+    }
+
+
+@click.command("faults")
+@click.option("--trials", default=100, show_default=True, help="Number of trials.")
+@click.option("--jobs", default=2, show_default=True, help="Worker processes.")
+@click.option("--seed", default=0, show_default=True, help="Base seed (trial k: seed + k).")
+@click.option("--v-max", "v_max", default=1.0, show_default=True, help="Speed limit, m/s.")
+@click.option(
+    "--time-limit",
+    "time_limit_s",
+    default=60.0,
+    show_default=True,
+    help="Simulated seconds per trial (0: the simulator's default).",
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
+)
+@click.option("--quiet", "-q", is_flag=True, help="Print only the totals.")
+def bench_faults(
+    trials: int,
+    jobs: int,
+    seed: int,
+    v_max: float,
+    time_limit_s: float,
+    json_path: Path | None,
+    quiet: bool,
+) -> None:
+    """Fast-time flights with random faults (killed and stuck drones, bus loss, delay,
+    duplication, reordering): collisions, healthy arrivals, e_sim of the remaining formation,
+    clearances and stale-trajectory uses."""
+    if trials < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--trials")
+    if jobs < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--jobs")
+    if not (math.isfinite(v_max) and v_max > 0.0):
+        raise click.BadParameter("must be > 0", param_hint="--v-max")
+    if not time_limit_s >= 0.0:
+        raise click.BadParameter("must be >= 0", param_hint="--time-limit")
+
+    def line(r: dict[str, Any]) -> None:
+        if quiet:
+            return
+        click.echo(
+            f"trial {r['index']:3d} {r['world']:13s} {'+'.join(r['kinds']):28s} "
+            f"coll {r['collisions']} arrived {r['healthy_arrived']}/{r['healthy_total']} "
+            f"e_sim {r['e_sim_remaining_mean']:.4f} clear {r['min_obstacle_clearance_m']:.2f} "
+            f"pair {r['min_drone_distance_m']:.2f} stale {r['stale_formation_uses']} "
+            f"t {r['flight_time_s']:.0f}s wall {r['sim_wall_s']:.0f}s",
+            err=False,
+        )
+
+    rep = run_bench(trials, jobs, seed, v_max, time_limit_s or None, on_trial=line)
+    es = rep["e_sim_remaining_mean"]
+    click.echo(
+        f"{rep['n_trials']} trials in {rep['wall_s']:.0f} s ({jobs} jobs), faults "
+        f"{rep['fault_counts']}: collisions {rep['collisions']}, healthy arrived "
+        f"{rep['healthy_arrived']}/{rep['healthy_total']} (all healthy arrived in "
+        f"{rep['healthy_success_trials']} trials), e_sim of the remaining formation mean "
+        f"{es['mean']:.4f} (median {es['median']:.4f}, max {es['max']:.4f}), min obstacle "
+        f"clearance {rep['min_obstacle_clearance_m']:.3f} m, min drone distance "
+        f"{rep['min_drone_distance_m']:.3f} m, stale formation uses "
+        f"{rep['stale_formation_uses']}, expired peers avoided {rep['expired_avoided_uses']}"
+    )
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(rep, indent=1, default=_json_default) + "\n")
+        click.echo(f"wrote {json_path}")
+    if rep["collisions"] or rep["stale_formation_uses"]:
+        raise SystemExit(1)
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
