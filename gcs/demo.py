@@ -58,7 +58,11 @@ class DemoConfig:
 
     formation_change: (formation name, seconds after the goal was sent) or None;
     altitude_m: cruise altitude (None: the world's start height); depth_rate_hz: frames per
-    second the mock renders per drone (the machine must sustain N times that); v_max_m_s:
+    second the mock renders per drone (the machine must sustain N times that; None: 10 up to
+    4 drones, 5 above, what a loaded 2-core machine sustains), the services' depth-lost
+    timeout is 4 frame periods (at least 0.5 s); sitl_nice: the mock's scheduling priority
+    (it stands for the autopilots' own hardware: its clock and heartbeats must not starve
+    behind the services; a negative value needs the privilege, else it is left at 0); v_max_m_s:
     the planner's speed limit (None: config/onboard.yaml's); onboard_sets / sitl_sets: extra
     ``--set KEY=VALUE`` for every service / the mock; startup_timeout_s: until every service
     is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
@@ -71,7 +75,8 @@ class DemoConfig:
     seed: int = 1
     formation_change: tuple[str, float] | None = None
     altitude_m: float | None = None
-    depth_rate_hz: float = 10.0
+    depth_rate_hz: float | None = None
+    sitl_nice: int = -5
     depth_step: int = 2
     v_max_m_s: float | None = None
     spacing_m: float = 1.5
@@ -121,7 +126,9 @@ class ProcessGroup:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: dict[str, IO[bytes]] = {}
 
-    def start(self, name: str, argv: Sequence[str], env: dict[str, str] | None = None) -> None:
+    def start(
+        self, name: str, argv: Sequence[str], env: dict[str, str] | None = None, nice: int = 0
+    ) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         out = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - closed in close()
         self._logs[name] = out
@@ -130,6 +137,11 @@ class ProcessGroup:
         def join_group() -> None:  # runs in the child between fork and exec
             os.setpgid(0, 0 if pgid is None else pgid)
             _term_with_parent()
+            if nice:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + nice)
+                except OSError:  # no privilege to raise the priority: run at the parent's
+                    pass
 
         proc = subprocess.Popen(
             list(argv),
@@ -306,6 +318,13 @@ class Demo:
 
         self.cfg = cfg
         self.progress = progress or (lambda phase, info: None)
+        self.depth_rate_hz = float(
+            cfg.depth_rate_hz
+            if cfg.depth_rate_hz is not None
+            else (10.0 if cfg.drones <= 4 else 5.0)
+        )
+        if not 1.0 <= self.depth_rate_hz <= 30.0:
+            raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
         try:
@@ -380,14 +399,14 @@ class Demo:
             "--count", str(n), "--world", str(self.world_file), "--seed", str(cfg.seed),
             "--spacing", str(cfg.spacing_m), "--base-port", str(base_port),
             "--local-port-offset", "-1", "--truth", "zenoh", "--zenoh-listen", sitl_ep,
-            "--zenoh-prefix", prefix, "--depth", "--depth-rate", str(cfg.depth_rate_hz),
+            "--zenoh-prefix", prefix, "--depth", "--depth-rate", str(self.depth_rate_hz),
             "--depth-step", str(cfg.depth_step), "--depth-idle-rate", "1",
             "--set", "local_origin=world",
             "--stats-json", str(self.out / "sitl-stats.json"),
         ]  # fmt: skip
         for s in cfg.sitl_sets:
             sitl += ["--set", s]
-        self.procs.start("sitl", sitl)
+        self.procs.start("sitl", sitl, nice=cfg.sitl_nice)
         self.truth = TruthWatch(prefix, sitl_ep)
         self._wait("mock", lambda: len(self.truth.snapshot()) == n if self.truth else False,
                    cfg.step_timeout_s, ["sitl"])  # fmt: skip
@@ -451,12 +470,13 @@ class Demo:
             "autopilot": {"url": f"udp://127.0.0.1:{base_port}", "port_plus_id": True},
             "depth": {
                 "source": "zenoh-sim",
-                "rate_hz": float(cfg.depth_rate_hz),
+                "rate_hz": self.depth_rate_hz,
                 "sim_prefix": prefix,
                 "sim_connect": [sitl_ep],
                 "step": cfg.depth_step,
             },
             "planner": planner,
+            "reactions": {"depth_lost": {"timeout_s": max(0.5, 4.0 / self.depth_rate_hz)}},
             "record": {"enabled": True, "directory": str(self.out.resolve())},
             "logging": {"format": "json"},
         }
@@ -798,8 +818,9 @@ def demo_command() -> Any:
     @click.option("--seed", type=int, default=1, show_default=True)
     @click.option("--formation-change", "change", default=None, metavar="NAME@SECONDS",
                   help="Change formation this many seconds after the goal was sent.")  # fmt: skip
-    @click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=10.0,
-                  show_default=True, help="Depth frames per second and drone.")  # fmt: skip
+    @click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=None,
+                  help="Depth frames per second and drone [default: 10 up to 4 drones, "
+                  "5 above].")  # fmt: skip
     @click.option("--v-max", type=click.FloatRange(0.1, 3.0), default=None,
                   help="Planner speed limit [m/s] (default: config/onboard.yaml's).")  # fmt: skip
     @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -815,7 +836,7 @@ def demo_command() -> Any:
     @click.option("--quiet", "-q", is_flag=True, help="No progress display.")
     def demo(
         drones: int, formation: str, world: str, seed: int, change: str | None,
-        depth_rate: float, v_max: float | None, out_dir: Path | None, view_port: int | None,
+        depth_rate: float | None, v_max: float | None, out_dir: Path | None, view_port: int | None,
         onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], startup_timeout: float,
         as_json: bool, quiet: bool,
     ) -> None:  # fmt: skip
