@@ -64,6 +64,24 @@ def test_parse_change_and_config_errors(tmp_path: Path) -> None:
                         out_dir=tmp_path / "b"))  # fmt: skip
 
 
+def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path) -> None:
+    """A loaded 2-core machine renders 3 x 10 frames/s but not 7 x 10: 5 above 4 drones; the
+    services' depth-lost timeout follows the rate (4 frame periods, at least 0.5 s)."""
+    for n, formation, rate, timeout in ((3, "triangle-3", 10.0, 0.5), (7, "hexagon-7", 5.0, 0.8)):
+        d = Demo(DemoConfig(drones=n, formation=formation, out_dir=tmp_path / formation))
+        assert d.depth_rate_hz == rate
+        onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
+        assert onboard["depth"]["rate_hz"] == rate
+        assert onboard["reactions"]["depth_lost"]["timeout_s"] == pytest.approx(timeout)
+    d = Demo(
+        DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=2.0, out_dir=tmp_path / "c")
+    )
+    onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
+    assert onboard["reactions"]["depth_lost"]["timeout_s"] == pytest.approx(2.0)
+    with pytest.raises(DemoError, match="depth_rate_hz"):
+        Demo(DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=0.5, out_dir=tmp_path))
+
+
 @pytest.mark.timeout(240)
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
 def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None:
