@@ -3,6 +3,7 @@ every reaction, each tested by cutting its input."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -500,3 +501,19 @@ def test_a_plan_leaving_the_geofence_is_replaced_by_a_braking_stop(tmp_path: Pat
     plans = read_record(next(tmp_path.glob("*.mcap"))).messages("/plan")
     assert any(m["status"] == "emergency" and "geofence" in m["reason"] for m in plans)
     assert np.all(h.ap.position >= lo) and np.all(h.ap.position <= hi)
+
+
+def test_link_age_is_never_negative() -> None:
+    """The link's receive thread can stamp a message just after its state read the clock: the
+    age handed to the status message (which refuses a negative age) is clamped at 0."""
+    from types import SimpleNamespace
+
+    from onboard.service.adapters import AutopilotAdapter
+
+    state = SimpleNamespace(connected=True, rx_age_s=-0.007)
+    ap = AutopilotAdapter(SimpleNamespace(state=lambda: state))
+    assert ap.link_age_s() == 0.0
+    state.rx_age_s = 0.25
+    assert ap.link_age_s() == 0.25
+    state.connected = False
+    assert ap.link_age_s() == math.inf

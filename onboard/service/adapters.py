@@ -115,7 +115,9 @@ class AutopilotAdapter:
         st = self.link.state()
         if not st.connected:
             return math.inf
-        return float(st.rx_age_s)
+        # the receive thread may stamp a message after the state's clock was read: a few ms
+        # below zero, which the status wire format (rightly) refuses
+        return max(0.0, float(st.rx_age_s))
 
     def stream(self, sampler: SetpointSampler | None) -> None:
         if sampler is None:
