@@ -215,7 +215,7 @@ def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
     first_hover = states.index(S.HOVER)
     assert first_hover * 0.05 <= 0.5 + 0.1 + 0.11  # stopped within the timeout of a gap
     assert all(s is S.HOVER for s in states[first_hover:]), "state flipped with the frames"
-    h.depth.on = True  # type: ignore[union-attr]
+    h.depth.on = True  # type: ignore[union-attr,unused-ignore]
     t_back = h.clock.t
     h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "flight resumed")
     rc = h.cfg.reactions.depth_lost.recover_s
