@@ -30,6 +30,8 @@ from gcs.metrics import summary
 from gcs.monitor import CollisionEvent, FlightMonitor, MonitorConfig, Tracks
 from onboard.agent import EPS_T, DroneAgent, MapSource, PlanInputs
 from onboard.comm import InMemoryBus
+from onboard.comm.faults import BusFaults, FaultyBus
+from onboard.comm.messages import TrajectoryMsg
 from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.field import AnalyticField, DistanceField
 from onboard.planner.trajectory import Trajectory
@@ -88,6 +90,22 @@ class SimConfig:
     """Depth frames per second per drone ('mapped')."""
     camera_skip_pixel: int = 2
     """Every n-th pixel row and column of a frame is rendered and ray cast ('mapped')."""
+    bus_faults: BusFaults | None = None
+    """Faults on every trajectory message (``onboard.comm.faults.FaultyBus`` around the bus,
+    seeded with ``fault_seed``); receivers then keep the newest trajectory of each sender, as
+    the Zenoh inbox does. None: the plain in-memory bus."""
+    fault_seed: int = 0
+    stuck_drones: dict[int, float] = field(default_factory=dict)
+    """Drone id -> time: from then on its vehicle hovers where it is (a stuck airframe) and the
+    drone keeps publishing that hover every ``replan_period_s``."""
+    killed_drones: dict[int, float] = field(default_factory=dict)
+    """Drone id -> time: its onboard process dies; it publishes nothing more and its vehicle
+    holds its position (PX4's offboard-loss failsafe)."""
+    validity_s: float = math.inf
+    """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
+    past it leaves the formation term and is only avoided (``DroneAgent``)."""
+    peer_forget_s: float = 10.0
+    """An expired peer is still avoided this long, then forgotten (``DroneAgent``)."""
 
     def __post_init__(self) -> None:
         positive = ("replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
@@ -118,6 +136,22 @@ class SimConfig:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if not self.camera_rate_hz > 0.0 or self.camera_skip_pixel < 1:
             raise ValueError("camera_rate_hz must be > 0 and camera_skip_pixel >= 1")
+        if self.bus_faults is not None and not isinstance(self.bus_faults, BusFaults):
+            raise TypeError(f"bus_faults must be a BusFaults, got {type(self.bus_faults)}")
+        if not self.validity_s > 0.0 or not self.peer_forget_s >= 0.0:
+            raise ValueError("validity_s must be > 0 and peer_forget_s >= 0")
+        n = self.formation.n
+        for name in ("stuck_drones", "killed_drones"):
+            faults = dict(getattr(self, name))
+            for i, at in faults.items():
+                if int(i) != i or not 0 <= int(i) < n:
+                    raise ValueError(f"{name}: drone {i!r} is not in the formation of {n}")
+                if not (math.isfinite(at) and at >= 0.0):
+                    raise ValueError(f"{name}[{i}]: time must be finite and >= 0, got {at!r}")
+            object.__setattr__(self, name, {int(i): float(t) for i, t in faults.items()})
+        both = set(self.stuck_drones) & set(self.killed_drones)
+        if both:
+            raise ValueError(f"drones {sorted(both)} are both stuck_drones and killed_drones")
 
     @property
     def params(self) -> PlannerParams:
@@ -193,6 +227,11 @@ class SimResult:
     seed: int
     cluttered_x: tuple[float, float]
     config: dict[str, Any] = field(default_factory=dict)
+    faults: dict[str, Any] = field(default_factory=dict)
+    """The fault record: ``stale_formation_uses`` (formation peers whose message's validity had
+    passed at the plan call: must be 0), ``expired_avoided_uses`` (expired peers only avoided,
+    the designed reaction), ``peer_uses_audited``, ``killed`` / ``stuck`` (id -> time and
+    position where the vehicle stopped), ``bus`` (the ``FaultyBus`` counters)."""
 
     def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
         """A JSON-serialisable summary (tracks only when asked: they are large)."""
@@ -233,6 +272,7 @@ class SimResult:
             "starts": self.starts.tolist(),
             "goals": self.goals.tolist(),
             "config": self.config,
+            "faults": self.faults,
         }
         if include_tracks:
             out["tracks"] = {
@@ -263,6 +303,10 @@ def _config_summary(cfg: SimConfig, params: PlannerParams) -> dict[str, Any]:
         if f.name in ("formation", "world", "planner"):
             continue
         v = getattr(cfg, f.name)
+        if isinstance(v, BusFaults):
+            v = dataclasses.asdict(v)
+        elif isinstance(v, dict):
+            v = {str(k): x for k, x in v.items()}
         out[f.name] = list(v) if isinstance(v, tuple) else v
     out["planner"] = _jsonable(dataclasses.asdict(params))
     return out
@@ -280,6 +324,69 @@ def _jsonable(x: Any) -> Any:
     if hasattr(x, "value") and not isinstance(x, (int, str, bool)):  # enums
         return _jsonable(x.value)
     return x
+
+
+class PeerAudit:
+    """The swarm bus as the agents see it in the simulator, instrumented.
+
+    ``receive`` keeps, per receiver, the newest trajectory of each sender (by ``traj_id``: a
+    late, reordered or duplicated copy never replaces a newer one, as the Zenoh inbox's gate
+    does) and hands out every sender's latest, expired ones included (as the flight service's
+    ``PortPeerBus`` does: the agent avoids them and leaves them out of the formation).
+    ``check`` (called with every plan call's inputs) finds the message each peer trajectory
+    came from and counts formation peers whose validity had passed at the plan call
+    (``stale_formation_uses``: a fault), expired peers only avoided (``expired_avoided_uses``)
+    and trajectories that came from no delivered message (``unknown_uses``: a fault).
+    """
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self._latest: dict[int, dict[int, TrajectoryMsg]] = {}
+        self._last: dict[int, tuple[float, dict[int, TrajectoryMsg]]] = {}
+        self.counters = dict.fromkeys(
+            (
+                "peer_uses_audited",
+                "stale_formation_uses",
+                "expired_avoided_uses",
+                "unknown_uses",
+                "refused_older",
+            ),
+            0,
+        )
+
+    def publish(self, msg: TrajectoryMsg, now_s: float) -> None:
+        self.inner.publish(msg, now_s)
+
+    def receive(self, drone_id: int, now_s: float) -> dict[int, TrajectoryMsg]:
+        seen = self._latest.setdefault(drone_id, {})
+        for sender, m in self.inner.receive(drone_id, now_s).items():
+            prev = seen.get(sender)
+            if prev is not None and m.traj_id < prev.traj_id:
+                self.counters["refused_older"] += 1
+                continue
+            seen[sender] = m
+        out = dict(sorted(seen.items()))
+        self._last[drone_id] = (now_s, out)
+        return out
+
+    def check(self, inputs: PlanInputs) -> None:
+        """Audit the peers of one plan call (``DroneAgent``'s ``on_inputs``)."""
+        now, msgs = self._last.get(inputs.drone_id, (math.nan, {}))
+        n_form = int(inputs.formation.shape[0])
+        if inputs.edge_mask is not None:  # avoided-only peers take the isolated extra rows
+            n_form = int(np.count_nonzero(np.any(inputs.edge_mask != 0.0, axis=1)))
+        c = self.counters
+        for p in inputs.peers:
+            c["peer_uses_audited"] += 1
+            m = msgs.get(p.drone_id)
+            if m is None or m.trajectory is not p.trajectory:
+                c["unknown_uses"] += 1
+                continue
+            if not now <= m.valid_until_s:
+                if p.slot < n_form:
+                    c["stale_formation_uses"] += 1
+                else:
+                    c["expired_avoided_uses"] += 1
 
 
 class SensedWorld:
@@ -346,7 +453,13 @@ def run_sim(
         else default_time_limit_s(starts, goals, params.v_max_m_s)
     )
     silent = frozenset(cfg.silent_drones)
-    bus = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
+    plain = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
+    faulty = (
+        FaultyBus(plain, cfg.bus_faults, seed=cfg.fault_seed, gate=False)
+        if cfg.bus_faults is not None
+        else None
+    )
+    bus = PeerAudit(plain if faulty is None else faulty)
     sensed = [SensedWorld(world, cfg.sensing_radius_m) for _ in range(n)]
     eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
     maps: list[MapSource] = (
@@ -354,7 +467,9 @@ def run_sim(
     )
 
     def record(inputs: PlanInputs) -> None:
-        assert recorder is not None
+        bus.check(inputs)
+        if recorder is None:
+            return
         i = inputs.drone_id
         recorder(
             PlanCall(
@@ -384,7 +499,9 @@ def run_sim(
             replan_period_s=cfg.replan_period_s,
             plan_ahead_s=cfg.plan_ahead_s,
             first_replan_s=i * cfg.replan_period_s / n,
-            on_inputs=record if recorder is not None else None,
+            validity_s=cfg.validity_s,
+            peer_forget_s=cfg.peer_forget_s,
+            on_inputs=record,
         )
         for i in range(n)
     ]
@@ -431,21 +548,40 @@ def run_sim(
             vel[i] = ag.current.sample(t, order=1)
         return vel
 
+    killed = dict(cfg.killed_drones)
+    stuck = dict(cfg.stuck_drones)
+    stopped: dict[int, tuple[float, list[float]]] = {}  # drone -> (time, position) it stopped
+    stuck_next: dict[int, float] = {}  # next publication of a stuck drone's hover
+    healthy = np.array([i not in killed and i not in stuck for i in range(n)])
     timed_out = True
     t = 0.0
     for k in range(n_steps_max + 1):
         t = k * dt
         for i, ag in enumerate(agents):
             pos[i] = ag.advance(t).sample(t)
+            at = killed.get(i, stuck.get(i, math.inf))
+            if i not in stopped and t >= at - EPS_T:
+                # the vehicle holds where it is; queued plans are dropped with the process
+                ag.reset(Trajectory.hover(pos[i], t, t_limit - t + 1.0))
+                stopped[i] = (t, pos[i].tolist())
+                if i in stuck:
+                    stuck_next[i] = t
+        for i in sorted(stuck_next):
+            if t >= stuck_next[i] - EPS_T:
+                agents[i].announce(t)
+                stuck_next[i] += cfg.replan_period_s
         if eyes is not None and t >= next_frame_s - EPS_T:
             for i, ag in enumerate(agents):
                 eyes[i].observe(t, pos[i], ag.current.sample(t, order=1), ag.goal)
             next_frame_s += 1.0 / cfg.camera_rate_hz
         for i, ag in sorted(enumerate(agents), key=lambda q: q[1].next_replan_s):
-            if ag.due(t):
+            if i not in stopped and ag.due(t):
                 replan(ag, t, pos[i].copy())
                 pos[i] = ag.advance(t).sample(t)
-        if mon.step(k, t, pos, velocities):
+        done = mon.step(k, t, pos, velocities)
+        if not done and stopped and k % mon.sample_every == 0:  # the healthy ones are enough
+            done = bool(np.all(mon.arrived(pos, velocities())[healthy]))
+        if done:
             timed_out = False
             break
         if progress is not None and k % progress_every == 0:
@@ -469,6 +605,12 @@ def run_sim(
         wall_s=time.perf_counter() - wall0,
         warmup_s=warmup_s,
         config=_config_summary(cfg, params),
+        faults={
+            **bus.counters,
+            "killed": {str(i): stopped[i] for i in sorted(killed) if i in stopped},
+            "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
+            "bus": {} if faulty is None else dict(faulty.counters),
+        },
     )
 
 
@@ -489,6 +631,7 @@ def result_from_monitor(
     wall_s: float,
     warmup_s: float,
     config: dict[str, Any],
+    faults: dict[str, Any] | None = None,
 ) -> SimResult:
     """The result of a flight from what its monitor saw (shared by every way of flying)."""
     tracks = mon.tracks()
@@ -529,6 +672,7 @@ def result_from_monitor(
         seed=cfg.seed,
         cluttered_x=(float(lo), float(hi)),
         config=config,
+        faults={} if faults is None else faults,
     )
 
 

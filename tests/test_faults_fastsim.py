@@ -1,0 +1,204 @@
+"""Fault survival in fast time (issue #12): killed and stuck drones, swarm bus faults, and the
+audit that no trajectory past its validity is used in the formation term."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gcs.bench_faults import bench_faults, draw_trial, run_bench
+from gcs.fastsim import PeerAudit, PlanCall, SimConfig, SimResult, run_sim
+from onboard.agent import PlanInputs
+from onboard.comm import InMemoryBus
+from onboard.comm.faults import BusFaults
+from onboard.comm.messages import TrajectoryMsg
+from onboard.config import load_formation, load_world_spec
+from onboard.planner.field import AnalyticField
+from onboard.planner.planner import PeerTrajectory
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+
+def _config(formation: str, **kw: object) -> SimConfig:
+    return SimConfig(
+        load_formation(formation),
+        load_world_spec("forest-small"),
+        seed=1,
+        v_max_m_s=1.0,
+        validity_s=3.0,
+        peer_forget_s=10.0,
+        fault_seed=1,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _assert_safe(cfg: SimConfig, r: SimResult) -> None:
+    """No collision at all (the hovering faulty drones included) and clearances above the
+    monitor's collision thresholds."""
+    assert r.collisions == 0, r.events
+    assert r.min_obstacle_clearance_m >= cfg.collision_obstacle_m
+    assert r.min_drone_distance_m >= cfg.collision_drone_m
+
+
+def test_killed_and_stuck_drones_the_others_arrive_safely() -> None:
+    calls: list[PlanCall] = []
+    cfg = _config("pyramid-5", killed_drones={1: 2.0}, stuck_drones={3: 3.0})
+    r = run_sim(cfg, recorder=calls.append)
+    _assert_safe(cfg, r)
+    healthy = [0, 2, 4]
+    assert not r.timed_out
+    assert bool(np.all(r.arrived[healthy])), r.arrived
+    assert not r.arrived[1] and not r.arrived[3]  # they stopped on the way
+    # both vehicles hold where they stopped until the end
+    t_kill, p_kill = r.faults["killed"]["1"]
+    t_stuck, p_stuck = r.faults["stuck"]["3"]
+    assert (t_kill, t_stuck) == pytest.approx((2.0, 3.0))
+    late = r.tracks.t >= 3.0
+    np.testing.assert_allclose(r.tracks.pos[late, 1], np.broadcast_to(p_kill, (late.sum(), 3)))
+    np.testing.assert_allclose(r.tracks.pos[late, 3], np.broadcast_to(p_stuck, (late.sum(), 3)))
+    # the killed drone plans (and publishes) nothing after its death, nor does the stuck one
+    assert max(c.t_start_s for c in calls if c.drone_id == 1) < t_kill + cfg.plan_ahead_s
+    assert max(c.t_start_s for c in calls if c.drone_id == 3) < t_stuck + cfg.plan_ahead_s
+    # the stuck drone keeps publishing its hover: the others plan against it to the end
+    last = [c for c in calls if c.drone_id in healthy and c.t_start_s > r.flight_time_s - 2.0]
+    assert last
+    for c in last:
+        peer3 = [p for p in c.peers if p.drone_id == 3]
+        assert len(peer3) == 1
+        np.testing.assert_allclose(peer3[0].trajectory.sample(c.t_start_s), p_stuck)
+    # the killed drone left the formation once its validity passed and was still avoided
+    assert r.faults["expired_avoided_uses"] > 0
+    assert r.faults["stale_formation_uses"] == 0
+    assert r.faults["unknown_uses"] == 0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="gap (issue #12, bench faults seed 0 trial 49): a killed drone holds where it died "
+    "but its peers avoid its last trajectory, which flies on; a follower hits the holding drone "
+    "2.4 s later, before the message's validity (3 s) passes. Needs the agent to avoid a late "
+    "peer where it may have stopped (see the report of this change).",
+)
+def test_a_killed_drone_is_avoided_where_it_holds() -> None:
+    cfg = dataclasses.replace(
+        _config("hexagon-7", killed_drones={2: 7.68}),
+        world=load_world_spec("forest-medium"),
+        seed=49,
+        time_limit_s=12.0,
+    )
+    r = run_sim(cfg)
+    _assert_safe(cfg, r)
+
+
+def test_bus_faults_loss_delay_duplication_reordering_no_collision() -> None:
+    faults = BusFaults(loss=0.2, delay_max_s=0.3, duplicate=0.2, reorder=0.1)
+    cfg = _config("triangle-3", bus_faults=faults)
+    r = run_sim(cfg)
+    _assert_safe(cfg, r)
+    assert bool(np.all(r.arrived)) and not r.timed_out
+    bus = r.faults["bus"]
+    # the faults did happen
+    assert bus["lost"] > 0 and bus["duplicated"] > 0 and bus["held_back"] > 0
+    assert r.faults["refused_older"] > 0  # late copies never replaced a newer trajectory
+    assert r.faults["stale_formation_uses"] == 0
+    assert r.faults["unknown_uses"] == 0
+
+
+def test_default_config_has_no_faults() -> None:
+    cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
+    assert cfg.bus_faults is None and not cfg.killed_drones and not cfg.stuck_drones
+    assert cfg.validity_s == float("inf")
+
+
+@pytest.mark.parametrize(
+    ("kw", "field"),
+    [
+        ({"killed_drones": {5: 1.0}}, "killed_drones"),
+        ({"stuck_drones": {0: -1.0}}, "stuck_drones"),
+        ({"killed_drones": {0: 1.0}, "stuck_drones": {0: 2.0}}, "both"),
+        ({"validity_s": 0.0}, "validity_s"),
+    ],
+)
+def test_bad_fault_fields_are_refused(kw: dict[str, object], field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"), **kw)  # type: ignore[arg-type]
+
+
+def _inputs(peers: tuple[PeerTrajectory, ...], n_form: int, n_avoided: int) -> PlanInputs:
+    n = n_form + n_avoided
+    mask = None
+    if n_avoided:
+        mask = np.zeros((n, n))
+        mask[:n_form, :n_form] = 1.0 - np.eye(n_form)
+    z = np.zeros(3)
+    return PlanInputs(
+        0, 0, 2.1, z, z, z, z, peers, AnalyticField(World.empty()), Trajectory.hover(z, 0.0),
+        np.zeros((n, 3)), mask,
+    )  # fmt: skip
+
+
+def test_audit_counts_a_stale_trajectory_in_the_formation() -> None:
+    """The instrument can fail: a formation peer from an expired message is counted."""
+    audit = PeerAudit(InMemoryBus())
+    tr = Trajectory.hover(np.ones(3), 0.0)
+    audit.publish(TrajectoryMsg(1, 0, 1, tr, valid_until_s=1.0), 0.0)
+    got = audit.receive(0, 2.0)
+    assert got[1].trajectory is tr  # expired messages are still handed out (to be avoided)
+    audit.check(_inputs((PeerTrajectory(1, 1, tr),), 3, 0))
+    assert audit.counters["stale_formation_uses"] == 1
+    audit.check(_inputs((PeerTrajectory(1, 3, tr),), 3, 1))  # avoided only: the design
+    assert audit.counters["expired_avoided_uses"] == 1
+    audit.check(_inputs((PeerTrajectory(1, 1, Trajectory.hover(np.ones(3), 0.0)),), 3, 0))
+    assert audit.counters["unknown_uses"] == 1
+
+
+def test_audit_never_goes_back_to_an_older_trajectory() -> None:
+    audit = PeerAudit(InMemoryBus())
+    new = TrajectoryMsg(1, 5, 1, Trajectory.hover(np.ones(3), 0.0))
+    old = TrajectoryMsg(1, 4, 1, Trajectory.hover(np.zeros(3), 0.0))
+    audit.publish(new, 0.0)
+    assert audit.receive(0, 0.1)[1] is new
+    audit.publish(old, 0.2)  # a held-back copy arrives late
+    assert audit.receive(0, 0.3)[1] is new
+    assert audit.counters["refused_older"] == 1
+
+
+def test_draw_trial_is_seeded_and_covers_every_fault() -> None:
+    a = [draw_trial(7, k, 7, (3.0, 25.0)) for k in range(60)]
+    b = [draw_trial(7, k, 7, (3.0, 25.0)) for k in range(60)]
+    assert [t.to_json() for t in a] == [t.to_json() for t in b]
+    kinds = {k for t in a for k in t.kinds()}
+    assert kinds == {"killed", "stuck", "loss", "delay", "duplicate", "reorder"}
+    for t in a:
+        assert t.kinds()
+        assert not set(t.killed) & set(t.stuck)
+        for at in (*t.killed.values(), *t.stuck.values()):
+            assert 3.0 <= at <= 25.0
+
+
+def test_bench_faults_command_writes_the_report(tmp_path: Path) -> None:
+    out = tmp_path / "faults.json"
+    res = CliRunner().invoke(
+        bench_faults,
+        ["--trials", "1", "--jobs", "1", "--seed", "3", "--time-limit", "4", "--json", str(out)],
+    )
+    assert res.exit_code == 0, res.output
+    rep = json.loads(out.read_text())
+    assert rep["n_trials"] == 1 and len(rep["trials"]) == 1
+    row = rep["trials"][0]
+    assert row["kinds"] and row["collisions"] == 0 and row["stale_formation_uses"] == 0
+    assert row["peer_uses_audited"] > 0
+    assert rep["collisions"] == 0
+
+
+def test_run_bench_refuses_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="trials"):
+        run_bench(0, 1, 0)
+    with pytest.raises(ValueError, match="jobs"):
+        run_bench(1, 0, 0)
