@@ -307,6 +307,8 @@ def _config_summary(cfg: SimConfig, params: PlannerParams) -> dict[str, Any]:
             v = dataclasses.asdict(v)
         elif isinstance(v, dict):
             v = {str(k): x for k, x in v.items()}
+        elif isinstance(v, float):
+            v = _num(v)  # validity_s = inf
         out[f.name] = list(v) if isinstance(v, tuple) else v
     out["planner"] = _jsonable(dataclasses.asdict(params))
     return out
