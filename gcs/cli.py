@@ -757,6 +757,7 @@ def bench_planner(
 def _register_bench_plugins() -> None:
     """Benchmarks that live in their own modules (their dependencies load only when run)."""
     from gcs.bench_bus import bench_bus
+    from gcs.bench_faults import bench_faults
     from gcs.bench_fuzz import fuzz_command
     from gcs.bench_mapping import bench_mapping
     from gcs.bench_service import bench_service
@@ -767,6 +768,7 @@ def _register_bench_plugins() -> None:
     bench.add_command(bench_bus)
     bench.add_command(fuzz_command)
     bench.add_command(bench_service)
+    bench.add_command(bench_faults)
 
 
 _register_bench_plugins()
