@@ -27,6 +27,7 @@ def warmup() -> None:
     t0 = time.perf_counter()
     import numpy as np
 
+    from onboard.planner.field import AnalyticField
     from onboard.planner.params import PlannerParams
     from onboard.planner.planner import FormationPlanner, PeerTrajectory
     from onboard.planner.trajectory import Trajectory
@@ -44,7 +45,7 @@ def warmup() -> None:
     start = np.array([0.0, 0.0, 1.0])
     peers = [PeerTrajectory(k, k, Trajectory.hover(start + formation[k], 0.0, 5.0)) for k in (0, 2)]
     res = planner.plan(0.0, start, np.zeros(3), np.zeros(3), np.array([8.0, 0, 1]), peers,
-                       world.field())  # fmt: skip
+                       AnalyticField(world))  # fmt: skip
     t2 = time.perf_counter()
     click.echo(
         f"planner ready: import {t1 - t0:.2f} s, first plan {t2 - t1:.2f} s "

@@ -21,10 +21,8 @@ The world model knows nothing of the planner: the planner's exact field of a wor
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numba import njit
@@ -457,22 +455,6 @@ class World:
             gz,
             self.name or other.name,
         )
-
-    def field(self) -> Any:
-        """Deprecated: use ``onboard.planner.field.AnalyticField(world)``.
-
-        Forwards there for the callers not yet switched (issue #9); the world model itself does
-        not depend on the planner, and this method goes once no caller is left
-        (tests/test_layers.py names it as the one exception).
-        """
-        warnings.warn(
-            "World.field() is deprecated: use onboard.planner.field.AnalyticField(world)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        from onboard.planner.field import AnalyticField
-
-        return AnalyticField(self)
 
     @staticmethod
     def empty(ground_z: float | None = 0.0) -> World:

@@ -41,16 +41,6 @@ def test_primitives_kind_matches_world() -> None:
     assert field.is_known(pts).all()
 
 
-def test_world_field_is_a_deprecated_forwarder() -> None:
-    """The world model no longer owns the planner's field type; the old call still works."""
-    world = _forest()
-    with pytest.warns(DeprecationWarning, match="AnalyticField"):
-        old = world.field()
-    assert isinstance(old, AnalyticField) and old.world is world
-    pts = np.random.default_rng(1).uniform([0, 0, 0], [8, 6, 3], size=(50, 3))
-    np.testing.assert_array_equal(old.distance(pts)[0], AnalyticField(world).distance(pts)[0])
-
-
 def test_kernel_data_layout_is_uniform() -> None:
     """Both kinds give arrays of the same dtype, ndim and flags (one numba specialisation)."""
     analytic = AnalyticField(_forest()).kernel_data()

@@ -27,12 +27,7 @@ PURE_FORBIDDEN = ("zenoh", "pymavlink", "mavsdk", "open3d", "threading", "socket
 # Known exceptions, each with its reason; the tests fail when one is no longer needed, so that
 # the list only shrinks. (path relative to the repository, imported top-level module or
 # ``module@function``) -> reason.
-EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("onboard/world.py", "onboard.planner@field"): (
-        "the deprecated World.field() forwards to AnalyticField(world) until its last callers "
-        "(tests and tools outside this change) switch"
-    ),
-}
+EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 def _module_name(path: Path, root: Path = ROOT) -> str:
@@ -157,13 +152,8 @@ def test_pure_core_imports_no_io_or_threads(package: str) -> None:
 def test_world_model_does_not_know_the_planner() -> None:
     path = ONBOARD / "world.py"
     bad: list[str] = []
-    used = False
     for mod, line, func in _imports(path):
         if not mod.startswith(("onboard.planner", "onboard.mapping")):
             continue
-        if ("onboard/world.py", f"onboard.planner@{func}") in EXCEPTIONS:
-            used = True
-            continue
         bad.append(f"onboard/world.py:{line} imports {mod}" + (f" in {func}()" if func else ""))
     assert bad == [], "\n".join(bad)
-    assert used, "World.field() is gone: remove its entry from EXCEPTIONS"
