@@ -20,7 +20,7 @@ from gcs.view import SWARM_TOPIC, WORLD_TOPIC, SceneInput, SwarmView
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
-DEADLINE_S = 10.0
+DEADLINE_S = 30.0
 
 # --- a minimal WebSocket client (RFC 6455) -----------------------------------------------------
 
