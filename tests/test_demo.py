@@ -127,7 +127,7 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
         assert not _group_alive(int(info["pgid"]))
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     """The whole stack, headless, in-process ground station: take off, form a triangle, cross
     forest-small, change to a line in flight, land; no collision; report written; nothing left
@@ -143,6 +143,7 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
         formation_change=(str(line), 8.0),
         out_dir=out,
         startup_timeout_s=150.0,
+        flight_timeout_s=300.0,  # a loaded machine plans slowly; a quiet one crosses in ~40 s
     )
     result = run_demo(cfg)
     procs = json.loads((out / "logs" / "processes.json").read_text())
