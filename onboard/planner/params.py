@@ -133,6 +133,11 @@ class PlannerParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        # no multirotor this planner serves flies faster or pulls harder (bounds, not tuning)
+        for name, top in (("v_max_m_s", 30.0), ("a_max_m_s2", 50.0)):
+            value = getattr(self, name)
+            if value > top:
+                raise ValueError(f"{name} must be at most {top:g}, got {value!r}")
         nonneg = (
             "w_time",
             "w_obstacle",

@@ -270,6 +270,9 @@ class GeofenceSection:
     max_enu_m: Vec3 = (50.0, 50.0, 5.0)
 
     def __post_init__(self) -> None:
+        for name in ("min_enu_m", "max_enu_m"):
+            if max(abs(v) for v in getattr(self, name)) > 10_000.0:
+                raise ValueError(f"{name}: must be within 10 km of the origin")
         for k in range(3):
             if not self.min_enu_m[k] < self.max_enu_m[k]:
                 raise ValueError(
