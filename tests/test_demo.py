@@ -82,6 +82,21 @@ def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path)
         Demo(DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=0.5, out_dir=tmp_path))
 
 
+def _force_stop(info: dict[str, Any]) -> None:
+    """SIGKILL what the demo had started (its process group and every pid it recorded)."""
+    pgid = info.get("pgid")
+    if pgid and int(pgid) != os.getpgrp():  # the demo's own group, never the test's
+        try:
+            os.killpg(int(pgid), signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass  # already gone
+    for pid in info.get("pids", {}).values():
+        try:
+            os.kill(int(pid), signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass  # already gone
+
+
 @pytest.mark.timeout(330)
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
 def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None:
@@ -115,6 +130,9 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
         else:
             assert proc.returncode == 130, err
             assert "interrupted: every process stopped" in err
+    except BaseException:
+        _force_stop(info)  # the test failed: leave nothing behind (only then, or it could not fail)
+        raise
     finally:
         if proc.poll() is None:
             proc.kill()
