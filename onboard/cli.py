@@ -94,7 +94,9 @@ def run(
     Tells systemd READY=1 once the link, the map and a warm planner are up; stops cleanly on
     SIGTERM or SIGINT."""
     import logging
+    import os
     import signal
+    import threading
 
     from onboard.config import ConfigError, merge_mappings, parse_override
     from onboard.service.adapters import open_autopilot, open_bus, open_depth
@@ -138,8 +140,22 @@ def run(
     # millisecond instead of 5 while mapping, planning and decoding threads are busy
     sys.setswitchinterval(0.001)
 
+    stop_deadline_s = 10.0
+
+    def give_up() -> None:
+        # an orderly stop that hangs (a thread or a session close blocking on a vanished peer)
+        # must not leave the process behind: systemd would SIGKILL it after TimeoutStopSec, a
+        # demo or a test has nobody to do that
+        event(log, "stop_timeout", logging.ERROR, after_s=stop_deadline_s)
+        os._exit(1)
+
     def on_signal(signum: int, _frame: object) -> None:
+        if svc.stop_requested():
+            os._exit(1)  # a second signal: stop now
         svc.request_stop()
+        t = threading.Timer(stop_deadline_s, give_up)
+        t.daemon = True
+        t.start()
 
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     rc = 1

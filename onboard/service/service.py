@@ -1069,3 +1069,6 @@ class FlightService:
     def request_stop(self) -> None:
         self._stop.set()
         self._wake.set()
+
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
