@@ -463,33 +463,34 @@ class ZenohTruthSubscriber:
         with self._lock:
             self._counts[key] += 1
 
-    def _on_pose(self, sample: Any) -> None:
+    def _admit(self, sample: Any, stream: str, parse: Callable[[bytes, Any], Any]) -> Any:
+        """The decoded message of ``sample`` (its sender checked against its key), or None with
+        the rejection counted as ``<stream>.<reason>``; a bug is logged and counted as
+        ``error``, and the subscription lives on."""
         try:
-            s = TruthSample.from_bytes(sample.payload.to_bytes(), self.limits)
-            if _sender(str(sample.key_expr), self.prefix) != s.system_id:
-                raise DecodeError("wrong-sender", f"{s.system_id} under {sample.key_expr}")
+            msg = parse(sample.payload.to_bytes(), self.limits)
+            if _sender(str(sample.key_expr), self.prefix) != msg.system_id:
+                raise DecodeError("wrong-sender", f"{msg.system_id} under {sample.key_expr}")
         except DecodeError as e:
-            self._count(f"pose.{e.reason}")
-            return
-        except Exception:  # a bug: logged and counted, the subscription lives on
-            log.exception("pose callback failed")
+            self._count(f"{stream}.{e.reason}")
+            return None
+        except Exception:
+            log.exception("%s callback failed", stream)
             self._count("error")
+            return None
+        return msg
+
+    def _on_pose(self, sample: Any) -> None:
+        s = self._admit(sample, "pose", TruthSample.from_bytes)
+        if s is None:
             return
         with self._lock:
             self._poses[s.system_id] = s
             self._counts["pose.rx"] += 1
 
     def _on_depth(self, sample: Any) -> None:
-        try:
-            img = DepthImage.from_bytes(sample.payload.to_bytes(), self.limits)
-            if _sender(str(sample.key_expr), self.prefix) != img.system_id:
-                raise DecodeError("wrong-sender", f"{img.system_id} under {sample.key_expr}")
-        except DecodeError as e:
-            self._count(f"depth.{e.reason}")
-            return
-        except Exception:  # a bug: logged and counted, the subscription lives on
-            log.exception("depth callback failed")
-            self._count("error")
+        img = self._admit(sample, "depth", DepthImage.from_bytes)
+        if img is None:
             return
         with self._lock:
             old = self._depth.get(img.system_id)
