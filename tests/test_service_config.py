@@ -62,6 +62,9 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
         ("mapping:\n  occupancy: {resolution_m: -1}\n", "mapping.occupancy", "resolution_m"),
         ("drone:\n  swarm: 'a b'\n", "swarm", "letters"),
         ("flight:\n  takeoff_altitude_m: 9\n", "takeoff_altitude_m", "geofence"),
+        ("autopilot:\n  local_origin_enu_m: [0, 2e4, 0]\n", "local_origin_enu_m", "10 km"),
+        ("autopilot:\n  local_origins_enu_m: {x: [0, 0, 0]}\n", "local_origins_enu_m", "ids"),
+        ("autopilot:\n  local_origins_enu_m: {7: [0, 0]}\n", "local_origins_enu_m.7", ""),
     ],
 )
 def test_bad_values_name_the_key_and_the_expected_range(
@@ -72,6 +75,21 @@ def test_bad_values_name_the_key_and_the_expected_range(
     msg = str(e.value)
     assert path in msg
     assert expected in msg
+
+
+def test_each_drone_gets_its_own_autopilot_origin(tmp_path: Path) -> None:
+    """One file for the swarm: drones listed in local_origins_enu_m get theirs, the others the
+    common one; the link converts with it (ENU swarm frame <-> PX4's local NED frame)."""
+    from onboard.autopilot.frames import position_ned_to_enu
+    from onboard.service.adapters import link_config
+
+    text = "autopilot:\n  local_origin_enu_m: [1, 2, 0]\n  local_origins_enu_m: {3: [-4, 6, 0.5]}\n"
+    path = _write(tmp_path, text)
+    assert link_config(load_onboard_config(path, drone_id=3)).local_origin_enu_m == (-4, 6, 0.5)
+    link = link_config(load_onboard_config(path, drone_id=0))
+    assert link.local_origin_enu_m == (1.0, 2.0, 0.0)
+    # 1 m north and 2 m up of the origin in PX4's NED frame
+    assert position_ned_to_enu((1.0, 0.0, -2.0), link.local_origin_enu_m) == (1.0, 3.0, 2.0)
 
 
 def test_drone_id_out_of_range_is_an_error() -> None:

@@ -80,6 +80,7 @@ def link_config(cfg: OnboardConfig) -> Any:
             else None
         ),
         signing_required=ap.signing_required,
+        local_origin_enu_m=ap.local_origin(cfg.drone.id),
     )
 
 

@@ -7,7 +7,9 @@ after start-up; every thread gets the frozen objects.
 
 Drone ids are 0-based (the formation slot order of the ground station); the autopilot of drone
 ``i`` is MAVLink system ``i + 1`` on UDP port ``14540 + i`` (PX4's multi-vehicle convention).
-Coordinates are ENU metres in the autopilot's local frame.
+Coordinates are ENU metres in the swarm's frame, shared by every drone and the ground station;
+only the autopilot link converts to PX4's local NED frame, whose origin in the swarm frame is
+``autopilot.local_origin_enu_m`` (per drone: ``autopilot.local_origins_enu_m``).
 """
 
 from __future__ import annotations
@@ -42,6 +44,11 @@ def _in_range(name: str, value: float, lo: float, hi: float) -> None:
 def _positive(name: str, value: float) -> None:
     if not (value > 0.0 and math.isfinite(value)):
         raise ValueError(f"{name}: expected a number > 0, got {value!r}")
+
+
+def _check_origin(name: str, origin: Vec3) -> None:
+    if max(abs(v) for v in origin) > 10_000.0:
+        raise ValueError(f"{name}: must be within 10 km of the swarm origin, got {list(origin)}")
 
 
 @dataclass(frozen=True)
@@ -84,8 +91,23 @@ class AutopilotSection:
     the service then refuses to start while signing is required. pymavlink implementation only."""
     signing_required: bool | None = None
     """None: required when a key is given; false: unsigned telemetry accepted (and counted)."""
+    local_origin_enu_m: Vec3 = (0.0, 0.0, 0.0)
+    """Where this PX4's local frame origin (its EKF origin: usually where it was powered up)
+    lies in the swarm's ENU frame, the frame of the map, the plans, the geofence and the bus.
+    Each PX4 of a swarm starts its own local frame, so drones differ here: give each one's in
+    ``local_origins_enu_m``."""
+    local_origins_enu_m: dict[str, Vec3] = field(default_factory=dict)
+    """Per drone id (``"0"``, ``"1"``, ...): the local origin of that drone's autopilot, which
+    overrides ``local_origin_enu_m``. One config file then serves the whole swarm."""
 
     def __post_init__(self) -> None:
+        _check_origin("local_origin_enu_m", self.local_origin_enu_m)
+        for key, origin in self.local_origins_enu_m.items():
+            if not (key.isdigit() and 0 <= int(key) <= 253):
+                raise ValueError(
+                    f"local_origins_enu_m: keys are drone ids in [0, 253], got {key!r}"
+                )
+            _check_origin(f"local_origins_enu_m.{key}", origin)
         if self.signing_key_file is not None and self.implementation == "mavsdk":
             raise ValueError(
                 "signing_key_file: the mavsdk implementation cannot sign (MAVSDK 4.x has no "
@@ -119,6 +141,10 @@ class AutopilotSection:
 
     def target_system(self, drone_id: int) -> int:
         return self.system_id if self.system_id is not None else drone_id + 1
+
+    def local_origin(self, drone_id: int) -> Vec3:
+        """The swarm-frame ENU position of drone ``drone_id``'s autopilot local origin."""
+        return self.local_origins_enu_m.get(str(drone_id), self.local_origin_enu_m)
 
 
 @dataclass(frozen=True)
@@ -264,7 +290,7 @@ class PlanningSection:
 
 @dataclass(frozen=True)
 class GeofenceSection:
-    """A box in the local ENU frame: goals outside are refused; plans never leave it."""
+    """A box in the swarm's ENU frame: goals outside are refused; plans never leave it."""
 
     min_enu_m: Vec3 = (-50.0, -50.0, 0.0)
     max_enu_m: Vec3 = (50.0, 50.0, 5.0)
