@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import platform
 import selectors
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -50,6 +52,10 @@ TARGETS = {
     "cpu_cores": 0.5,
 }
 BIN = Path(sys.executable).parent
+# Linux's SO_TIMESTAMPNS (also the control message's type); Python's socket module lacks it
+_SO_TIMESTAMPNS: int | None = getattr(
+    socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None
+)
 
 
 # ---- MAVLink on the wire ------------------------------------------------------------------------
@@ -97,6 +103,14 @@ class SetpointTap:
         self.front_port = int(self.front.getsockname()[1])
         self.mock_addr: tuple[str, int] | None = None
         self.arrivals: list[float] = []
+        # the kernel's receive stamp of the same datagrams (SO_TIMESTAMPNS, CLOCK_REALTIME),
+        # moved to the monotonic clock: when the datagram reached this socket, before the tap's
+        # own thread (which shares an interpreter with the ground station) was scheduled
+        self.kernel_arrivals: list[float] = []
+        self._rt_minus_mono = time.time() - time.monotonic()
+        self._kernel_stamps = _SO_TIMESTAMPNS is not None
+        if _SO_TIMESTAMPNS is not None:
+            self.back.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self.to_service = 0
         self.to_mock = 0
         self.dropped = 0  # datagrams from the service before the mock was heard
@@ -114,8 +128,13 @@ class SetpointTap:
                 for key, _ in sel.select(0.2):
                     sock = key.fileobj
                     assert isinstance(sock, socket.socket)
+                    kt = math.nan
                     try:
-                        data, addr = sock.recvfrom(65535)
+                        if key.data == "back" and self._kernel_stamps:
+                            data, anc, _, addr = sock.recvmsg(65535, 64)
+                            kt = _kernel_stamp(anc) - self._rt_minus_mono
+                        else:
+                            data, addr = sock.recvfrom(65535)
                     except OSError:
                         continue
                     t = time.monotonic()
@@ -127,6 +146,7 @@ class SetpointTap:
                         if self.msgid in mavlink_msgids(data):
                             with self._lock:
                                 self.arrivals.append(t)
+                                self.kernel_arrivals.append(kt)
                         if self.mock_addr is None:
                             self.dropped += 1
                         else:
@@ -135,10 +155,14 @@ class SetpointTap:
         finally:
             sel.close()
 
-    def arrivals_between(self, t0: float, t1: float) -> np.ndarray:
+    def arrivals_between(self, t0: float, t1: float, kernel: bool = False) -> np.ndarray:
+        """Arrival times in [t0, t1] (by the tap thread's stamp); ``kernel``: the kernel's
+        stamps of the same datagrams instead (NaN where the platform gives none)."""
         with self._lock:
             a = np.array(self.arrivals)
-        return a[(a >= t0) & (a <= t1)]
+            k = np.array(self.kernel_arrivals)
+        sel = (a >= t0) & (a <= t1)
+        return k[sel] if kernel else a[sel]
 
     def close(self) -> None:
         self._stop.set()
@@ -151,6 +175,15 @@ class SetpointTap:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _kernel_stamp(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """CLOCK_REALTIME seconds of an SO_TIMESTAMPNS control message (NaN without one)."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= 16:
+            sec, nsec = struct.unpack("@qq", data[:16])
+            return sec + nsec * 1e-9
+    return math.nan
 
 
 # ---- systemd's notify socket -------------------------------------------------------------------
@@ -690,6 +723,10 @@ def run_service_bench(
             c1 = view.counters
             arr = tap.arrivals_between(t0, t1)
             periods_ms = np.diff(arr) * 1e3
+            karr = tap.arrivals_between(t0, t1, kernel=True)
+            kernel_periods_ms = np.diff(karr) * 1e3
+            if not np.all(np.isfinite(kernel_periods_ms)):
+                kernel_periods_ms = np.zeros(0)
             wall = t1 - t0
             frames = (c1.get("service.frames", 0) - c0.get("service.frames", 0)) / wall
 
@@ -709,6 +746,7 @@ def run_service_bench(
                     "window_cut_short": cut_short,
                     "states_seen": sorted(states),
                     "setpoint_period_ms": _stats(periods_ms),
+                    "setpoint_period_kernel_stamp_ms": _stats(kernel_periods_ms),
                     "setpoints_in_window": int(arr.size),
                     "setpoint_rate_hz": float(arr.size / wall),
                     "periods_over_25ms": int(np.sum(periods_ms > 25.0)),
@@ -845,6 +883,13 @@ def bench_service(
     t.add_row("setpoint period p50, ms", _fmt(sp["p50"], ".2f"), "20 (50 Hz)")
     t.add_row("setpoint period p99, ms", _fmt(sp["p99"], ".2f"), "< 25")
     t.add_row("setpoint period max, ms", _fmt(sp["max"], ".2f"), "< 50")
+    kp = report.get("setpoint_period_kernel_stamp_ms", {})
+    if kp.get("n"):
+        t.add_row(
+            "  same, kernel receive stamps: p99 / max, ms",
+            f"{_fmt(kp['p99'], '.2f')} / {_fmt(kp['max'], '.2f')}",
+            "",
+        )
     t.add_row("setpoints received per s", _fmt(report["setpoint_rate_hz"]), "50")
     t.add_row("service CPU, cores", _fmt(report["cpu_cores"], ".2f"), "<= 0.5")
     t.add_row("service RSS / peak, MB", f"{report['rss_mb']:.0f} / {report['peak_rss_mb']:.0f}", "")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 import time
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -82,6 +83,12 @@ def test_tap_forwards_both_ways_and_timestamps_setpoints() -> None:
             arrivals = tap.arrivals_between(t0, t1)
             assert len(arrivals) == 5  # the heartbeat is forwarded, not counted
             assert list(arrivals) == sorted(arrivals)
+            # the kernel's receive stamps of the same datagrams: ordered, inside the window,
+            # never after the tap thread's own stamp (1 ms for the clock conversion)
+            kernel = tap.arrivals_between(t0, t1, kernel=True)
+            assert len(kernel) == 5 and bool(np.all(np.isfinite(kernel)))
+            assert list(kernel) == sorted(kernel)
+            assert bool(np.all(kernel <= arrivals + 1e-3)) and kernel[0] >= t0 - 1e-3
             assert tap.to_service == 1 and tap.dropped == 0
     finally:
         service.close()
