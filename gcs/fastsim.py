@@ -105,7 +105,15 @@ class SimConfig:
     """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
     peer_forget_s: float = 10.0
-    """An expired peer is still avoided this long, then forgotten (``DroneAgent``)."""
+    """An expired or silent peer is still avoided this long, then forgotten (``DroneAgent``)."""
+    state_period_s: float = 0.1
+    """Every drone whose process runs broadcasts its state (time, position) this often, over
+    the bus's delay and ``bus_faults`` (drawn independently of the trajectories'); receivers
+    pass the newest to ``DroneAgent.heard`` and call ``DroneAgent.watch``."""
+    peer_silence_s: float = 0.8
+    """A peer heard of nothing newer for this long is silent (``DroneAgent``): out of the
+    formation, avoided where it may have stopped. With 10 Hz states, 20 % loss and delays up to
+    300 ms a live drone goes unheard this long with probability ~1e-4 per look."""
 
     def __post_init__(self) -> None:
         positive = ("replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")
@@ -140,6 +148,10 @@ class SimConfig:
             raise TypeError(f"bus_faults must be a BusFaults, got {type(self.bus_faults)}")
         if not self.validity_s > 0.0 or not self.peer_forget_s >= 0.0:
             raise ValueError("validity_s must be > 0 and peer_forget_s >= 0")
+        if not (math.isfinite(self.state_period_s) and self.state_period_s > 0.0):
+            raise ValueError(f"state_period_s must be > 0, got {self.state_period_s!r}")
+        if not self.peer_silence_s > 0.0:
+            raise ValueError(f"peer_silence_s must be > 0, got {self.peer_silence_s!r}")
         n = self.formation.n
         for name in ("stuck_drones", "killed_drones"):
             faults = dict(getattr(self, name))
@@ -337,8 +349,9 @@ class PeerAudit:
     ``PortPeerBus`` does: the agent avoids them and leaves them out of the formation).
     ``check`` (called with every plan call's inputs) finds the message each peer trajectory
     came from and counts formation peers whose validity had passed at the plan call
-    (``stale_formation_uses``: a fault), expired peers only avoided (``expired_avoided_uses``)
-    and trajectories that came from no delivered message (``unknown_uses``: a fault).
+    (``stale_formation_uses``: a fault), expired peers only avoided (``expired_avoided_uses``),
+    trajectories that came from no delivered message (``unknown_uses``: a fault) and the silent
+    peers' ghost hovers the agent added (``ghost_uses``).
     """
 
     def __init__(self, inner: Any) -> None:
@@ -352,6 +365,7 @@ class PeerAudit:
                 "expired_avoided_uses",
                 "unknown_uses",
                 "refused_older",
+                "ghost_uses",
             ),
             0,
         )
@@ -378,7 +392,9 @@ class PeerAudit:
         if inputs.edge_mask is not None:  # avoided-only peers take the isolated extra rows
             n_form = int(np.count_nonzero(np.any(inputs.edge_mask != 0.0, axis=1)))
         c = self.counters
-        for p in inputs.peers:
+        n_real = len(inputs.peers) - inputs.n_ghosts
+        c["ghost_uses"] += inputs.n_ghosts  # hovers where a silent peer may have stopped
+        for p in inputs.peers[:n_real]:
             c["peer_uses_audited"] += 1
             m = msgs.get(p.drone_id)
             if m is None or m.trajectory is not p.trajectory:
@@ -389,6 +405,16 @@ class PeerAudit:
                     c["stale_formation_uses"] += 1
                 else:
                     c["expired_avoided_uses"] += 1
+
+
+@dataclass(frozen=True, eq=False)
+class StateMsg:
+    """A drone's 10 Hz state in the simulator: sender, stamp (its global time), position."""
+
+    drone_id: int
+    seq: int
+    stamp_s: float
+    position: np.ndarray
 
 
 class SensedWorld:
@@ -462,6 +488,14 @@ def run_sim(
         else None
     )
     bus = PeerAudit(plain if faulty is None else faulty)
+    # states travel the same way, their faults drawn from their own generator
+    state_plain = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
+    state_faulty = (
+        FaultyBus(state_plain, cfg.bus_faults, seed=cfg.fault_seed + 7919, gate=False)
+        if cfg.bus_faults is not None
+        else None
+    )
+    state_bus: Any = state_plain if state_faulty is None else state_faulty
     sensed = [SensedWorld(world, cfg.sensing_radius_m) for _ in range(n)]
     eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
     maps: list[MapSource] = (
@@ -503,6 +537,7 @@ def run_sim(
             first_replan_s=i * cfg.replan_period_s / n,
             validity_s=cfg.validity_s,
             peer_forget_s=cfg.peer_forget_s,
+            peer_silence_s=cfg.peer_silence_s,
             on_inputs=record,
         )
         for i in range(n)
@@ -511,6 +546,8 @@ def run_sim(
     for ag in agents:
         ag.announce(0.0)
     next_frame_s = 0.0
+    next_state_s = 0.0
+    state_seq = 0
 
     replan_ms: list[float] = []
     iterations: list[float] = []
@@ -572,6 +609,18 @@ def run_sim(
             if t >= stuck_next[i] - EPS_T:
                 agents[i].announce(t)
                 stuck_next[i] += cfg.replan_period_s
+        if t >= next_state_s - EPS_T:
+            for i in range(n):
+                if i not in killed or i not in stopped:  # a dead process sends nothing
+                    state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy()), t)
+                    state_seq += 1
+            for i, ag in enumerate(agents):
+                if i in stopped:
+                    continue
+                for sender, sm in state_bus.receive(i, t).items():
+                    ag.heard(sender, sm.stamp_s, sm.position)
+                ag.watch(t)
+            next_state_s += cfg.state_period_s
         if eyes is not None and t >= next_frame_s - EPS_T:
             for i, ag in enumerate(agents):
                 eyes[i].observe(t, pos[i], ag.current.sample(t, order=1), ag.goal)
@@ -612,6 +661,11 @@ def run_sim(
             "killed": {str(i): stopped[i] for i in sorted(killed) if i in stopped},
             "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
             "bus": {} if faulty is None else dict(faulty.counters),
+            "state_bus": {} if state_faulty is None else dict(state_faulty.counters),
+            "agents": {
+                k: int(sum(ag.counters()[k] for ag in agents))
+                for k in ("silent", "refused_older", "avoided")
+            },
         },
     )
 

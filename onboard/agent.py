@@ -21,6 +21,22 @@ slot lies outside the template, equals ours, or is claimed twice. Avoided-only p
 template rows whose formation-graph edges are masked out (an isolated vertex adds nothing to
 the similarity metric), so the formation among the others is unchanged.
 
+Silent peers. A peer is *heard* at the sender's time of its newest message of any kind: a new
+trajectory (``valid_until_s - validity_s``; the receive time when validity is infinite) or a
+state message the owner passes to ``heard`` (10 Hz in the service and the simulator). It is
+*silent* when nothing newer was heard for ``peer_silence_s`` (plus one replan period for a peer
+never heard through ``heard``, whose trajectories are its only sign of life). A silent peer may
+have died (its autopilot then holds where it was: PX4's offboard-loss failsafe) anywhere along
+its last trajectory after it was last heard: it leaves the formation term and, besides its last
+trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
+trajectory from where it was last heard to where it could have flown before it fell silent, and
+at its last reported position. ``watch`` (called at the state rate) asks for a replan at once
+when a peer falls silent. A peer whose newest trajectory started more than ``validity_s`` ago
+(a stuck drone re-announcing its hover) leaves the formation term too. A silent peer is forgotten
+``peer_forget_s`` after it fell silent (or after its message's validity, if earlier). A
+trajectory with a lower ``traj_id`` than one already received from the same peer (a late,
+reordered or duplicated copy) never replaces it.
+
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
 immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
 loop); ``advance``, ``schedule`` and ``reset`` lock; the setters (goal, formation, slot, peer
@@ -92,6 +108,8 @@ class PlanInputs:
     """The template the planner used: the formation, plus one row per avoided-only peer."""
     edge_mask: np.ndarray | None
     """None: the complete graph; else the mask that isolates the avoided-only rows."""
+    n_ghosts: int = 0
+    """The last ``n_ghosts`` of ``peers`` are hovers where silent peers may have stopped."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,8 +140,11 @@ class PlanReport:
     avoided_peers: tuple[int, ...]
     """Peers only avoided (excluded, expired, other epoch, bad or conflicting slot)."""
     peers: tuple[PeerTrajectory, ...]
-    """The peers' trajectories the plan was made against (formation peers first), e.g. for a
-    safety monitor's ``agent.planner.check(trajectory, t, field, peers)``."""
+    """The peers' trajectories the plan was made against (formation peers first, the silent
+    peers' ghost hovers last), e.g. for a safety monitor's
+    ``agent.planner.check(trajectory, t, field, peers)``."""
+    silent_peers: tuple[int, ...] = ()
+    """Peers judged silent: only avoided, along their last trajectory and at their ghosts."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +167,22 @@ class _Assignment:
     ignore: frozenset[int]
 
 
+@dataclass(frozen=True, eq=False)
+class _Seen:
+    """A peer's newest trajectory message and the sender's time it was sent (estimated)."""
+
+    msg: TrajectoryMsg
+    sent_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class _Heard:
+    """A peer's newest state message: the sender's stamp and the position it reported."""
+
+    stamp_s: float
+    position: np.ndarray | None
+
+
 def _vec3(name: str, v: Sequence[float] | np.ndarray) -> np.ndarray:
     a = np.array(v, dtype=np.float64, copy=True)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
@@ -162,6 +199,18 @@ def _template(formation: np.ndarray | Sequence[Sequence[float]]) -> np.ndarray:
     return F
 
 
+def _spaced(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Points along the polyline ``points`` (K, 3): its ends and as few between as keep
+    consecutive ones at most ``spacing`` apart (along the line)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    n = int(math.ceil(s[-1] / spacing - 1e-9)) if s[-1] > 0.0 else 0
+    if n == 0:
+        return points[:1].copy()
+    targets = np.linspace(0.0, s[-1], n + 1)
+    return np.stack([np.interp(targets, s, points[:, d]) for d in range(3)], axis=1)
+
+
 class DroneAgent:
     """One drone: planner, trajectories, goal, formation slot and replan timing.
 
@@ -175,8 +224,12 @@ class DroneAgent:
     the first grid point (None: the initial trajectory's start; the simulator staggers drones);
     formation_epoch: the assignment the slot belongs to (peers of another epoch are avoided,
     not formed with); validity_s: published messages are valid this long after publication
-    (inf: forever, the in-memory bus); peer_forget_s: an expired peer is still avoided this
-    long; on_inputs: called with every plan call's inputs before the call (records, replays);
+    (inf: forever, the in-memory bus); peer_forget_s: an expired or silent peer is still
+    avoided this long; peer_silence_s: a peer heard of nothing newer for this long is silent
+    (see the module docstring; inf: never); ghost_spacing_m: spacing of a silent peer's ghost
+    hovers (at most 2 * sqrt(check_drone_m^2 - collision distance^2): a plan clear of the
+    ghosts by check_drone_m is clear of any point between them by that distance);
+    on_inputs: called with every plan call's inputs before the call (records, replays);
     on_plan: called with every ``PlanReport`` after the new trajectory is scheduled — the
     service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
     itself only reports. It runs inside the cycle: it may call anything but ``replan`` and
@@ -201,6 +254,8 @@ class DroneAgent:
         formation_epoch: int = 0,
         validity_s: float = math.inf,
         peer_forget_s: float = 5.0,
+        peer_silence_s: float = math.inf,
+        ghost_spacing_m: float = 0.25,
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
         timer: Callable[[], float] = time.perf_counter,
@@ -213,6 +268,10 @@ class DroneAgent:
             raise ValueError(f"validity_s must be > 0, got {validity_s!r}")
         if not peer_forget_s >= 0.0:
             raise ValueError(f"peer_forget_s must be >= 0, got {peer_forget_s!r}")
+        if not peer_silence_s > 0.0:
+            raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
+        if not (math.isfinite(ghost_spacing_m) and ghost_spacing_m > 0.0):
+            raise ValueError(f"ghost_spacing_m must be > 0, got {ghost_spacing_m!r}")
         if not isinstance(initial, Trajectory):
             raise TypeError(f"initial must be a Trajectory, got {type(initial).__name__}")
         self.drone_id = int(drone_id)
@@ -223,6 +282,8 @@ class DroneAgent:
         self.plan_ahead_s = float(plan_ahead_s)
         self.validity_s = float(validity_s)
         self.peer_forget_s = float(peer_forget_s)
+        self.peer_silence_s = float(peer_silence_s)
+        self.ghost_spacing_m = float(ghost_spacing_m)
         self.on_inputs = on_inputs
         self.on_plan = on_plan
         self.timer = timer
@@ -251,6 +312,14 @@ class DroneAgent:
         """Replans by plan status value (``PlanStatus.value``); other threads: ``counters()``."""
         self.avoided_count = 0
         """Replans in which at least one peer was only avoided."""
+        self._peer_lock = threading.Lock()
+        self._seen: dict[int, _Seen] = {}  # newest trajectory per peer (the cycle writes)
+        self._heard: dict[int, _Heard] = {}  # newest state per peer (``heard`` writes)
+        self._flagged: dict[int, float] = {}  # peer -> heard time its silence was flagged at
+        self.refused_older = 0
+        """Trajectories refused because a newer one of the same peer had been received."""
+        self.silent_count = 0
+        """Replans in which at least one peer was silent (avoided at its ghosts)."""
 
     # --- trajectories (any thread) ----------------------------------------------------------
 
@@ -406,15 +475,66 @@ class DroneAgent:
         if p is not None:
             p.cancel()
 
+    # --- peers' signs of life (any thread) -----------------------------------------------
+
+    def heard(self, drone_id: int, stamp_s: float, position: np.ndarray | None = None) -> None:
+        """A message of any kind other than a trajectory (a state message) from ``drone_id``,
+        sent at the sender's global time ``stamp_s``, optionally reporting its position (ENU m).
+        Only the newest counts: an older stamp (a late, reordered copy) changes nothing."""
+        pid = int(drone_id)
+        t = float(stamp_s)
+        if pid == self.drone_id or not math.isfinite(t):
+            return
+        p = None if position is None else _vec3("position", position)
+        with self._peer_lock:
+            h = self._heard.get(pid)
+            if h is None or t > h.stamp_s:
+                self._heard[pid] = _Heard(t, p)
+
+    def heard_s(self, drone_id: int) -> float:
+        """The sender's time of the newest message heard from ``drone_id`` (-inf: none)."""
+        with self._peer_lock:
+            return self._heard_s(int(drone_id))
+
+    def _heard_s(self, pid: int) -> float:
+        h = self._heard.get(pid)
+        s = self._seen.get(pid)
+        return max(-math.inf if h is None else h.stamp_s, -math.inf if s is None else s.sent_s)
+
+    def _silence_limit(self, pid: int) -> float:
+        """How long ``pid`` may be heard of nothing newer before it is silent."""
+        if pid in self._heard:
+            return self.peer_silence_s
+        return self.peer_silence_s + self.replan_period_s
+
+    def watch(self, now_s: float) -> tuple[int, ...]:
+        """Peers that fell silent since the last call (see the module docstring); a replan is
+        requested at once when there is one. Call at the rate of the state messages."""
+        if not math.isfinite(self.peer_silence_s):
+            return ()
+        out = []
+        with self._peer_lock:
+            for pid in sorted(set(self._seen) | set(self._heard)):
+                h = self._heard_s(pid)
+                if now_s - h > self._silence_limit(pid) and self._flagged.get(pid) != h:
+                    self._flagged[pid] = h
+                    out.append(pid)
+        if out and self._assign.goal is not None:
+            self.request_replan()
+        return tuple(out)
+
     # --- the cycle --------------------------------------------------------------------------
 
     def counters(self) -> dict[str, int]:
         """A snapshot: ``replans``, ``status.<value>`` per plan status, ``avoided`` (replans
-        with some peer only avoided), ``seq`` (messages published)."""
+        with some peer only avoided), ``silent`` (replans with some peer silent),
+        ``refused_older`` (older trajectories refused), ``seq`` (messages published)."""
         with self._cfg_lock:
             out = {f"status.{k}": v for k, v in self.status_counts.items()}
             out["replans"] = sum(self.status_counts.values())
             out["avoided"] = self.avoided_count
+            out["silent"] = self.silent_count
+            out["refused_older"] = self.refused_older
         out["seq"] = self._seq
         return out
 
@@ -437,6 +557,7 @@ class DroneAgent:
     def step(self, now_s: float, position: np.ndarray | None = None) -> PlanReport | None:
         """Advance to ``now_s`` and replan if due; the report, or None when not due."""
         self.advance(now_s)
+        self.watch(now_s)
         if not self.due(now_s):
             return None
         return self.replan(now_s, position)
@@ -462,13 +583,19 @@ class DroneAgent:
         t_start = now + self.plan_ahead_s
         flying = self.flying(t_start)
         sp, sv, sa = flying.state(t_start)
-        msgs = self.bus.receive(self.drone_id, now)
-        formed, avoided = self._split_peers(msgs, a, now)
+        msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
+        formed, avoided = self._split_peers(msgs, a, now, silent)
+        ghosts = self._ghosts(silent, now)
         n_form = a.formation.shape[0]
-        peers = tuple(PeerTrajectory(m.drone_id, m.slot, m.trajectory) for m in formed) + tuple(
-            PeerTrajectory(m.drone_id, n_form + k, m.trajectory) for k, m in enumerate(avoided)
+        n_av = len(avoided)
+        peers = (
+            tuple(PeerTrajectory(m.drone_id, m.slot, m.trajectory) for m in formed)
+            + tuple(
+                PeerTrajectory(m.drone_id, n_form + k, m.trajectory) for k, m in enumerate(avoided)
+            )
+            + tuple(PeerTrajectory(pid, n_form + n_av + k, g) for k, (pid, g) in enumerate(ghosts))
         )
-        planner = self._planner(a.formation, a.slot, len(avoided))
+        planner = self._planner(a.formation, a.slot, n_av + len(ghosts))
         if self.on_inputs is not None:
             self.on_inputs(
                 PlanInputs(
@@ -483,7 +610,8 @@ class DroneAgent:
                     field,
                     flying,
                     planner.formation,
-                    None if not avoided else planner.mask,
+                    None if not (avoided or ghosts) else planner.mask,
+                    len(ghosts),
                 )
             )
         self._active = planner
@@ -503,6 +631,8 @@ class DroneAgent:
             self.status_counts[key] = self.status_counts.get(key, 0) + 1
             if avoided:
                 self.avoided_count += 1
+            if silent:
+                self.silent_count += 1
         report = PlanReport(
             drone_id=self.drone_id,
             seq=seq,
@@ -521,6 +651,7 @@ class DroneAgent:
             formation_peers=tuple(m.drone_id for m in formed),
             avoided_peers=tuple(m.drone_id for m in avoided),
             peers=peers,
+            silent_peers=tuple(sorted(silent)),
         )
         self._last = report
         if self.on_plan is not None:
@@ -541,8 +672,73 @@ class DroneAgent:
         self.bus.publish(msg, now)
         return seq
 
-    def _split_peers(
+    def _peers_now(
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float
+    ) -> tuple[dict[int, TrajectoryMsg], set[int]]:
+        """Take the newest trajectory of each peer from ``msgs`` (an older one never replaces
+        a newer one); the peers to consider (not ignored, not forgotten) and the silent ones."""
+        with self._peer_lock:
+            for pid, m in msgs.items():
+                if pid == self.drone_id:
+                    continue
+                old = self._seen.get(pid)
+                if old is not None:
+                    o = old.msg
+                    if m is o or (
+                        m.trajectory is o.trajectory and m.valid_until_s == o.valid_until_s
+                    ):
+                        continue  # the same message again
+                    if m.traj_id < o.traj_id or (
+                        m.traj_id == o.traj_id and m.trajectory.t0_s < o.trajectory.t0_s - EPS_T
+                    ):
+                        self.refused_older += 1
+                        continue
+                if math.isfinite(self.validity_s) and math.isfinite(m.valid_until_s):
+                    sent = m.valid_until_s - self.validity_s
+                else:
+                    sent = now  # no better bound: when it was first seen
+                if old is not None:
+                    sent = max(sent, old.sent_s)
+                self._seen[pid] = _Seen(m, sent)
+            out: dict[int, TrajectoryMsg] = {}
+            silent: set[int] = set()
+            for pid in sorted(self._seen):
+                if pid in a.ignore:
+                    continue
+                m = self._seen[pid].msg
+                lim = self._silence_limit(pid)
+                h = self._heard_s(pid)
+                if now > min(m.valid_until_s, h + lim) + self.peer_forget_s:
+                    continue  # forgotten
+                out[pid] = m
+                if now - h > lim:
+                    silent.add(pid)
+        return out, silent
+
+    def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, Trajectory]]:
+        """Hovers where each silent peer may have stopped: points ``ghost_spacing_m`` apart
+        along its last reported position and its last trajectory from when it was last heard
+        to when it could have fallen silent (1.5 silence limits later, at most now)."""
+        out: list[tuple[int, Trajectory]] = []
+        for pid in sorted(silent):
+            with self._peer_lock:
+                seen = self._seen[pid]
+                state = self._heard.get(pid)
+                h = self._heard_s(pid)
+                lim = self._silence_limit(pid)
+            tr = seen.msg.trajectory
+            t_a = max(h, tr.t0_s)
+            t_b = max(t_a, min(now, h + 1.5 * lim))
+            ts = np.append(np.arange(t_a, t_b, 0.02), t_b)
+            pts = tr.sample(ts)
+            if state is not None and state.position is not None and state.stamp_s >= h - EPS_T:
+                pts = np.vstack([state.position, pts])
+            for p in _spaced(pts, self.ghost_spacing_m):
+                out.append((pid, Trajectory.hover(p, now, 3600.0)))
+        return out
+
+    def _split_peers(
+        self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float, silent: set[int]
     ) -> tuple[list[TrajectoryMsg], list[TrajectoryMsg]]:
         """(formation peers, avoided-only peers), each by increasing drone id."""
         formed: list[TrajectoryMsg] = []
@@ -552,11 +748,11 @@ class DroneAgent:
             m = msgs[pid]
             if pid in a.ignore or pid == self.drone_id:
                 continue
-            if now > m.valid_until_s + self.peer_forget_s:
-                continue
             if (
                 pid in a.avoid_only
+                or pid in silent
                 or now > m.valid_until_s
+                or now - m.trajectory.t0_s > self.validity_s
                 or m.formation_epoch != a.epoch
                 or not 0 <= m.slot < n
                 or m.slot == a.slot

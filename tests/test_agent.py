@@ -194,9 +194,19 @@ def test_peers_outside_the_formation_are_avoided_not_formed_with() -> None:
     assert rep.formation_peers == (1,)  # 8 expired at 0.5; 2 and 4 still share slot 2
     assert rep.avoided_peers == (2, 3, 4, 6, 7, 8)
     a.set_peer_roles(ignore=[4])
+    for pid, (slot, epoch) in cases.items():  # fresh plans (a peer re-announcing an old one
+        p = me + np.array([3.0, 2.0 * pid - 8.0, 0.0])  # is not flying in formation, below)
+        tr = Trajectory.hover(p, 3.9, 30.0)
+        bus.publish(TrajectoryMsg(pid, 1, slot, tr, formation_epoch=epoch), 3.9)
     rep = a.replan(4.0)  # 8 forgotten 3 s after it expired
     assert rep.formation_peers == (1, 2) and rep.avoided_peers == (3, 6, 7)
     assert a.avoided_count == 3
+    # messages still valid, but their plans started more than validity_s (2 s) ago: a peer
+    # that stopped replanning (a stuck drone re-announcing its hover) leaves the formation
+    rep = a.replan(5.8)
+    assert rep.formation_peers == (1, 2)
+    rep = a.replan(6.5)
+    assert rep.formation_peers == () and rep.avoided_peers == (1, 2, 3, 6, 7)
 
 
 def test_avoided_peer_adds_nothing_to_the_formation_term() -> None:
@@ -262,7 +272,14 @@ def test_emergency_is_reported_and_the_policy_hook_decides() -> None:
     assert a.flying(rep.t_start_s) is rep.trajectory
     assert decisions == ["emergency"] and a.next_replan_s == pytest.approx(0.2)
     assert a.status_counts == {"emergency": 1}
-    assert a.counters() == {"status.emergency": 1, "replans": 1, "avoided": 0, "seq": 1}
+    assert a.counters() == {
+        "status.emergency": 1,
+        "replans": 1,
+        "avoided": 0,
+        "silent": 0,
+        "refused_older": 0,
+        "seq": 1,
+    }
 
 
 def test_setpoint_reader_thread_sees_whole_trajectories() -> None:
