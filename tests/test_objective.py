@@ -62,6 +62,9 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     prm[obj.P_FORM_MODE] = obj.FORM_MODES[mode]
     prm[obj.P_TAU_SCALE] = 1.0
     prm[obj.P_FORM_STRIDE] = stride
+    # a band narrower than the trajectory's climb from 1.0 to 1.2 m: J_z active on both sides
+    prm[obj.P_Z_LO] = 1.05
+    prm[obj.P_Z_HI] = 1.12
     for key, idx in (
         ("time", obj.P_W_TIME),
         ("obstacle", obj.P_W_OBS),
@@ -69,6 +72,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         ("feasibility", obj.P_W_FEAS),
         ("uniformity", obj.P_W_UNIF),
         ("formation", obj.P_W_FORM),
+        ("altitude", obj.P_W_ALT),
     ):
         prm[idx] = weights.get(key, 0.0)
     prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation)
@@ -102,6 +106,7 @@ TERMS = {
     "feasibility": {"feasibility": 20.0},
     "uniformity": {"uniformity": 30.0},
     "formation": {"formation": 1e3},
+    "altitude": {"altitude": 1e4},
 }
 
 
@@ -182,6 +187,7 @@ def test_whole_objective_gradient_in_q_and_tau(seed: int) -> None:
         "feasibility": 20.0,
         "uniformity": 30.0,
         "formation": 1e3,
+        "altitude": 1e4,
     }
     M, head, tail, q, T, prob, fld = _setup(seed, weights)
     x = np.concatenate([q.ravel(), tau_from_T(T)])
@@ -216,3 +222,24 @@ def test_unit_gradient_variant_does_not_match_its_cost() -> None:
         lambda cc: obj.cost_c_T(cc, T, prob, fld, np.zeros_like(c0), np.zeros(M), costs), c0, 1e-6
     )
     assert _rel_err(gc, num_c) > 1e-2
+
+
+def test_altitude_term_is_active_below_and_above_the_band() -> None:
+    """The gradient check of J_z above covers both sides: the set-up's trajectory leaves the
+    band downwards and upwards, and each side alone gives a positive cost."""
+    M, head, tail, q, T, prob, fld = _setup(11, {"altitude": 1e4})
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    costs = np.zeros(obj.N_TERMS)
+    for lo, hi in ((1.05, 50.0), (-50.0, 1.12)):
+        prm = prob[3].copy()
+        prm[obj.P_Z_LO], prm[obj.P_Z_HI] = lo, hi
+        one_side = (*prob[:3], prm, *prob[4:])
+        obj.cost_c_T(m.c, T, one_side, fld, np.zeros_like(m.c), np.zeros(M), costs)
+        assert costs[obj.C_Z] > 0.0, (lo, hi)
+    prm = prob[3].copy()
+    prm[obj.P_Z_LO], prm[obj.P_Z_HI] = -50.0, 50.0
+    inside = (*prob[:3], prm, *prob[4:])
+    obj.cost_c_T(m.c, T, inside, fld, np.zeros_like(m.c), np.zeros(M), costs)
+    assert costs[obj.C_Z] == 0.0

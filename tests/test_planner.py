@@ -7,6 +7,7 @@ import pytest
 
 from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
+from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -275,3 +276,74 @@ def test_bad_construction_raises() -> None:
         PlannerParams(v_max_m_s=-1.0)
     with pytest.raises(ValueError):
         PlannerParams(formation_penalty="quartic")
+
+
+def _under_a_slab() -> AnalyticField:
+    """A slab from z 0.8 to 3 m across the way and no ground: the way under it is the short
+    one, and with nothing below the field (as an ESDF below its window) it is free down to
+    minus infinity."""
+    slab = np.array([[1.5, -10.0, 0.8, 4.5, 10.0, 3.0]])
+    return AnalyticField(World(np.zeros((0, 5)), np.zeros((0, 7)), slab, ground_z=None))
+
+
+def test_plans_stay_inside_the_altitude_band() -> None:
+    field = _under_a_slab()
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
+    unbounded = PlannerParams(v_max_m_s=1.0, w_altitude=0.0, z_limits_m=(-50.0, 50.0))
+    free = FormationPlanner(unbounded, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
+    assert free.status == PlanStatus.OK
+    ts = np.linspace(free.trajectory.t0_s, free.trajectory.t_end_s, 400)
+    assert free.trajectory.sample(ts)[:, 2].min() < 0.3  # without the band it dips that low
+    params = PlannerParams(v_max_m_s=1.0)
+    assert params.z_limits_m == (0.3, 3.1)
+    res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
+    assert res.status == PlanStatus.OK, res.message
+    ts = np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 400)
+    pos = res.trajectory.sample(ts)
+    assert pos[:, 2].min() >= 0.3
+    assert pos[:, 2].max() <= 3.1
+    assert field.distance(pos)[0].min() >= params.check_obstacle_m
+    assert res.costs["altitude"] > 0.0  # the band, not the obstacle term, held it up
+
+
+def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
+    field = AnalyticField(World.empty(0.0))
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    z3 = np.zeros(3)
+
+    def line(z0: float, z1: float) -> Trajectory:
+        head = np.array([[0.0, 0.0, z0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        tail = np.array([[4.0, 0.0, z1], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        m = Minco(1)
+        m.set_conditions(head, tail)
+        m.set_parameters(np.zeros((0, 3)), np.array([8.0]))
+        return Trajectory(0.0, m.coeffs, np.array([8.0]))
+
+    assert planner.check(line(1.0, 2.0), 0.0, field, [])[0]
+    ok, why = planner.check(line(1.0, 0.2), 0.0, field, [])
+    assert not ok and "altitude 0.20 m" in why
+    assert not planner.check(line(1.0, 3.6), 0.0, field, [])[0]
+    # a start below the band may climb back in, not sink farther
+    assert planner.check(line(0.2, 1.0), 0.0, field, [])[0]
+    assert not planner.check(line(0.2, 0.1), 0.0, field, [])[0]
+    assert not planner.check(line(0.2, 0.25), 0.0, field, [])[0]  # never back inside
+    # a goal below the band is approached from inside it
+    res = planner.plan(0.0, np.array([0.0, 0.0, 1.0]), z3, z3, np.array([3.0, 0.0, 0.0]), [], field)
+    assert res.status == PlanStatus.OK
+    assert res.trajectory.end_position[2] == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"z_limits_m": (1.0, 1.0)}, "z_limits_m"),
+        ({"z_limits_m": (0.0, float("nan"))}, "z_limits_m"),
+        ({"z_limits_m": (0.3, 0.6), "altitude_margin_m": 0.2}, "altitude_margin_m"),
+        ({"z_limits_m": (0.3, 2e4)}, "10 km"),
+        ({"w_altitude": -1.0}, "w_altitude"),
+        ({"altitude_margin_m": float("inf")}, "altitude_margin_m"),
+    ],
+)
+def test_bad_altitude_band_raises(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        PlannerParams(**kwargs)

@@ -5,7 +5,8 @@ with ``T = T(tau)`` (``timemap``). The pipeline is
 
     tau -> T -> c = C(q, T) -> J(c, T) -> (dJ/dc, dJ/dT) -> adjoint -> (dJ/dq, dJ/dT) -> dJ/dtau
 
-``J = J_e + w_t J_t + J_o + J_f + J_r + J_d + J_u``. The sampled terms (o, f, r, d) are evaluated
+``J = J_e + w_t J_t + J_o + J_f + J_r + J_d + J_u + J_z``. The sampled terms (o, f, r, d, z) are
+evaluated
 at the constraint points ``p_i(j / kappa * T_i)``, j = 0..kappa, with trapezoid weights
 ``T_i / kappa * (1/2, 1, ..., 1, 1/2)`` (Eq. 16); each sample's penalty has partials with respect
 to position, velocity, acceleration and jerk (chained to c through the basis derivatives), and with
@@ -54,7 +55,10 @@ P_W_FORM = 11
 P_FORM_MODE = 12  # one of the FORM_* modes below
 P_TAU_SCALE = 13  # x holds tau / scale: conditions the time block against the waypoints
 P_FORM_STRIDE = 14  # J_f on every stride-th constraint point (trapezoid on that coarser grid)
-N_PRM = 15
+P_W_ALT = 15  # J_z: weight of the altitude band penalty
+P_Z_LO = 16  # J_z: positions below this z are penalised
+P_Z_HI = 17  # J_z: positions above this z are penalised
+N_PRM = 18
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -69,9 +73,18 @@ FORM_MODES = {
 }
 
 # indices into the per-term cost breakdown
-TERM_NAMES = ("energy", "time", "obstacle", "formation", "swarm", "feasibility", "uniformity")
-C_E, C_T, C_O, C_F, C_R, C_D, C_U = range(7)
-N_TERMS = 7
+TERM_NAMES = (
+    "energy",
+    "time",
+    "obstacle",
+    "formation",
+    "swarm",
+    "feasibility",
+    "uniformity",
+    "altitude",
+)
+C_E, C_T, C_O, C_F, C_R, C_D, C_U, C_Z = range(8)
+N_TERMS = 8
 
 EVALUATE = int(LbfgsStatus.EVALUATE)
 
@@ -113,10 +126,13 @@ def sampled_costs(
     gT: np.ndarray,
     costs: np.ndarray,
 ) -> float:
-    """J_o + J_f + J_r + J_d + J_u with gradients ADDED to gc (6M,3) and gT (M,).
+    """J_o + J_f + J_r + J_d + J_u + J_z with gradients ADDED to gc (6M,3) and gT (M,).
 
     Implements Eq. (14)-(28) of the paper (J_d after EGO-Swarm: squared-norm limits on v, a, j;
-    J_u: variance of the squared distances between consecutive constraint points).
+    J_u: variance of the squared distances between consecutive constraint points; J_z, not in
+    the paper: w max(z_lo - z, 0)^3 + w max(z - z_hi, 0)^3 on the constraint points, which keeps
+    the trajectory inside the altitude band where the distance field knows nothing: below the
+    ground and above the map window, an ESDF reports free space).
     """
     head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask, fpts = prob
     kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
@@ -137,6 +153,9 @@ def sampled_costs(
     mode = int(prm[P_FORM_MODE])
     use_form = w_fo > 0.0 and n_form > 1
     stride = max(int(prm[P_FORM_STRIDE]), 1)
+    w_alt = prm[P_W_ALT]
+    z_lo = prm[P_Z_LO]
+    z_hi = prm[P_Z_HI]
 
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
@@ -214,6 +233,21 @@ def sampled_costs(
                     gder[0, 2] -= k3 * gz
                     pen += po
                     costs[C_O] += wq * po
+
+            # J_z: altitude band, max(z_lo - z, 0)^3 + max(z - z_hi, 0)^3
+            if w_alt > 0.0:
+                below = z_lo - der[0, 2]
+                above = der[0, 2] - z_hi
+                if below > 0.0:
+                    pz = w_alt * below * below * below
+                    gder[0, 2] -= w_alt * 3.0 * below * below
+                    pen += pz
+                    costs[C_Z] += wq * pz
+                elif above > 0.0:
+                    pz = w_alt * above * above * above
+                    gder[0, 2] += w_alt * 3.0 * above * above
+                    pen += pz
+                    costs[C_Z] += wq * pz
 
             # J_d: feasibility (velocity, acceleration, jerk)
             if w_fe > 0.0:

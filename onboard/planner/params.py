@@ -100,8 +100,24 @@ class PlannerParams:
     behind); see ``lead_slowdown_m``."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
-    z_limits_m: tuple[float, float] = (0.4, 3.0)
-    """Altitude band the A* search may use."""
+    z_limits_m: tuple[float, float] = (0.3, 3.1)
+    """Altitude band (z_min, z_max) [m] of every accepted trajectory: the safety check rejects a
+    trajectory that leaves it (one that starts outside may fly back in, never farther out), the
+    optimiser's J_z keeps the constraint points ``altitude_margin_m`` inside it, the A* fallback
+    searches that inner band and local targets and goals are moved into it. Below the ground
+    and above the map window an ESDF knows nothing (it reports free space), so an unbounded
+    optimiser let the tail of a 7 s plan sink to z -1.7 m or climb to 5.3 m (issue #10's
+    demo). Default 0.3-3.1 m, for flight at about 1 m: 0.3 m above the ground, 0.4 m under
+    the top of the default map window (11 x 11 x 4 m from 0.5 m below the ground); with the
+    margin, the A* fallback searches 0.4-3.0 m as before the band existed. The service should
+    pass the intersection with its geofence."""
+    w_altitude: float = 1.0e7
+    """J_z: weight of max(z_lo - z, 0)^3 + max(z - z_hi, 0)^3 over constraint points, with
+    (z_lo, z_hi) the band shrunk by ``altitude_margin_m``."""
+    altitude_margin_m: float = 0.1
+    """J_z starts this far inside ``z_limits_m``, so the optimiser's solution stays inside the
+    band the safety check enforces (a soft penalty balances the other terms slightly past where
+    it starts)."""
     lbfgs: LbfgsParams = field(
         default_factory=lambda: LbfgsParams(
             mem_size=16,
@@ -149,6 +165,8 @@ class PlannerParams:
             "check_drone_m",
             "check_known_s",
             "lead_slowdown_m",
+            "w_altitude",
+            "altitude_margin_m",
         )
         for name in nonneg:
             value = getattr(self, name)
@@ -171,5 +189,20 @@ class PlannerParams:
                 f"got {self.formation_penalty!r}"
             )
         lo, hi = self.z_limits_m
-        if not lo < hi:
-            raise ValueError("z_limits_m must be (low, high) with low < high")
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(
+                f"z_limits_m must be finite (low, high) with low < high, got {lo!r}, {hi!r}"
+            )
+        if not (-1.0e4 <= lo and hi <= 1.0e4):
+            raise ValueError(f"z_limits_m must lie within +-10 km, got ({lo!r}, {hi!r})")
+        if not hi - lo > 2.0 * self.altitude_margin_m:
+            raise ValueError(
+                f"z_limits_m ({lo:g}, {hi:g}) must be wider than twice altitude_margin_m "
+                f"({self.altitude_margin_m:g})"
+            )
+
+    @property
+    def altitude_band_inner_m(self) -> tuple[float, float]:
+        """The band J_z and the A* fallback keep to: ``z_limits_m`` shrunk by the margin."""
+        lo, hi = self.z_limits_m
+        return lo + self.altitude_margin_m, hi - self.altitude_margin_m

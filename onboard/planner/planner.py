@@ -183,6 +183,19 @@ def _band_check(d: np.ndarray, threshold: float) -> tuple[bool, str]:
     return True, ""
 
 
+def _altitude_check(z: np.ndarray, lo: float, hi: float) -> tuple[bool, int]:
+    """Altitudes z (K,) along a trajectory, z[0] at its start: (ok, index of the worst sample).
+
+    Inside [lo, hi] everywhere (1 um tolerance for a tail placed on the edge); or, starting
+    outside, never farther outside than the start (1 mm tolerance) and inside at some point."""
+    s = np.minimum(z - lo, hi - z)  # signed distance into the band
+    k = int(np.argmin(s))
+    s0 = float(s[0])
+    if s0 >= 0.0:
+        return bool(s[k] >= -1e-6), k
+    return bool(s[k] >= s0 - 1e-3 and np.max(s) >= 0.0), k
+
+
 def _polyline_length(path: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
 
@@ -238,6 +251,8 @@ class FormationPlanner:
         prm[obj.P_FORM_MODE] = obj.FORM_MODES[p.formation_penalty]
         prm[obj.P_TAU_SCALE] = p.tau_scale
         prm[obj.P_FORM_STRIDE] = p.formation_stride
+        prm[obj.P_W_ALT] = p.w_altitude
+        prm[obj.P_Z_LO], prm[obj.P_Z_HI] = p.altitude_band_inner_m
         prm.setflags(write=False)
         return prm
 
@@ -256,6 +271,13 @@ class FormationPlanner:
             self._desired_cache[slots] = hit
         return hit
 
+    def _into_band(self, point: np.ndarray) -> np.ndarray:
+        """``point`` with its z moved into the altitude band ``z_limits_m`` (a goal outside
+        the band is approached as close as the band allows)."""
+        lo, hi = self.params.z_limits_m
+        point[2] = min(max(point[2], lo), hi)
+        return point
+
     def cancel(self) -> None:
         """Ask a running solve (in another thread) to stop at its next evaluation."""
         if self._active is not None:
@@ -273,6 +295,13 @@ class FormationPlanner:
         p = self.params
         if dist <= p.horizon_m:
             return goal.copy()
+        # into the altitude band (the line from a start outside it may leave it)
+        return self._into_band(self._local_target_on_line(start, goal, d, dist, field))
+
+    def _local_target_on_line(
+        self, start: np.ndarray, goal: np.ndarray, d: np.ndarray, dist: float, field: DistanceField
+    ) -> np.ndarray:
+        p = self.params
         u = d / dist
         first = start + p.horizon_m * u
         dd0, _ = field.distance(first[None, :])
@@ -318,7 +347,7 @@ class FormationPlanner:
             target,
             clearance_m=p.obstacle_clearance_m,
             resolution_m=p.astar_resolution_m,
-            z_limits=p.z_limits_m,
+            z_limits=p.altitude_band_inner_m,
         )
         if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
             astar = astar_path(
@@ -327,7 +356,7 @@ class FormationPlanner:
                 target,
                 clearance_m=p.check_obstacle_m,
                 resolution_m=p.astar_resolution_m,
-                z_limits=p.z_limits_m,
+                z_limits=p.altitude_band_inner_m,
             )
         return (line if astar is None else astar), None
 
@@ -392,7 +421,7 @@ class FormationPlanner:
         sp = _vec3("start_p", start_p)
         sv = _vec3("start_v", start_v)
         sa = _vec3("start_a", start_a)
-        gl = _vec3("goal", goal)
+        gl = self._into_band(_vec3("goal", goal))
         seen: set[int] = {self.slot}
         for pt in peers:
             if not 0 <= pt.slot < self.formation.shape[0]:
@@ -448,13 +477,14 @@ class FormationPlanner:
     ) -> tuple[bool, str]:
         """Is ``traj`` safe to fly from ``t_from_s`` on?
 
-        Safe means: (1) clear of obstacles by ``check_obstacle_m`` and of every peer by
-        ``check_drone_m`` to its end; a drone that is already closer than that at ``t_from_s``
-        (pushed in by a peer, a late-mapped trunk, an emergency stop), but not inside an
-        obstacle, may fly a trajectory that never comes closer than it starts and leaves the
-        band, so it can always back out; (2)
-        during the first ``check_known_s`` (the part flown before the next replan can replace
-        it) it does not enter space the field has not observed (``field.is_known``); a start in
+        Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
+        back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` and of
+        every peer by ``check_drone_m`` to its end; a drone that is already closer than that
+        at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), but not
+        inside an obstacle, may fly a trajectory that never comes closer than it starts and
+        leaves the band, so it can always back out; (2) during the first ``check_known_s``
+        (the part flown before the next replan can replace it) it does not enter space the
+        field has not observed (``field.is_known``); a start in
         unobserved space may be left.
         """
         p = self.params
@@ -463,6 +493,13 @@ class FormationPlanner:
         pos = traj.sample(ts)
         if not np.all(np.isfinite(pos)):
             return False, "non-finite trajectory"
+        lo, hi = p.z_limits_m
+        ok, k = _altitude_check(pos[:, 2], lo, hi)
+        if not ok:
+            return False, (
+                f"altitude {pos[k, 2]:.2f} m at t={ts[k] - t_from_s:.2f} s outside the band "
+                f"[{lo:g}, {hi:g}] m"
+            )
         d, _ = field.distance(pos)
         ok, why = _band_check(d, p.check_obstacle_m)
         if not ok:
@@ -514,7 +551,7 @@ class FormationPlanner:
         sp = _vec3("start_p", start_p)
         sv = _vec3("start_v", start_v)
         sa = _vec3("start_a", start_a)
-        gl = _vec3("goal", goal)
+        gl = self._into_band(_vec3("goal", goal))
         if np.linalg.norm(gl - sp) < 0.02 and np.linalg.norm(sv) < 0.05:
             hover = Trajectory.hover(gl, t_start_s, duration_s=1.0)
             return PlanResult(PlanStatus.OK, hover, message="at goal")
