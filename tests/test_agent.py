@@ -325,3 +325,78 @@ def test_bad_construction() -> None:
         DroneAgent(0, PARAMS, TRIANGLE, 0, hover, bus, EMPTY, goal=[1.0, 2.0])
     with pytest.raises(TypeError, match="initial"):
         DroneAgent(0, PARAMS, TRIANGLE, 0, np.zeros(3), bus, EMPTY)  # type: ignore[arg-type]
+
+
+def _line(p0: np.ndarray, v: np.ndarray, t0: float, duration: float = 10.0) -> Trajectory:
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = p0
+    c[0, 1] = v
+    return Trajectory(t0, c, np.array([duration]))
+
+
+def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
+    """Peer 1 flies +x at 1 m/s; its last state is stamped 0.3 s, then nothing: 0.5 s later it
+    is silent, a replan is due at once, it leaves the formation and is avoided at hovers at
+    most 0.25 m apart from its last reported position along its trajectory to where it could
+    have fallen silent; an older copy of its trajectory never replaces the newer one."""
+    bus = InMemoryBus()
+    me = np.array([0.0, 0, 1])
+    a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_forget_s=2.0,
+               peer_silence_s=0.5)  # fmt: skip
+    p0 = np.array([0.0, 3.0, 1.0])
+    v = np.array([1.0, 0.0, 0.0])
+    newer = _line(p0, v, 0.0)
+    bus.publish(TrajectoryMsg(1, 7, 1, newer, valid_until_s=3.0), 0.0)
+    rep = a.replan(0.0)
+    assert rep.formation_peers == (1,) and rep.silent_peers == ()
+    a.heard(1, 0.3, newer.sample(0.3))
+    a.heard(1, 0.2, p0)  # a late state changes nothing
+    assert a.heard_s(1) == pytest.approx(0.3)
+    bus.publish(TrajectoryMsg(1, 6, 1, _line(p0 - 1.0, v, -1.0), valid_until_s=2.0), 0.5)
+    assert a.watch(0.7) == () and not a.due(0.7)
+    assert a.watch(0.85) == (1,) and a.due(0.85)
+    assert a.watch(0.9) == ()  # flagged once per silence
+    rep = a.replan(0.85)
+    assert a.refused_older == 1  # the reordered traj_id 6 did not replace 7
+    assert rep.silent_peers == (1,) and rep.formation_peers == () and rep.avoided_peers == (1,)
+    own = [p for p in rep.peers if p.drone_id == 1]
+    assert own[0].trajectory is newer  # still avoided where it would have flown on
+    ghosts = np.array([p.trajectory.sample(5.0) for p in own[1:]])
+    assert all(p.slot >= 3 for p in own) and len(ghosts) >= 3
+    # from the last reported position (x = 0.3) to where it was at 0.85 s, 0.25 m apart
+    np.testing.assert_allclose(ghosts[0], newer.sample(0.3))
+    np.testing.assert_allclose(ghosts[-1], newer.sample(0.85), atol=1e-9)
+    assert np.max(np.linalg.norm(np.diff(ghosts, axis=0), axis=1)) <= 0.25 + 1e-9
+    assert rep.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    for g in ghosts:  # the new plan keeps clear of every place it may be
+        d = np.linalg.norm(rep.trajectory.sample(np.arange(0.95, 8.0, 0.05)) - g, axis=1)
+        assert d.min() >= PARAMS.check_drone_m
+    # later, the ghosts reach to where it could have flown before it fell silent (1.5 silence
+    # limits after it was last heard); forgotten peer_forget_s after the silence
+    rep = a.replan(2.0)
+    later = np.array([p.trajectory.sample(5.0) for p in rep.peers if p.drone_id == 1][1:])
+    np.testing.assert_allclose(later[[0, -1]], newer.sample(np.array([0.3, 1.05])), atol=1e-9)
+    assert np.max(np.linalg.norm(np.diff(later, axis=0), axis=1)) <= 0.25 + 1e-9
+    rep = a.replan(2.85)  # silent since 0.3 + 0.5; forgotten after 2.8
+    assert 1 not in {p.drone_id for p in rep.peers}
+    # it speaks again: back in the formation
+    bus.publish(TrajectoryMsg(1, 8, 1, _line(newer.sample(3.0), v, 3.0), valid_until_s=6.0), 3.0)
+    a.heard(1, 3.0, newer.sample(3.0))
+    rep = a.replan(3.1)
+    assert rep.formation_peers == (1,) and rep.silent_peers == ()
+
+
+def test_silence_without_states_waits_one_replan_period_more() -> None:
+    """A peer never heard through ``heard`` (its trajectories are its only sign of life) is
+    silent only a replan period plus peer_silence_s after its last trajectory was sent."""
+    bus = InMemoryBus()
+    me = np.array([0.0, 0, 1])
+    a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_silence_s=0.5)
+    bus.publish(_hover_msg(1, np.array([0.0, 3.0, 1.0]), 1, valid_until_s=3.0), 0.0)
+    a.replan(0.0)
+    assert a.watch(1.45) == ()
+    assert a.watch(1.55) == (1,)
+    with pytest.raises(ValueError, match="peer_silence_s"):
+        _agent(0, bus, me, None, peer_silence_s=0.0)
+    with pytest.raises(ValueError, match="ghost_spacing_m"):
+        _agent(0, bus, me, None, ghost_spacing_m=float("nan"))

@@ -77,23 +77,73 @@ def test_killed_and_stuck_drones_the_others_arrive_safely() -> None:
     assert r.faults["unknown_uses"] == 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="gap (issue #12, bench faults seed 0 trial 49): a killed drone holds where it died "
-    "but its peers avoid its last trajectory, which flies on; a follower hits the holding drone "
-    "2.4 s later, before the message's validity (3 s) passes. Needs the agent to avoid a late "
-    "peer where it may have stopped (see the report of this change).",
-)
 def test_a_killed_drone_is_avoided_where_it_holds() -> None:
+    """bench faults seed 0 trial 49: drone 2 dies at 7.68 s and holds; its last trajectory flies
+    on. Its peers hear nothing newer for peer_silence_s, replan at once and keep clear of where
+    it may have stopped (before: a follower hit it 2.4 s after the kill)."""
+    calls: list[PlanCall] = []
     cfg = dataclasses.replace(
         _config("hexagon-7", killed_drones={2: 7.68}),
         world=load_world_spec("forest-medium"),
         seed=49,
         time_limit_s=12.0,
     )
-    r = run_sim(cfg)
+    r = run_sim(cfg, recorder=calls.append)
     _assert_safe(cfg, r)
+    t_kill, p_kill = r.faults["killed"]["2"]
+    # every healthy drone planned against it as silent within silence + one state period +
+    # plan_ahead after the kill (its last state may be up to a state period older)
+    bound = t_kill + cfg.peer_silence_s + 2 * cfg.state_period_s + cfg.plan_ahead_s + 1e-6
+    for i in (0, 1, 3, 4, 5, 6):
+        first = min(
+            c.t_start_s for c in calls if c.drone_id == i and _ghost_near(c, 2, p_kill, 0.25)
+        )
+        assert t_kill < first <= bound, (i, first)
+    assert r.faults["ghost_uses"] > 0 and r.faults["unknown_uses"] == 0
+
+
+def _ghost_near(c: PlanCall, pid: int, p: list[float], within_m: float) -> bool:
+    """Whether plan call ``c`` avoided a hover of peer ``pid`` within ``within_m`` of ``p``."""
+    for q in c.peers:
+        tr = q.trajectory
+        if q.drone_id == pid and tr.n_pieces == 1 and not np.any(tr.coeffs[0, 1:]):
+            if np.linalg.norm(tr.coeffs[0, 0] - np.asarray(p)) <= within_m:
+                return True
+    return False
+
+
+@pytest.mark.parametrize("kind", ["killed", "stuck"])
+def test_healthy_drones_keep_clear_of_a_faulty_one_and_arrive(kind: str) -> None:
+    """Drone 1 of the hexagon dies (or gets stuck) 4 s into the small forest, right in front of
+    a follower: without the silence reaction a healthy drone flew into the killed one (0.04 m).
+    The healthy drones keep the planner's clearance from it, all arrive, and after a bounded
+    time fly without it in the formation term while still avoiding it."""
+    calls: list[PlanCall] = []
+    fault = {f"{kind}_drones": {1: 4.0}}
+    cfg = _config("hexagon-7", **fault)
+    r = run_sim(cfg, recorder=calls.append)
+    _assert_safe(cfg, r)
+    healthy = [0, 2, 3, 4, 5, 6]
+    assert not r.timed_out and bool(np.all(r.arrived[healthy])), r.arrived
+    t_stop, p_stop = r.faults[kind]["1"]
+    d = np.linalg.norm(r.tracks.pos[:, healthy] - r.tracks.pos[:, [1]], axis=2)
+    assert float(d.min()) >= cfg.params.check_drone_m - 0.02, float(d.min())
+    np.testing.assert_allclose(r.tracks.pos[r.tracks.t >= t_stop + 0.1, 1], [p_stop] * int(
+        np.sum(r.tracks.t >= t_stop + 0.1)))  # fmt: skip
+    # dropped from the formation term: a killed one once silent, a stuck one (re-announcing
+    # its hover, heard alive) once its plan is older than validity_s; still avoided (a killed
+    # one until peer_forget_s after it fell silent, a stuck one to the end)
+    drop = t_stop + (cfg.peer_silence_s + 0.3 if kind == "killed" else cfg.validity_s + 1.2)
+    end = t_stop + cfg.peer_forget_s if kind == "killed" else np.inf
+    n_form = cfg.formation.n
+    late = [c for c in calls if c.drone_id in healthy and drop < c.t_start_s < end]
+    assert late
+    for c in late:
+        mine = [q for q in c.peers if q.drone_id == 1]
+        assert mine and all(q.slot >= n_form for q in mine), (c.drone_id, c.t_start_s)
+    if kind == "killed":
+        assert all(_ghost_near(c, 1, p_stop, 0.2) for c in late)
+    assert r.faults["stale_formation_uses"] == 0 and r.faults["unknown_uses"] == 0
 
 
 def test_bus_faults_loss_delay_duplication_reordering_no_collision() -> None:
