@@ -11,9 +11,13 @@ combined:
 - **bus faults** on every trajectory message: 20 % loss, a uniform delay up to 300 ms,
   duplication and reordering (each present or not).
 
-Peers drop a silent drone from the formation when its last message's validity (3 s, the
-service's ``reactions.peer_lost.validity_s``) has passed and still avoid its last trajectory for
-10 s more (``avoid_for_s``).
+Every drone whose process runs also broadcasts its state at 10 Hz through the same faults.
+A peer heard of nothing newer (trajectory or state) for ``SimConfig.peer_silence_s`` (0.8 s) is
+silent: its peers replan at once, drop it from the formation term and avoid it both along its
+last trajectory and at hovers 0.25 m apart where it may have stopped (``DroneAgent``); a peer
+whose message's validity (3 s, the service's ``reactions.peer_lost.validity_s``) has passed, or
+whose plan started longer ago than that (a stuck drone re-announcing its hover), leaves the
+formation term too; a silent or expired peer is still avoided for 10 s (``avoid_for_s``).
 
 Per trial and in total: collisions (every drone, the hovering faulty ones included: they are
 still in the air), arrivals of the healthy drones, e_sim of the remaining (healthy) formation,
@@ -209,8 +213,13 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
         "min_drone_distance_m": float(result.min_drone_distance_m),
         "stale_formation_uses": int(f["stale_formation_uses"]),
         "expired_avoided_uses": int(f["expired_avoided_uses"]),
+        "unknown_uses": int(f["unknown_uses"]),
+        "ghost_uses": int(f.get("ghost_uses", 0)),
+        "silent_replans": int(f.get("agents", {}).get("silent", 0)),
+        "refused_older": int(f["refused_older"]) + int(f.get("agents", {}).get("refused_older", 0)),
         "peer_uses_audited": int(f["peer_uses_audited"]),
         "bus_counters": dict(f.get("bus", {})),
+        "state_bus_counters": dict(f.get("state_bus", {})),
         "flight_time_s": float(result.flight_time_s),
         "timed_out": bool(result.timed_out),
         "sim_wall_s": float(result.sim_wall_s),
@@ -303,6 +312,11 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "min_drone_distance_m": min(r["min_drone_distance_m"] for r in rows),
         "stale_formation_uses": int(sum(r["stale_formation_uses"] for r in rows)),
         "expired_avoided_uses": int(sum(r["expired_avoided_uses"] for r in rows)),
+        "unknown_uses": int(sum(r.get("unknown_uses", 0) for r in rows)),
+        "ghost_uses": int(sum(r.get("ghost_uses", 0) for r in rows)),
+        "silent_replans": int(sum(r.get("silent_replans", 0) for r in rows)),
+        "refused_older": int(sum(r.get("refused_older", 0) for r in rows)),
+        "max_flight_time_s": max(r["flight_time_s"] for r in rows),
         "timed_out_trials": int(sum(r["timed_out"] for r in rows)),
         "sim_wall_s": summary([r["sim_wall_s"] for r in rows]),
     }
@@ -367,13 +381,15 @@ def bench_faults(
         f"{es['mean']:.4f} (median {es['median']:.4f}, max {es['max']:.4f}), min obstacle "
         f"clearance {rep['min_obstacle_clearance_m']:.3f} m, min drone distance "
         f"{rep['min_drone_distance_m']:.3f} m, stale formation uses "
-        f"{rep['stale_formation_uses']}, expired peers avoided {rep['expired_avoided_uses']}"
+        f"{rep['stale_formation_uses']}, expired peers avoided {rep['expired_avoided_uses']}, "
+        f"replans with a silent peer {rep['silent_replans']} (ghost hovers avoided "
+        f"{rep['ghost_uses']}), older trajectories refused {rep['refused_older']}"
     )
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(rep, indent=1, default=_json_default) + "\n")
         click.echo(f"wrote {json_path}")
-    if rep["collisions"] or rep["stale_formation_uses"]:
+    if rep["collisions"] or rep["stale_formation_uses"] or rep["unknown_uses"]:
         raise SystemExit(1)
 
 

@@ -12,7 +12,10 @@ every link at once; for independent losses per link, give the inner ``InMemoryBu
 older trajectory of a sender (the real gate refuses out-of-order and duplicate sequence numbers)
 and leaves out trajectories whose validity passed (``TrajectoryMsg.valid_until_s``).
 
-Calls must come with non-decreasing times, as in the fast-time simulator.
+Calls must come with non-decreasing times, as in the fast-time simulator. With ``gate=False``
+the wrapper passes on whatever the inner bus delivers and needs of a message only its
+``drone_id``: the simulator sends its 10 Hz state messages through a second one (receivers keep
+the newest by the sender's stamp).
 """
 
 from __future__ import annotations
