@@ -251,6 +251,7 @@ def near(p: Any, q: Any, tol: float) -> bool:
 # ---- the whole flight ----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_flies_to_an_enu_target_and_lands(implementation: str) -> None:
@@ -414,6 +415,7 @@ def test_link_loss_detected_when_the_mock_stops(implementation: str) -> None:
         assert link.counters().setpoints_sent == sent
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_airborne_link_loss_never_reenters_offboard() -> None:
     with rig("pymavlink", relay=True) as rg:
@@ -451,6 +453,7 @@ def gcs_set_mode(relay: Relay, custom_mode_main: int, sub: int) -> None:
     relay.inject_to_vehicle(bytes(msg.pack(gcs)))
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_mode_change_by_someone_else_stops_streaming(implementation: str) -> None:
@@ -480,6 +483,7 @@ def test_mode_change_by_someone_else_stops_streaming(implementation: str) -> Non
         link.wait_until(lambda s: not s.armed, 40.0, "landed")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_px4_failsafe_exit_from_offboard_is_detected(implementation: str) -> None:

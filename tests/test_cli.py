@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from gcs.cli import main
@@ -91,6 +92,7 @@ def test_scenario_speed_unless_given(tmp_path: Path) -> None:
         assert got == want, extra
 
 
+@pytest.mark.slow
 def test_bench_planner_small(tmp_path: Path) -> None:
     js = tmp_path / "bench.json"
     args = [
@@ -162,6 +164,7 @@ def test_onboard_warmup_and_sitl(tmp_path: Path) -> None:
     assert "sitl.autopilot.boot_time_s: expected a number, got 'x'" in out.output
 
 
+@pytest.mark.slow
 def test_bench_table_small(tmp_path: Path) -> None:
     js, plots = tmp_path / "table.json", tmp_path / "plots"
     args = ["bench", "table", "--trials", "2", "--world", "forest-small"]

@@ -51,6 +51,7 @@ def _command(gcs: SwarmNode, action: object, proc: subprocess.Popen) -> None:
     assert ack.accepted, ack.reason
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("implementation", ["pymavlink", "mavsdk"])
 def test_service_process_flies_in_formation(tmp_path: Path, implementation: str) -> None:

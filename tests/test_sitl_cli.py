@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from sitl_mock.client import MavClient, bind_consecutive_udp
@@ -45,6 +46,7 @@ def test_sigterm_stops_the_fleet_cleanly(tmp_path: Path) -> None:
     assert data["vehicles"] == 1 and data["links"][0]["tx_messages"] > 0
 
 
+@pytest.mark.slow
 def test_bench_sitl_small(tmp_path: Path) -> None:
     from gcs.bench_sitl import sitl
 

@@ -218,6 +218,7 @@ def test_telemetry_requests_and_parameters() -> None:
         assert st.rx_malformed == 5 and st.rx_bad == 0  # 9999, 4242, Stabilized, NaN, unknown
 
 
+@pytest.mark.slow
 def test_offboard_after_one_setpoint_failsafe_and_return() -> None:
     """PX4 v1.16 as observed: Offboard at once after one setpoint; stream lost -> Position
     mode, "Failsafe activated", system_status 5, CURRENT_MODE still naming Offboard; stream

@@ -29,6 +29,7 @@ def poll(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_mavsdk_flies_the_mock() -> None:
     from mavsdk import ComponentType, Configuration, Mavsdk

@@ -303,6 +303,7 @@ def _run(args: list[str]) -> Any:
     return CliRunner().invoke(cmds[args[0]], args[1:], catch_exceptions=False)
 
 
+@pytest.mark.slow
 def test_cli_commands_report_acks(
     drones_only: Callable[[dict[int, str]], tuple[dict[int, FakeDrone], str]],
     tmp_path: Any,
