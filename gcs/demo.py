@@ -401,7 +401,6 @@ class Demo:
             "--local-port-offset", "-1", "--truth", "zenoh", "--zenoh-listen", sitl_ep,
             "--zenoh-prefix", prefix, "--depth", "--depth-rate", str(self.depth_rate_hz),
             "--depth-step", str(cfg.depth_step), "--depth-idle-rate", "1",
-            "--set", "local_origin=world",
             "--stats-json", str(self.out / "sitl-stats.json"),
         ]  # fmt: skip
         for s in cfg.sitl_sets:
@@ -465,9 +464,20 @@ class Demo:
     def _onboard_yaml(self, base_port: int, sitl_ep: str, prefix: str) -> str:
         cfg = self.cfg
         planner = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
+        # like PX4, each mock vehicle starts its local frame where it stands (its EKF origin):
+        # every service is told where that is in the swarm frame
+        world = json.loads(self.world_file.read_text(encoding="utf-8"))
+        ground = 0.0 if world.get("ground_z") is None else float(world["ground_z"])
+        origins = {
+            str(i): [float(p[0]), float(p[1]), ground] for i, p in enumerate(world["starts"])
+        }
         data = {
             "drone": {"swarm": self.swarm},
-            "autopilot": {"url": f"udp://127.0.0.1:{base_port}", "port_plus_id": True},
+            "autopilot": {
+                "url": f"udp://127.0.0.1:{base_port}",
+                "port_plus_id": True,
+                "local_origins_enu_m": origins,
+            },
             "depth": {
                 "source": "zenoh-sim",
                 "rate_hz": self.depth_rate_hz,
