@@ -196,6 +196,8 @@ def bench_planner(
     pieces: list[float] = []
     statuses: dict[str, int] = {}
     solver_statuses: dict[str, int] = {}
+    rejected = 0  # first-attempt solutions the safety check refused
+    clearance: list[float] = []  # their closest approach to an obstacle
     for k_call, call in enumerate(chosen):
         planner = planners[call.slot]
         args = replay_inputs(call)  # the distance field is built here, outside the timing
@@ -221,6 +223,12 @@ def bench_planner(
         statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
         sname = res.solver_status.name if res.solver_status is not None else "none"
         solver_statuses[sname] = solver_statuses.get(sname, 0) + 1
+        first = problem.trajectory(x_end)
+        t_from = float(args[0])
+        if not planner.check(first, t_from, args[6], args[5])[0]:
+            rejected += 1
+        ts = np.append(np.arange(t_from, first.t_end_s, params.check_step_s), first.t_end_s)
+        clearance.append(float(np.min(args[6].distance(first.sample(ts))[0])))
         e_us = _eval_us(problem, x_end, eval_calls)
         s_ms = float(np.median(t_solve))
         c_ms = problem.evaluations * e_us * 1e-3
@@ -265,6 +273,18 @@ def bench_planner(
         "solver_status_counts": solver_statuses,
         "pieces": {"median": summary(pieces)["median"]},
         "plan_status_counts": statuses,
+        "check": {
+            # how often the safety check has to act: the first attempt's solution (formation
+            # term on, from the usual initial guess) refused, and its closest approach to an
+            # obstacle (the optimiser's own margin, before any refinement or fallback)
+            "first_attempt_rejected": rejected,
+            "first_attempt_clearance_m": {
+                "min": float(np.min(clearance)) if clearance else None,
+                "p10": float(np.percentile(clearance, 10)) if clearance else None,
+                "median": float(np.median(clearance)) if clearance else None,
+            },
+            "check_obstacle_m": params.check_obstacle_m,
+        },
         "machine": machine_info(),
         "startup_s": None,
     }
