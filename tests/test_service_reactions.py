@@ -281,6 +281,32 @@ def test_gcs_lost_finishes_the_goal_then_hovers_or_lands(tmp_path: Path, action:
         assert h.state is S.HOVER
 
 
+def test_a_clock_beyond_the_bound_stops_formation_flight_and_says_why(tmp_path: Path) -> None:
+    """Offsets up to the bound are flown with; beyond it the drone hovers, refuses goals with
+    the reason, and flies on once the clocks agree again."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    goal = np.array([3.0, 0.0, 1.0])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(10)
+    assert h.state is S.FORMATION_FLIGHT
+    h.bus.clock_offsets_exceeded = {2: 0.12}
+    h.step()
+    assert h.state is S.HOVER
+    assert h.svc.machine.history[-1].reason.startswith("refusing formation flight")
+    ok, why = h.command(Goal(tuple(goal)))
+    assert not ok and "clock offset to drone 2 is +0.120 s" in why and "0.050" in why
+    h.step(20)
+    assert h.state is S.HOVER and not h.ap.position[0] > 3.0
+    assert "clock offset" in h.bus.statuses[-1]["message"]
+    h.bus.clock_offsets_exceeded = {}
+    h.step()
+    assert h.state is S.FORMATION_FLIGHT  # the goal it had is flown on
+    h.until(lambda: h.state is not S.FORMATION_FLIGHT, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+
+
 def test_peer_silent_past_validity_leaves_the_formation_but_is_avoided_for_a_while() -> None:
     """The service's roles for silent peers, applied by the agent's cycle (the one the
     simulator runs): judged on the peers each plan was made against."""

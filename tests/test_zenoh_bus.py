@@ -31,6 +31,7 @@ from onboard.comm.wire import (
 from onboard.comm.zenoh_bus import BusConfig, SwarmNode, ZenohBus
 from onboard.comm.zenoh_session import open_session, peer_mesh
 from onboard.planner.trajectory import Trajectory
+from onboard.service.adapters import SwarmBusAdapter
 
 SWARM = "t/swarm"
 DEADLINE_S = 10.0
@@ -293,6 +294,8 @@ def test_clock_offset_estimated_and_warned(
     assert -ahead <= report.offset_s < -ahead + 0.1
     assert report.exceeded and report.samples == 5
     assert b.clock_exceeded() == {0}
+    # what the flight service reads to refuse formation flight (onboard.service.ports)
+    assert SwarmBusAdapter(b).clock_exceeded() == {0: report.offset_s}
     assert b.counters()["clock.warnings"] == 1
     assert any("clock offset to sender 0" in r.getMessage() for r in caplog.records)
     # Seen from the other side the same offset has the other sign.

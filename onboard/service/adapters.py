@@ -327,6 +327,9 @@ class SwarmBusAdapter:
         with self._lock:
             return self._last_cmd_s
 
+    def clock_exceeded(self) -> dict[int, float]:
+        return {k: c.offset_s for k, c in self.node.clock_report().items() if c.exceeded}
+
     def counters(self) -> dict[str, int]:
         out = {k: int(v) for k, v in self.node.counters().items()}
         out["commands_undecodable"] = self._bad_commands

@@ -133,6 +133,7 @@ class FakeBus:
         self.peer_infos: dict[int, PeerInfo] = {}
         self.commands: list[IncomingCommand] = []
         self.gcs_heard: float | None = None
+        self.clock_offsets_exceeded: dict[int, float] = {}
         self._next_id = 1
 
     def send(self, command: Command, heard_s: float | None = None) -> int:
@@ -173,6 +174,9 @@ class FakeBus:
 
     def gcs_last_heard_s(self) -> float | None:
         return self.gcs_heard
+
+    def clock_exceeded(self) -> dict[int, float]:
+        return dict(self.clock_offsets_exceeded)
 
     def counters(self) -> dict[str, int]:
         return {"acks": len(self.acks)}

@@ -732,6 +732,24 @@ class FlightService:
             self._gcs_ok = True
             event(log, "gcs_back")
             m.gcs_restored()
+        # clocks: peers' trajectories and common start times are in global time
+        bad = self.bus.clock_exceeded()
+        if bad:
+            from onboard.comm.wire import GCS_ID
+
+            k = max(bad, key=lambda p: abs(bad[p]))
+            who = "the ground station" if k >= GCS_ID else f"drone {k}"
+            detail = (
+                f"clock offset to {who} is {bad[k]:+.3f} s, beyond the bound "
+                f"{self.cfg.bus.clock_offset_bound_s:.3f} s (synchronise the clocks: chrony)"
+            )
+            if m.clock_problem is None:
+                event(log, "clock_out_of_bound", logging.WARNING, sender=k, offset_s=bad[k])
+                self._last_event = f"refusing formation flight: {detail}"
+            m.clock_out_of_bound(detail)
+        elif m.clock_problem is not None:
+            event(log, "clock_in_bound")
+            m.clock_in_bound()
         # progress
         if veh is not None:
             if m.state is S.TAKEOFF and self.ap.streaming:

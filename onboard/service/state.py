@@ -157,6 +157,7 @@ class MachineParams:
 
 HOLD_DEPTH = "depth"
 HOLD_PLAN = "plan"
+HOLD_CLOCK = "clock"
 
 
 class FlightStateMachine:
@@ -194,6 +195,8 @@ class FlightStateMachine:
         self.on_ground = True
         self._retry_at_s = math.inf
         self._failing_since_s: float | None = None
+        self.clock_problem: str | None = None
+        """Why formation flight is refused (a peer's clock beyond the bound), or None."""
 
     # ---- queries -----------------------------------------------------------------------------
     @property
@@ -323,6 +326,8 @@ class FlightStateMachine:
                 return self._reject(f"goal {[round(float(v), 2) for v in p]} outside the geofence")
         if self.assignment is None and self.pending is None:
             return self._reject("no formation assigned yet")
+        if self.clock_problem is not None:
+            return self._reject(f"refusing formation flight: {self.clock_problem}")
         if math.isnan(effective_s):
             return self._reject("effective time is not a number")
         if self.clock() >= effective_s:
@@ -438,6 +443,17 @@ class FlightStateMachine:
 
     def depth_restored(self) -> None:
         self._release(HOLD_DEPTH, "depth frames back")
+
+    def clock_out_of_bound(self, detail: str) -> None:
+        """A peer's (or the ground station's) clock differs from ours by more than the bound:
+        peers' trajectories and common start times cannot be trusted, so the drone refuses to
+        fly in formation (hovers, goals refused) and says why until the clocks agree again."""
+        self.clock_problem = detail
+        self._hold(HOLD_CLOCK, f"refusing formation flight: {detail}")
+
+    def clock_in_bound(self) -> None:
+        self.clock_problem = None
+        self._release(HOLD_CLOCK, "clocks within bound again")
 
     def plan_failed(self, status: str) -> None:
         """A replan returned 'kept-previous' or 'emergency': hover, retry later; failing for
