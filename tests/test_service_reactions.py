@@ -281,6 +281,31 @@ def test_gcs_lost_finishes_the_goal_then_hovers_or_lands(tmp_path: Path, action:
         assert h.state is S.HOVER
 
 
+def test_a_restarted_service_finds_its_vehicle_airborne_and_waits_for_resume(
+    tmp_path: Path,
+) -> None:
+    """systemd restarted the service mid-flight: PX4's failsafe holds the vehicle. The service
+    neither streams nor flies an old plan; resume takes it over where it is, then it rejoins."""
+    h = Harness(tmp_path, depth=False)
+    h.ap.armed, h.ap.mode = True, "AUTO.LOITER"
+    h.ap.position[:] = (2.0, 1.0, 1.2)
+    h.step(10)
+    assert h.state is S.PILOT and "resume" in h.svc.machine.history[-1].reason
+    assert not h.ap.streaming and "offboard" not in h.ap.calls
+    h.formation()
+    ok, why = h.command(Goal((5.0, 0.0, 1.0)))
+    assert not ok and "resume" in why
+    ok, why = h.command(Resume())
+    assert ok, why
+    h.step(10)
+    assert h.state is S.HOVER and h.ap.streaming and h.ap.mode == "OFFBOARD"
+    assert np.linalg.norm(h.ap.position - (2.0, 1.0, 1.2)) < 0.05  # held where it was
+    goal = np.array([5.0, 0.0, 1.2])
+    h.peers_along(goal)
+    assert h.command(Goal(tuple(goal)))[0]
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 5.0, "rejoined")
+
+
 def test_a_clock_beyond_the_bound_stops_formation_flight_and_says_why(tmp_path: Path) -> None:
     """Offsets up to the bound are flown with; beyond it the drone hovers, refuses goals with
     the reason, and flies on once the clocks agree again."""

@@ -692,6 +692,8 @@ class FlightService:
             m.link_restored()
         if veh is not None and self._link_ok:
             m.set_on_ground(veh.on_ground)
+            if m.state is S.IDLE and veh.armed and not veh.landed:
+                m.found_airborne(veh.mode)
             # the pilot (or PX4 itself) took the vehicle out of the service's mode
             if m.state in COMMANDING:
                 if veh.mode == "OFFBOARD":

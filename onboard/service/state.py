@@ -426,6 +426,16 @@ class FlightStateMachine:
             self._clear_goals()
             self._go(FlightState.PILOT, "pilot took over" + (f" ({detail})" if detail else ""))
 
+    def found_airborne(self, mode: str) -> None:
+        """In IDLE the vehicle is armed and off the ground: someone else flies it (the
+        autopilot's failsafe after this service was restarted, or a pilot). Nothing of an old
+        plan is resumed: the service stays out of control until a ``resume`` command."""
+        if self.state is FlightState.IDLE:
+            self._go(
+                FlightState.PILOT,
+                f"vehicle airborne under the autopilot's control ({mode}): resume to take over",
+            )
+
     def link_lost(self) -> None:
         self.link_ok = False
         if self.state in AIRBORNE_CONTROLLED:
