@@ -2,13 +2,20 @@
 
 Threads (all daemon, all stopped and joined by ``close``):
 
-- **streamer** (``autopilot-stream``): a monotonic schedule at ``setpoint_rate_hz``. Each tick it
-  checks link health, sends the companion HEARTBEAT when due (1 Hz) and, while streaming,
-  samples the setpoint source, passes the result through the final guard, converts it to NED
-  and sends it. Heartbeat and setpoints come from this one loop, so if it dies both stop (and
-  PX4's offboard-loss failsafe follows). It takes no lock that slow code holds: the source is
-  read through an atomic reference, and the only lock it takes (``_send_lock``, to make
-  ``stop_streaming`` exact) is held by others just long enough to flip a flag.
+- **streamer** (``autopilot-stream``): a monotonic schedule at ``setpoint_rate_hz`` (absolute
+  deadlines, the phase kept). Each tick it checks link health, sends the companion HEARTBEAT
+  when due (1 Hz) and, while streaming, samples the setpoint source, passes the result through
+  the final guard, converts it to NED and sends it. Where the implementation supports it
+  (pymavlink over UDP on Linux), a tick is prepared one period ahead: the source is sampled at
+  the tick's time, the message encoded, and the native ``timed_send`` kernel sends it at the
+  deadline without the interpreter lock, so the stream's timing does not depend on when the
+  thread gets the GIL back from the mapping, planning and decoding threads; elsewhere the loop
+  sleeps to the deadline and sends from Python. Heartbeat and setpoints come from this one
+  loop, so if it dies both stop (and PX4's offboard-loss failsafe follows). It takes no lock
+  that slow code holds: the source is read through an atomic reference, and the only lock it
+  takes (``_send_lock``, to make ``stop_streaming`` exact) is held by others just long enough
+  to flip a flag; the streamer holds it while a timed setpoint waits for its deadline, and
+  whoever stops the stream first cancels that wait (the setpoint is then not sent).
 - **receiver**: owned by the implementation (a socket reader for pymavlink, MAVSDK's own
   threads plus a byte pump for MAVSDK). It only decodes and stores telemetry, routes
   acknowledgements and detects mode changes; it never waits on anything slow.
@@ -31,7 +38,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from onboard.autopilot import px4
+from onboard.autopilot import px4, timed_send
 from onboard.autopilot.config import LinkConfig, message_id
 from onboard.autopilot.frames import (
     NedSetpoint,
@@ -208,6 +215,9 @@ class AutopilotLink(ABC):
     """
 
     implementation = "abstract"
+    timed_setpoints = True
+    """Send setpoints from the native timed sender where the implementation supports it (set
+    False on an instance before ``connect`` to send from Python)."""
 
     def __init__(
         self,
@@ -261,6 +271,7 @@ class AutopilotLink(ABC):
         self._closed = False
         self._streamer_alive = False
         self._connected_evt = threading.Event()
+        self._timed: timed_send.TimedSender | None = None
 
     # ---- implementation primitives -----------------------------------------------------------
     @abstractmethod
@@ -278,6 +289,21 @@ class AutopilotLink(ABC):
     @abstractmethod
     def _send_setpoint(self, sp: NedSetpoint) -> bool:
         """Send SET_POSITION_TARGET_LOCAL_NED (frame 1, time_boot_ms 0) for ``sp``."""
+
+    def _timed_ready(self) -> bool:
+        """Whether ``_send_setpoint_at`` can send at a deadline now (default: never)."""
+        return False
+
+    def _send_setpoint_at(self, sp: NedSetpoint, deadline_s: float) -> bool | None:
+        """Send ``sp`` at ``deadline_s`` (``time.monotonic`` seconds) without needing the
+        interpreter lock at that instant; None when ``_cancel_timed`` ended the wait (nothing
+        sent). Called with ``_send_lock`` held, only when ``_timed_ready()``."""
+        raise NotImplementedError
+
+    def _cancel_timed(self) -> None:
+        timed = self._timed
+        if timed is not None:
+            timed.cancel()
 
     @abstractmethod
     def _command_once(self, command: int, params: tuple[float, ...]) -> CommandResult:
@@ -297,6 +323,9 @@ class AutopilotLink(ABC):
         if not self._opened:
             self._open()
             self._opened = True
+            if self._timed is None and timed_send.available and self.timed_setpoints:
+                timed_send.start_compile()
+                self._timed = timed_send.TimedSender()
             self._start_thread(self._stream_loop, "autopilot-stream")
             self._start_thread(self._event_loop, "autopilot-events")
         wait = self.config.connect_timeout_s if timeout_s is None else timeout_s
@@ -314,16 +343,21 @@ class AutopilotLink(ABC):
         if self._closed:
             return
         self._closed = True
+        self._streaming = False
+        self._stop.set()
+        self._cancel_timed()
         with self._send_lock:
             self._streaming = False
             self._stream_gen += 1
-        self._stop.set()
         self._events.put(None)
         me = threading.current_thread()
         for t in self._threads:
             if t is not me:
                 t.join(timeout=5.0)
         self._shutdown()
+        timed, self._timed = self._timed, None
+        if timed is not None and not self._streamer_alive:
+            timed.close()
 
     def __enter__(self) -> AutopilotLink:
         try:
@@ -542,6 +576,11 @@ class AutopilotLink(ABC):
             rejected_by_reason=dict(self._rejected),
         )
 
+    @property
+    def timed_setpoints_sent(self) -> int:
+        """Setpoints sent at their deadline by the native timed sender (``timed_send``)."""
+        return self._c["setpoints_timed"]
+
     def setpoint_period_stats(self, reset: bool = False) -> PeriodStats:
         """Intervals between consecutive setpoints sent while streaming (this side's clock)."""
         periods = list(self._periods)
@@ -629,13 +668,13 @@ class AutopilotLink(ABC):
         the return; receiving threads pass False (flag flips only, never waiting on the
         streamer, which may be inside the implementation's send call): at most the setpoint
         being sent at that instant still goes out."""
+        was = self._streaming
+        self._streaming = False
+        self._cancel_timed()  # a setpoint waiting for its deadline is not sent
         if not wait:
-            was = self._streaming
-            self._streaming = False
             self._stream_gen += 1
             return was
         with self._send_lock:
-            was = self._streaming
             self._streaming = False
             self._stream_gen += 1
         return was
@@ -650,13 +689,18 @@ class AutopilotLink(ABC):
         try:
             while not stop.is_set():
                 now = time.monotonic()
-                if now < next_t:
+                # timed: this tick is prepared now and sent at its deadline by the native
+                # sender (right after the previous one left); else sleep to the deadline
+                timed = self._streaming and self._timed_ready()
+                if not timed and now < next_t:
                     stop.wait(next_t - now)
                     continue
                 if now - next_t > period:  # overran: skip the missed ticks, keep the phase
                     self._c["late_ticks"] += 1
                     next_t += math.ceil((now - next_t) / period) * period
+                    deadline = now
                 else:
+                    deadline = next_t
                     next_t += period
                 self._check_health(now)
                 if now >= next_hb:
@@ -666,7 +710,7 @@ class AutopilotLink(ABC):
                     if next_hb <= now:
                         next_hb = now + hb_period
                 if self._streaming:
-                    self._stream_tick()
+                    self._stream_tick(deadline if timed else None)
         except Exception:  # noqa: BLE001 - logged; heartbeat and setpoints stop together
             log.exception(
                 "%s: the setpoint streamer died; heartbeat and setpoints stopped", self.name
@@ -674,13 +718,17 @@ class AutopilotLink(ABC):
         finally:
             self._streamer_alive = False
 
-    def _stream_tick(self) -> None:
+    def _stream_tick(self, deadline: float | None = None) -> None:
+        """One setpoint: sent now, or (``deadline``) sampled at and sent at the deadline."""
         gen = self._stream_gen
         source = self._source
         sp: Setpoint | None = None
         if source is not None:
             try:
-                sp = source(self._sample_clock())
+                t_sample = self._sample_clock()
+                if deadline is not None:
+                    t_sample += max(deadline - time.monotonic(), 0.0)
+                sp = source(t_sample)
             except Exception as e:  # noqa: BLE001 - the service's bug: hold, count, report
                 self._c["source_errors"] += 1
                 if self._due_report("source"):
@@ -724,10 +772,20 @@ class AutopilotLink(ABC):
             self.config.local_origin_enu_m,
         )
         with self._send_lock:
+            timed = self._timed
+            if deadline is not None and timed is not None:
+                timed.clear()  # a cancel after this line ends the wait below
             if not self._streaming or self._stream_gen != gen:
                 return
-            ok = self._send_setpoint(ned)
+            if deadline is None:
+                ok: bool | None = self._send_setpoint(ned)
+            else:
+                ok = self._send_setpoint_at(ned, deadline)
+                if ok:
+                    self._c["setpoints_timed"] += 1
             t = time.monotonic()
+        if ok is None:  # cancelled: streaming stopped while it waited
+            return
         if ok:
             self._c["setpoints_sent"] += 1
             self._last_sent = out

@@ -26,7 +26,8 @@ from onboard.autopilot.signing import (
     load_signing_key,
     signing_timestamp_now,
 )
-from onboard.autopilot.transport import Address, Transport, open_transport
+from onboard.autopilot.timed_send import CANCELLED
+from onboard.autopilot.transport import Address, Transport, UdpTransport, open_transport
 
 _UINT16_MAX = 65535
 
@@ -268,6 +269,40 @@ class PymavlinkLink(AutopilotLink):
             mav.seq = (mav.seq + 1) % 256
             return t.write(buf)
 
+    def _timed_ready(self) -> bool:
+        t = self._transport
+        return (
+            self._timed is not None
+            and self._timed.ready
+            and isinstance(t, UdpTransport)
+            and t.remote is not None
+        )
+
+    def _send_setpoint_at(self, sp: NedSetpoint, deadline_s: float) -> bool | None:
+        """Encode now, send at ``deadline_s`` from the timed sender (see ``timed_send``);
+        ``_tx_lock`` is held until it left, so that nothing sent by another thread (a command)
+        overtakes it: its sequence number and signing timestamp stay in order. None: cancelled
+        (nothing sent)."""
+        t = self._transport
+        timed = self._timed
+        if not isinstance(t, UdpTransport) or timed is None:
+            return self._send_setpoint(sp)
+        msg = self._setpoint_message(sp)
+        with self._tx_lock:
+            mav = self._mav
+            if self._signing:
+                mav.signing.timestamp = max(mav.signing.timestamp, signing_timestamp_now())
+            remote = t.remote
+            fd = t.fileno()
+            if remote is None or fd < 0:
+                return False
+            buf = bytes(msg.pack(mav))
+            mav.seq = (mav.seq + 1) % 256
+            n = timed.send_at(deadline_s, fd, buf, remote)
+        if n == CANCELLED:
+            return None
+        return n == len(buf)
+
     def _send_heartbeat(self) -> bool:
         return self._send(
             self._mav.heartbeat_encode(
@@ -280,21 +315,22 @@ class PymavlinkLink(AutopilotLink):
         )
 
     def _send_setpoint(self, sp: NedSetpoint) -> bool:
+        return self._send(self._setpoint_message(sp))
+
+    def _setpoint_message(self, sp: NedSetpoint) -> Any:
         cfg = self.config
         yaw = sp.yaw_ned_rad
-        return self._send(
-            self._mav.set_position_target_local_ned_encode(
-                0,  # time_boot_ms: PX4 stamps the setpoint on receipt
-                cfg.system_id,
-                cfg.autopilot_component_id,
-                px4.MAV_FRAME_LOCAL_NED,
-                px4.TYPE_MASK_PVA if yaw is None else px4.TYPE_MASK_PVA_YAW,
-                *sp.position_ned_m,
-                *sp.velocity_ned_m_s,
-                *sp.accel_ned_m_s2,
-                0.0 if yaw is None else yaw,
-                0.0,
-            )
+        return self._mav.set_position_target_local_ned_encode(
+            0,  # time_boot_ms: PX4 stamps the setpoint on receipt
+            cfg.system_id,
+            cfg.autopilot_component_id,
+            px4.MAV_FRAME_LOCAL_NED,
+            px4.TYPE_MASK_PVA if yaw is None else px4.TYPE_MASK_PVA_YAW,
+            *sp.position_ned_m,
+            *sp.velocity_ned_m_s,
+            *sp.accel_ned_m_s2,
+            0.0 if yaw is None else yaw,
+            0.0,
         )
 
     def _command_once(self, command: int, params: tuple[float, ...]) -> CommandResult:

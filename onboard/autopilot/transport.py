@@ -92,6 +92,10 @@ class UdpTransport(Transport):
         if self._kind == "udpin" and addr is not None:
             self._remote = addr
 
+    def fileno(self) -> int:
+        """The socket's descriptor (-1 once closed): the streamer's timed sender sends on it."""
+        return -1 if self._closed else self._sock.fileno()
+
     def read(self, timeout_s: float) -> list[tuple[bytes, Address | None]]:
         if self._closed:
             return []
