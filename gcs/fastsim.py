@@ -106,6 +106,9 @@ class SimConfig:
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
     peer_forget_s: float = 10.0
     """An expired or silent peer is still avoided this long, then forgotten (``DroneAgent``)."""
+    ghost_forget_s: float = 60.0
+    """A silent peer's possible stop points (its vehicle holds there) are avoided this long
+    after it fell silent; its last trajectory only ``peer_forget_s`` (``DroneAgent``)."""
     state_period_s: float = 0.1
     """Every drone whose process runs broadcasts its state (time, position) this often, over
     the bus's delay and ``bus_faults`` (drawn independently of the trajectories'); receivers
@@ -152,6 +155,8 @@ class SimConfig:
             raise ValueError(f"state_period_s must be > 0, got {self.state_period_s!r}")
         if not self.peer_silence_s > 0.0:
             raise ValueError(f"peer_silence_s must be > 0, got {self.peer_silence_s!r}")
+        if not self.ghost_forget_s >= 0.0:
+            raise ValueError(f"ghost_forget_s must be >= 0, got {self.ghost_forget_s!r}")
         n = self.formation.n
         for name in ("stuck_drones", "killed_drones"):
             faults = dict(getattr(self, name))
@@ -538,6 +543,7 @@ def run_sim(
             validity_s=cfg.validity_s,
             peer_forget_s=cfg.peer_forget_s,
             peer_silence_s=cfg.peer_silence_s,
+            ghost_forget_s=cfg.ghost_forget_s,
             on_inputs=record,
         )
         for i in range(n)

@@ -32,8 +32,10 @@ trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart 
 trajectory from where it was last heard to where it could have flown before it fell silent, and
 at its last reported position. ``watch`` (called at the state rate) asks for a replan at once
 when a peer falls silent. A peer whose newest trajectory started more than ``validity_s`` ago
-(a stuck drone re-announcing its hover) leaves the formation term too. A silent peer is forgotten
-``peer_forget_s`` after it fell silent (or after its message's validity, if earlier). A
+(a stuck drone re-announcing its hover) leaves the formation term too. A silent peer's last
+trajectory is forgotten ``peer_forget_s`` after it fell silent (or after its message's validity,
+if earlier); its ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell
+silent. A
 trajectory with a lower ``traj_id`` than one already received from the same peer (a late,
 reordered or duplicated copy) never replaces it.
 
@@ -225,10 +227,12 @@ class DroneAgent:
     formation_epoch: the assignment the slot belongs to (peers of another epoch are avoided,
     not formed with); validity_s: published messages are valid this long after publication
     (inf: forever, the in-memory bus); peer_forget_s: an expired or silent peer is still
-    avoided this long; peer_silence_s: a peer heard of nothing newer for this long is silent
-    (see the module docstring; inf: never); ghost_spacing_m: spacing of a silent peer's ghost
-    hovers (at most 2 * sqrt(check_drone_m^2 - collision distance^2): a plan clear of the
-    ghosts by check_drone_m is clear of any point between them by that distance);
+    avoided this long; ghost_forget_s: a silent peer's ghosts are avoided this long after it
+    fell silent (at least as long as its trajectory); peer_silence_s: a peer heard of nothing
+    newer for this long is silent (see the module docstring; inf: never); ghost_spacing_m:
+    spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
+    distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
+    them by that distance);
     on_inputs: called with every plan call's inputs before the call (records, replays);
     on_plan: called with every ``PlanReport`` after the new trajectory is scheduled — the
     service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
@@ -255,6 +259,7 @@ class DroneAgent:
         validity_s: float = math.inf,
         peer_forget_s: float = 5.0,
         peer_silence_s: float = math.inf,
+        ghost_forget_s: float = 60.0,
         ghost_spacing_m: float = 0.25,
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
@@ -270,6 +275,8 @@ class DroneAgent:
             raise ValueError(f"peer_forget_s must be >= 0, got {peer_forget_s!r}")
         if not peer_silence_s > 0.0:
             raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
+        if not ghost_forget_s >= 0.0:
+            raise ValueError(f"ghost_forget_s must be >= 0, got {ghost_forget_s!r}")
         if not (math.isfinite(ghost_spacing_m) and ghost_spacing_m > 0.0):
             raise ValueError(f"ghost_spacing_m must be > 0, got {ghost_spacing_m!r}")
         if not isinstance(initial, Trajectory):
@@ -284,6 +291,7 @@ class DroneAgent:
         self.peer_forget_s = float(peer_forget_s)
         self.peer_silence_s = float(peer_silence_s)
         self.ghost_spacing_m = float(ghost_spacing_m)
+        self.ghost_forget_s = float(ghost_forget_s)
         self.on_inputs = on_inputs
         self.on_plan = on_plan
         self.timer = timer
@@ -676,7 +684,8 @@ class DroneAgent:
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float
     ) -> tuple[dict[int, TrajectoryMsg], set[int]]:
         """Take the newest trajectory of each peer from ``msgs`` (an older one never replaces
-        a newer one); the peers to consider (not ignored, not forgotten) and the silent ones."""
+        a newer one); the peers whose trajectory to consider (not ignored, not forgotten) and
+        the silent peers whose ghosts to avoid (not ignored, ghosts not forgotten)."""
         with self._peer_lock:
             for pid, m in msgs.items():
                 if pid == self.drone_id:
@@ -708,11 +717,11 @@ class DroneAgent:
                 m = self._seen[pid].msg
                 lim = self._silence_limit(pid)
                 h = self._heard_s(pid)
-                if now > min(m.valid_until_s, h + lim) + self.peer_forget_s:
-                    continue  # forgotten
-                out[pid] = m
-                if now - h > lim:
+                if now - h > lim and now <= h + lim + max(self.ghost_forget_s, self.peer_forget_s):
                     silent.add(pid)
+                if now > min(m.valid_until_s, h + lim) + self.peer_forget_s:
+                    continue  # its trajectory is forgotten
+                out[pid] = m
         return out, silent
 
     def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, Trajectory]]:

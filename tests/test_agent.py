@@ -342,7 +342,7 @@ def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
     bus = InMemoryBus()
     me = np.array([0.0, 0, 1])
     a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_forget_s=2.0,
-               peer_silence_s=0.5)  # fmt: skip
+               ghost_forget_s=3.0, peer_silence_s=0.5)  # fmt: skip
     p0 = np.array([0.0, 3.0, 1.0])
     v = np.array([1.0, 0.0, 0.0])
     newer = _line(p0, v, 0.0)
@@ -377,12 +377,18 @@ def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
     later = np.array([p.trajectory.sample(5.0) for p in rep.peers if p.drone_id == 1][1:])
     np.testing.assert_allclose(later[[0, -1]], newer.sample(np.array([0.3, 1.05])), atol=1e-9)
     assert np.max(np.linalg.norm(np.diff(later, axis=0), axis=1)) <= 0.25 + 1e-9
-    rep = a.replan(2.85)  # silent since 0.3 + 0.5; forgotten after 2.8
-    assert 1 not in {p.drone_id for p in rep.peers}
+    # silent since 0.3 + 0.5: its trajectory is forgotten after 2.8 s, its ghosts (where the
+    # vehicle may hold) after 3.8 s
+    rep = a.replan(2.85)
+    assert rep.silent_peers == (1,) and rep.avoided_peers == ()
+    mine = [p.trajectory for p in rep.peers if p.drone_id == 1]
+    np.testing.assert_allclose([tr.sample(5.0) for tr in mine], later, atol=1e-12)
+    rep = a.replan(3.85)
+    assert 1 not in {p.drone_id for p in rep.peers} and rep.silent_peers == ()
     # it speaks again: back in the formation
-    bus.publish(TrajectoryMsg(1, 8, 1, _line(newer.sample(3.0), v, 3.0), valid_until_s=6.0), 3.0)
-    a.heard(1, 3.0, newer.sample(3.0))
-    rep = a.replan(3.1)
+    bus.publish(TrajectoryMsg(1, 8, 1, _line(newer.sample(4.0), v, 4.0), valid_until_s=7.0), 4.0)
+    a.heard(1, 4.0, newer.sample(4.0))
+    rep = a.replan(4.1)
     assert rep.formation_peers == (1,) and rep.silent_peers == ()
 
 
@@ -400,3 +406,5 @@ def test_silence_without_states_waits_one_replan_period_more() -> None:
         _agent(0, bus, me, None, peer_silence_s=0.0)
     with pytest.raises(ValueError, match="ghost_spacing_m"):
         _agent(0, bus, me, None, ghost_spacing_m=float("nan"))
+    with pytest.raises(ValueError, match="ghost_forget_s"):
+        _agent(0, bus, me, None, ghost_forget_s=-1.0)

@@ -102,12 +102,16 @@ def test_a_killed_drone_is_avoided_where_it_holds() -> None:
     assert r.faults["ghost_uses"] > 0 and r.faults["unknown_uses"] == 0
 
 
+def _hover(q: PeerTrajectory) -> bool:
+    tr = q.trajectory
+    return tr.n_pieces == 1 and not np.any(tr.coeffs[0, 1:])
+
+
 def _ghost_near(c: PlanCall, pid: int, p: list[float], within_m: float) -> bool:
     """Whether plan call ``c`` avoided a hover of peer ``pid`` within ``within_m`` of ``p``."""
     for q in c.peers:
-        tr = q.trajectory
-        if q.drone_id == pid and tr.n_pieces == 1 and not np.any(tr.coeffs[0, 1:]):
-            if np.linalg.norm(tr.coeffs[0, 0] - np.asarray(p)) <= within_m:
+        if q.drone_id == pid and _hover(q):
+            if np.linalg.norm(q.trajectory.coeffs[0, 0] - np.asarray(p)) <= within_m:
                 return True
     return False
 
@@ -131,18 +135,19 @@ def test_healthy_drones_keep_clear_of_a_faulty_one_and_arrive(kind: str) -> None
     np.testing.assert_allclose(r.tracks.pos[r.tracks.t >= t_stop + 0.1, 1], [p_stop] * int(
         np.sum(r.tracks.t >= t_stop + 0.1)))  # fmt: skip
     # dropped from the formation term: a killed one once silent, a stuck one (re-announcing
-    # its hover, heard alive) once its plan is older than validity_s; still avoided (a killed
-    # one until peer_forget_s after it fell silent, a stuck one to the end)
+    # its hover, heard alive) once its plan is older than validity_s; still avoided to the end
+    # (a killed one: its last trajectory for peer_forget_s, where it holds for ghost_forget_s)
     drop = t_stop + (cfg.peer_silence_s + 0.3 if kind == "killed" else cfg.validity_s + 1.2)
-    end = t_stop + cfg.peer_forget_s if kind == "killed" else np.inf
     n_form = cfg.formation.n
-    late = [c for c in calls if c.drone_id in healthy and drop < c.t_start_s < end]
-    assert late
+    late = [c for c in calls if c.drone_id in healthy and c.t_start_s > drop]
+    assert late and r.flight_time_s < t_stop + cfg.ghost_forget_s
     for c in late:
         mine = [q for q in c.peers if q.drone_id == 1]
         assert mine and all(q.slot >= n_form for q in mine), (c.drone_id, c.t_start_s)
     if kind == "killed":
         assert all(_ghost_near(c, 1, p_stop, 0.2) for c in late)
+        moving = [c for c in late if any(q.drone_id == 1 and not _hover(q) for q in c.peers)]
+        assert moving and max(c.t_start_s for c in moving) <= t_stop + 1.0 + cfg.peer_forget_s
     assert r.faults["stale_formation_uses"] == 0 and r.faults["unknown_uses"] == 0
 
 
