@@ -158,3 +158,21 @@ def test_pymavlink_link_streams_through_the_timed_sender() -> None:
     finally:
         link.close()
         fleet.stop()
+
+
+def test_the_kernel_is_compiled_once_for_the_types_it_is_called_with() -> None:
+    # a second specialisation would be compiled in the streamer's first tick, holding the GIL
+    _ready()
+    r = _receiver()
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ts = timed_send.TimedSender()
+    try:
+        assert (
+            ts.send_at(time.monotonic(), s.fileno(), bytes(bytearray(b"ab")), r.getsockname()) == 2
+        )
+        assert ts.send_at(time.monotonic(), s.fileno(), b"abc", r.getsockname()) == 3
+        assert len(timed_send._kernel.signatures) == 1
+    finally:
+        ts.close()
+        s.close()
+        r.close()

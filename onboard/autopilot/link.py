@@ -681,6 +681,8 @@ class AutopilotLink(ABC):
 
     def _stream_loop(self) -> None:
         self._streamer_alive = True
+        if self._timed is not None and timed_send.request_short_slice():
+            log.debug("%s: streamer thread asked for a short scheduler slice", self.name)
         period = self.config.setpoint_period_s
         hb_period = 1.0 / self.config.heartbeat_rate_hz
         next_t = time.monotonic()

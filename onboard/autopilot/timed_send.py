@@ -23,7 +23,9 @@ import ctypes
 import ctypes.util
 import logging
 import os
+import platform
 import socket
+import struct
 import sys
 import threading
 from typing import Any
@@ -97,11 +99,14 @@ def _build_kernel() -> Any:
             # 0: the deadline; -1: a signal (EINTR): look at the clock again
         return sendto(fd, buf.ctypes.data, buf.size, _MSG_DONTWAIT, addr.ctypes.data, addr.size)
 
-    # compile now, for the argument types send_at passes
+    # compile now, for the argument types TimedSender.send_at passes (read-only byte views:
+    # another type would compile again, holding the GIL, in the streamer's first tick)
     ts = np.zeros(2, dtype=np.int64)
     pfd = np.zeros(2, dtype=np.int32)
-    b = np.zeros(1, dtype=np.uint8)
+    b = np.frombuffer(bytes(1), dtype=np.uint8)
     send_at(0, -1, b, b, -1, ts, pfd)  # deadline passed: one sendto on fd -1 (EBADF)
+    if len(send_at.signatures) != 1:
+        raise RuntimeError(f"unexpected kernel signatures {send_at.signatures}")
     return send_at
 
 
@@ -135,6 +140,32 @@ def wait_compiled(timeout_s: float) -> bool:
     start_compile()
     _compiled.wait(timeout_s)
     return _kernel is not None
+
+
+_SYS_SCHED_SETATTR = {"x86_64": 314, "aarch64": 274}
+
+
+def request_short_slice(slice_s: float = 2e-4) -> bool:
+    """Ask the scheduler for a short time slice for the calling thread (Linux >= 6.12, EEVDF:
+    ``sched_attr.sched_runtime`` of a normal thread is its slice request, and a waking thread
+    with a shorter slice preempts the running one). The streamer sleeps almost all the time,
+    so this only moves its wake-ups ahead of long-running threads on a busy machine (the
+    default slice is a few milliseconds); its CPU share does not change. The thread's nice
+    value is kept. False where unsupported (other kernels ignore the value)."""
+    nr = _SYS_SCHED_SETATTR.get(platform.machine())
+    if not available or nr is None:
+        return False
+    try:
+        tid = threading.get_native_id()
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        # struct sched_attr (version 0, 48 bytes): size, policy (SCHED_OTHER), flags, nice,
+        # priority, runtime (ns), deadline, period
+        attr = struct.pack("=IIQiIQQQ", 48, 0, 0, nice, 0, int(slice_s * 1e9), 0, 0)
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        buf = ctypes.create_string_buffer(attr, len(attr))
+        return int(libc.syscall(nr, tid, buf, 0)) == 0
+    except (OSError, AttributeError):
+        return False
 
 
 def sockaddr_in(host: str, port: int) -> bytes:
@@ -176,7 +207,7 @@ class TimedSender:
         if remote != self._addr_key:
             self._addr = np.frombuffer(sockaddr_in(remote[0], remote[1]), dtype=np.uint8)
             self._addr_key = remote
-        buf = np.frombuffer(data, dtype=np.uint8)
+        buf = np.frombuffer(bytes(data), dtype=np.uint8)
         return int(
             _kernel(int(round(deadline_s * 1e9)), fd, buf, self._addr, self._r, self._ts, self._pfd)
         )
