@@ -347,3 +347,20 @@ def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
 def test_bad_altitude_band_raises(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         PlannerParams(**kwargs)
+
+
+def test_a_narrow_gap_is_left_for_a_roomier_way_with_the_comfort_clearance() -> None:
+    """Two trunks 0.5 m apart on the straight way: the optimiser alone threads the gap at
+    0.25 m (the check allows it); with comfort_obstacle_m the A* way round is flown instead."""
+    field = AnalyticField(_world([[3.0, 0.5, 0.25, 0.0, 3.0], [3.0, -0.5, 0.25, 0.0, 3.0]]))
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([7.0, 0.0, 1.0])
+
+    def closest(comfort: float) -> float:
+        params = PlannerParams(v_max_m_s=1.0, comfort_obstacle_m=comfort)
+        res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
+        assert res.status == PlanStatus.OK, res.message
+        ts = np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 400)
+        return float(field.distance(res.trajectory.sample(ts))[0].min())
+
+    assert closest(0.0) < 0.3
+    assert closest(0.4) >= 0.4

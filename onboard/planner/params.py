@@ -93,6 +93,12 @@ class PlannerParams:
     0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer (85-88 -> 93-98 s)."""
     lead_min_speed_frac: float = 0.3
     """Lower bound of that scale."""
+    comfort_obstacle_m: float = 0.0
+    """When the first attempt's trajectory passes closer than this to an obstacle (and closer
+    than it starts), the planner also optimises from an A* path at ``obstacle_clearance_m``
+    with the same terms, and keeps whichever passes the safety check with the larger clearance:
+    the warm start keeps the gap it chose when the gap was far, so a narrow one is otherwise
+    flown at whatever the check allows. 0 disables."""
     astar_keeps_formation: bool = False
     """When the first attempt fails the check, retry from an A* path with the formation term
     before the retry without it (the latter flies its own way around and can split the shape).
@@ -167,6 +173,7 @@ class PlannerParams:
             "lead_slowdown_m",
             "w_altitude",
             "altitude_margin_m",
+            "comfort_obstacle_m",
         )
         for name in nonneg:
             value = getattr(self, name)

@@ -475,7 +475,7 @@ class FormationPlanner:
         field: DistanceField,
         peers: Sequence[PeerTrajectory],
     ) -> tuple[bool, str]:
-        """Is ``traj`` safe to fly from ``t_from_s`` on?
+        """Is ``traj`` safe to fly from ``t_from_s`` on? (ok, reason when not).
 
         Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
         back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` and of
@@ -487,33 +487,48 @@ class FormationPlanner:
         field has not observed (``field.is_known``); a start in
         unobserved space may be left.
         """
+        ok, why, _ = self._check(traj, t_from_s, field, peers)
+        return ok, why
+
+    def _check(
+        self,
+        traj: Trajectory,
+        t_from_s: float,
+        field: DistanceField,
+        peers: Sequence[PeerTrajectory],
+    ) -> tuple[bool, str, float]:
+        """``check`` plus the trajectory's closest approach to an obstacle (NaN when the test
+        stopped before the obstacle distances)."""
         p = self.params
         t_end = max(traj.t_end_s, t_from_s)
         ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
         pos = traj.sample(ts)
         if not np.all(np.isfinite(pos)):
-            return False, "non-finite trajectory"
+            return False, "non-finite trajectory", float("nan")
         lo, hi = p.z_limits_m
         ok, k = _altitude_check(pos[:, 2], lo, hi)
         if not ok:
-            return False, (
+            return (
+                False,
                 f"altitude {pos[k, 2]:.2f} m at t={ts[k] - t_from_s:.2f} s outside the band "
-                f"[{lo:g}, {hi:g}] m"
+                f"[{lo:g}, {hi:g}] m",
+                float("nan"),
             )
         d, _ = field.distance(pos)
+        clearance = float(np.min(d))
         ok, why = _band_check(d, p.check_obstacle_m)
         if not ok:
             k = int(np.argmin(d))
-            return False, f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
+            reason = f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
+            return False, reason, clearance
         for pt in peers:
             other = pt.trajectory.sample(ts)
             dd = np.linalg.norm(pos - other, axis=1)
             ok, why = _band_check(dd, p.check_drone_m)
             if not ok:
                 k = int(np.argmin(dd))
-                return False, (
-                    f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
-                )
+                reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
+                return False, reason, clearance
         if p.check_known_s > 0.0:
             n = int(np.searchsorted(ts, t_from_s + p.check_known_s, side="right"))
             known = field.is_known(pos[:n])
@@ -522,8 +537,9 @@ class FormationPlanner:
                 entered = np.nonzero(~known[first_known:])[0]
                 if entered.size:
                     k = first_known + int(entered[0])
-                    return False, f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
-        return True, ""
+                    reason = f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
+                    return False, reason, clearance
+        return True, "", clearance
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest."""
@@ -587,13 +603,42 @@ class FormationPlanner:
                 messages.append("non-finite solution")
                 continue
             traj = problem.trajectory(x)
-            safe, why = self.check(traj, t_start_s, field, peers)
+            safe, why, clearance = self._check(traj, t_start_s, field, peers)
             if not safe:
                 x2, st2 = problem.solve(x, self._lb_prm_refine)
                 if st2 != LbfgsStatus.CANCELED and np.all(np.isfinite(x2)):
                     x, last_status = x2, st2
                     traj = problem.trajectory(x)
-                    safe, why = self.check(traj, t_start_s, field, peers)
+                    safe, why, clearance = self._check(traj, t_start_s, field, peers)
+            if safe and not force_astar and clearance < self.params.comfort_obstacle_m:
+                # it threads a gap narrower than comfortable (the warm start keeps the way it
+                # chose when the gap was far): try the way an A* path at the optimiser's
+                # clearance takes, with the same terms, and fly the roomier of the two
+                start_d = float(field.distance(sp[None, :])[0][0])
+                if clearance < start_d - 1e-3:
+                    alt = self.prepare(
+                        t_start_s,
+                        sp,
+                        sv,
+                        sa,
+                        gl,
+                        peers,
+                        field,
+                        previous,
+                        use_formation=use_formation,
+                        force_astar=True,
+                    )
+                    self._active = alt
+                    x_alt, st_alt = alt.solve()
+                    self._active = None
+                    iters += alt.iterations
+                    evals += alt.evaluations
+                    if st_alt != LbfgsStatus.CANCELED and np.all(np.isfinite(x_alt)):
+                        traj_alt = alt.trajectory(x_alt)
+                        ok_alt, _, clr_alt = self._check(traj_alt, t_start_s, field, peers)
+                        if ok_alt and clr_alt > clearance:
+                            problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
+                            messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
             if safe:
                 return PlanResult(
                     ok_status,
