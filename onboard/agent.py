@@ -29,15 +29,14 @@ never heard through ``heard``, whose trajectories are its only sign of life). A 
 have died (its autopilot then holds where it was: PX4's offboard-loss failsafe) anywhere along
 its last trajectory after it was last heard: it leaves the formation term and, besides its last
 trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
-trajectory from where it was last heard to where it could have flown before it fell silent, and
-at its last reported position. ``watch`` (called at the state rate) asks for a replan at once
-when a peer falls silent. A peer whose newest trajectory started more than ``validity_s`` ago
-(a stuck drone re-announcing its hover) leaves the formation term too. A silent peer's last
-trajectory is forgotten ``peer_forget_s`` after it fell silent (or after its message's validity,
-if earlier); its ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell
-silent. A
-trajectory with a lower ``traj_id`` than one already received from the same peer (a late,
-reordered or duplicated copy) never replaces it.
+trajectory from where it was last heard to where it could have flown in ``ghost_window_s`` more
+(its messages in between lost), and at its last reported position. ``watch`` (called at the
+state rate) asks for a replan at once when a peer falls silent. A peer whose newest trajectory
+started more than ``validity_s`` ago (a stuck drone re-announcing its hover) leaves the
+formation term too. A silent peer's last trajectory is forgotten ``peer_forget_s`` after it fell
+silent (or after its message's validity, if earlier); its ghosts, where its vehicle may still
+hold, ``ghost_forget_s`` after it fell silent. A trajectory with a lower ``traj_id`` than one
+already received from the same peer (a late, reordered or duplicated copy) never replaces it.
 
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
 immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
@@ -228,8 +227,11 @@ class DroneAgent:
     not formed with); validity_s: published messages are valid this long after publication
     (inf: forever, the in-memory bus); peer_forget_s: an expired or silent peer is still
     avoided this long; ghost_forget_s: a silent peer's ghosts are avoided this long after it
-    fell silent (at least as long as its trajectory); peer_silence_s: a peer heard of nothing
-    newer for this long is silent (see the module docstring; inf: never); ghost_spacing_m:
+    fell silent (at least as long as its trajectory); ghost_window_s: how long after its newest
+    message a silent peer may have flown on before it stopped (its messages in between lost;
+    one replan period more for a peer heard only through trajectories); peer_silence_s: a
+    peer heard of nothing newer for this long is silent (see the module docstring; inf:
+    never); ghost_spacing_m:
     spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
     them by that distance);
@@ -260,6 +262,7 @@ class DroneAgent:
         peer_forget_s: float = 5.0,
         peer_silence_s: float = math.inf,
         ghost_forget_s: float = 60.0,
+        ghost_window_s: float = 0.5,
         ghost_spacing_m: float = 0.25,
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
@@ -275,6 +278,8 @@ class DroneAgent:
             raise ValueError(f"peer_forget_s must be >= 0, got {peer_forget_s!r}")
         if not peer_silence_s > 0.0:
             raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
+        if not (math.isfinite(ghost_window_s) and ghost_window_s >= 0.0):
+            raise ValueError(f"ghost_window_s must be >= 0, got {ghost_window_s!r}")
         if not ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {ghost_forget_s!r}")
         if not (math.isfinite(ghost_spacing_m) and ghost_spacing_m > 0.0):
@@ -292,6 +297,7 @@ class DroneAgent:
         self.peer_silence_s = float(peer_silence_s)
         self.ghost_spacing_m = float(ghost_spacing_m)
         self.ghost_forget_s = float(ghost_forget_s)
+        self.ghost_window_s = float(ghost_window_s)
         self.on_inputs = on_inputs
         self.on_plan = on_plan
         self.timer = timer
@@ -727,7 +733,7 @@ class DroneAgent:
     def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, Trajectory]]:
         """Hovers where each silent peer may have stopped: points ``ghost_spacing_m`` apart
         along its last reported position and its last trajectory from when it was last heard
-        to when it could have fallen silent (1.5 silence limits later, at most now)."""
+        to ``ghost_window_s`` later (one replan period more without states; at most now)."""
         out: list[tuple[int, Trajectory]] = []
         for pid in sorted(silent):
             with self._peer_lock:
@@ -737,7 +743,7 @@ class DroneAgent:
                 lim = self._silence_limit(pid)
             tr = seen.msg.trajectory
             t_a = max(h, tr.t0_s)
-            t_b = max(t_a, min(now, h + 1.5 * lim))
+            t_b = max(t_a, min(now, h + lim - self.peer_silence_s + self.ghost_window_s))
             ts = np.append(np.arange(t_a, t_b, 0.02), t_b)
             pts = tr.sample(ts)
             if state is not None and state.position is not None and state.stamp_s >= h - EPS_T:

@@ -338,11 +338,12 @@ def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
     """Peer 1 flies +x at 1 m/s; its last state is stamped 0.3 s, then nothing: 0.5 s later it
     is silent, a replan is due at once, it leaves the formation and is avoided at hovers at
     most 0.25 m apart from its last reported position along its trajectory to where it could
-    have fallen silent; an older copy of its trajectory never replaces the newer one."""
+    have flown in ghost_window_s more; an older copy of its trajectory never replaces the
+    newer one."""
     bus = InMemoryBus()
     me = np.array([0.0, 0, 1])
     a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_forget_s=2.0,
-               ghost_forget_s=3.0, peer_silence_s=0.5)  # fmt: skip
+               ghost_forget_s=3.0, ghost_window_s=0.7, peer_silence_s=0.5)  # fmt: skip
     p0 = np.array([0.0, 3.0, 1.0])
     v = np.array([1.0, 0.0, 0.0])
     newer = _line(p0, v, 0.0)
@@ -371,11 +372,11 @@ def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
     for g in ghosts:  # the new plan keeps clear of every place it may be
         d = np.linalg.norm(rep.trajectory.sample(np.arange(0.95, 8.0, 0.05)) - g, axis=1)
         assert d.min() >= PARAMS.check_drone_m
-    # later, the ghosts reach to where it could have flown before it fell silent (1.5 silence
-    # limits after it was last heard); forgotten peer_forget_s after the silence
+    # later, the ghosts reach to where it could have flown in ghost_window_s (0.7 s) after it
+    # was last heard
     rep = a.replan(2.0)
     later = np.array([p.trajectory.sample(5.0) for p in rep.peers if p.drone_id == 1][1:])
-    np.testing.assert_allclose(later[[0, -1]], newer.sample(np.array([0.3, 1.05])), atol=1e-9)
+    np.testing.assert_allclose(later[[0, -1]], newer.sample(np.array([0.3, 1.0])), atol=1e-9)
     assert np.max(np.linalg.norm(np.diff(later, axis=0), axis=1)) <= 0.25 + 1e-9
     # silent since 0.3 + 0.5: its trajectory is forgotten after 2.8 s, its ghosts (where the
     # vehicle may hold) after 3.8 s
@@ -408,3 +409,5 @@ def test_silence_without_states_waits_one_replan_period_more() -> None:
         _agent(0, bus, me, None, ghost_spacing_m=float("nan"))
     with pytest.raises(ValueError, match="ghost_forget_s"):
         _agent(0, bus, me, None, ghost_forget_s=-1.0)
+    with pytest.raises(ValueError, match="ghost_window_s"):
+        _agent(0, bus, me, None, ghost_window_s=float("inf"))
