@@ -12,6 +12,9 @@ formation. Judged on the mock's ground truth.
 from __future__ import annotations
 
 import os
+import selectors
+import socket
+import threading
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -20,7 +23,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs.bench_service import MockProcess, ServiceProcess, poll_until, service_config, write_world
+from gcs.bench_service import (
+    SET_POSITION_TARGET_LOCAL_NED,
+    MockProcess,
+    ServiceProcess,
+    mavlink_msgids,
+    poll_until,
+    service_config,
+    write_world,
+)
 from gcs.station import GroundStation, StationConfig
 from onboard.comm import wire
 from onboard.comm.zenoh_session import free_loopback_endpoint, peer_mesh
@@ -173,3 +184,154 @@ def test_a_killed_service_fails_safe_comes_back_out_of_control_and_rejoins(
         poll_until(lambda: set(_states(gs).values()) == {"landed"}, 30.0, "landed", mock.alive)
         truth = mock.latest_truth()
         assert truth[1].collisions == 0 and truth[2].collisions == 0
+
+
+class CuttableUdpPath:
+    """The UDP path between the mock and one service, with a switch: the mock sends to
+    ``front_port``, the service listens on ``service_port``; ``cut = True`` drops everything
+    both ways. Counts the setpoints the service sends after the last restore."""
+
+    def __init__(self, service_port: int) -> None:
+        self.service_addr = ("127.0.0.1", service_port)
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back.bind(("127.0.0.1", 0))
+        self.front_port = int(self.front.getsockname()[1])
+        self.mock_addr: tuple[str, int] | None = None
+        self.cut = False
+        self.setpoints = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self.front, selectors.EVENT_READ, "front")
+        sel.register(self.back, selectors.EVENT_READ, "back")
+        while not self._stop.is_set():
+            for key, _ in sel.select(0.1):
+                sock = key.fileobj
+                assert isinstance(sock, socket.socket)
+                data, addr = sock.recvfrom(65535)
+                if self.cut:
+                    continue
+                if key.data == "front":
+                    self.mock_addr = addr
+                    self.back.sendto(data, self.service_addr)
+                elif self.mock_addr is not None:
+                    if SET_POSITION_TARGET_LOCAL_NED in mavlink_msgids(data):
+                        self.setpoints += 1
+                    self.front.sendto(data, self.mock_addr)
+        sel.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.front.close()
+        self.back.close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
+    tmp_path: Path,
+) -> None:
+    """The UDP path to PX4 is cut in flight: the service notices (heartbeat timeout 1 s) and
+    stops commanding, PX4's offboard failsafe holds the vehicle; when the path returns the
+    service sends no setpoint (PX4 would re-enter OFFBOARD by itself if setpoints flowed) until
+    resume, which takes the vehicle over where it is, without a jump to an old setpoint. Then
+    the ground station goes away during a goal: the drone finishes it and hovers."""
+    swarm = f"c{os.getpid()}"
+    spawn = [(0.0, 0.0, 0.0)]
+    world = write_world(tmp_path / "world.yaml", [], spawn, spawn)
+    svc_port = bind_consecutive_udp(1)[0]
+    port = svc_port.getsockname()[1]
+    svc_port.close()
+    mesh = peer_mesh(2)
+    with ExitStack() as stack:
+        path = CuttableUdpPath(port)
+        stack.callback(path.close)
+        mock = stack.enter_context(
+            MockProcess(
+                world,
+                1,
+                path.front_port,
+                free_loopback_endpoint(),
+                f"{swarm}/sim",
+                tmp_path / "mock",
+                extra_args=["--set", "autopilot.offboard_loss_action=hold"],
+            )
+        )
+        cfg = service_config(
+            swarm=swarm,
+            autopilot_port=port,
+            zenoh_listen=mesh[0].listen,
+            zenoh_connect=mesh[0].connect,
+            record_dir=tmp_path / "d0",
+            extra={
+                "planner": {"v_max_m_s": 1.0},
+                "flight": {"takeoff_speed_m_s": 1.0},
+                "reactions": {"gcs_lost": {"timeout_s": 1.0, "action": "hover"}},
+            },
+        )
+        svc = stack.enter_context(ServiceProcess(0, cfg, tmp_path / "d0"))
+        gs = stack.enter_context(
+            GroundStation(swarm, mesh[1], config=StationConfig(lead_s=1.0, ack_timeout_s=5.0))
+        )
+        svc.wait_ready(90.0)
+        assert gs.wait_for_drones(ids=[0], timeout_s=20.0, with_state=True) == {0}
+        _ok(gs.send(wire.FormationAssignment(POINTS, 1.0, 0.0, {0: 0}, 1, time.time())))
+        _ok(gs.takeoff(1.0, [0]))
+        poll_until(lambda: _states(gs).get(0) == "hover", 40.0, "hover", svc.alive)
+        _ok(gs.goal((8.0, 0.0, 1.0), targets=[0]))
+        poll_until(lambda: mock.latest_truth()[1].position_m[0] > 1.5, 30.0, "under way")
+
+        path.cut = True
+        t_cut = time.monotonic()
+        poll_until(lambda: _states(gs).get(0) == "link-lost", 5.0, "link-lost", svc.alive)
+        noticed_s = time.monotonic() - t_cut
+        assert noticed_s < 2.5, noticed_s  # 1 s heartbeat timeout + the 10 Hz state message
+        poll_until(lambda: mock.latest_truth()[1].mode != "OFFBOARD", 5.0, "PX4's failsafe")
+        time.sleep(1.5)
+        held = np.array(mock.latest_truth()[1].position_m)
+        assert held[0] < 6.0  # stopped well short of the goal
+
+        path.setpoints = 0
+        path.cut = False
+        time.sleep(3.0)
+        t = mock.latest_truth()[1]
+        assert path.setpoints == 0, "setpoints flowed again without a command"
+        assert t.mode != "OFFBOARD" and _states(gs).get(0) == "link-lost"
+        assert np.linalg.norm(np.array(t.position_m) - held) < 0.3
+
+        _ok(gs.resume([0]))
+        poll_until(lambda: mock.latest_truth()[1].mode == "OFFBOARD", 10.0, "OFFBOARD on resume")
+        time.sleep(2.0)
+        assert _states(gs).get(0) == "hover"
+        assert np.linalg.norm(np.array(mock.latest_truth()[1].position_m) - held) < 0.3
+
+        # the ground station goes away mid-goal: the drone finishes the goal and hovers there
+        goal = (held[0] + 2.0, 0.0, 1.0)
+        _ok(gs.goal(goal, targets=[0]))
+        poll_until(lambda: _states(gs).get(0) == "formation-flight", 10.0, "flying to the goal")
+        gs.close()
+        time.sleep(1.0)
+        assert svc.alive()
+        poll_until(lambda: svc.log_events("gcs_lost"), 10.0, "gcs_lost noticed", svc.alive)
+        own_goal = np.array(goal) + np.array(POINTS[0]) - np.mean(POINTS, axis=0)
+        poll_until(
+            lambda: np.linalg.norm(np.array(mock.latest_truth()[1].position_m) - own_goal) < 0.3,
+            30.0,
+            "the goal finished without the ground station",
+            svc.alive,
+        )
+        gs = stack.enter_context(
+            GroundStation(swarm, mesh[1], config=StationConfig(lead_s=1.0, ack_timeout_s=5.0))
+        )
+        assert gs.wait_for_drones(ids=[0], timeout_s=20.0, with_state=True) == {0}
+        poll_until(lambda: _states(gs).get(0) == "hover", 10.0, "hover at the goal", svc.alive)
+        assert mock.latest_truth()[1].mode == "OFFBOARD"
+        _ok(gs.land([0]))
+        poll_until(lambda: _states(gs).get(0) == "landed", 30.0, "landed", svc.alive)
+        assert mock.latest_truth()[1].collisions == 0
