@@ -11,6 +11,7 @@ from onboard.mapping.camera import (
     backproject,
     check_frame,
     look_rotation,
+    validate_frame,
 )
 from onboard.mapping.esdf import EsdfBuilder, EsdfField
 from onboard.mapping.mapper import LocalMapper
@@ -31,5 +32,6 @@ __all__ = [
     "SimulatedDepthCamera",
     "backproject",
     "check_frame",
+    "validate_frame",
     "look_rotation",
 ]

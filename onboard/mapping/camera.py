@@ -99,6 +99,18 @@ def check_frame(frame: DepthFrame) -> np.ndarray:
     [min_depth_m, inf)) set to 0. Depths beyond ``max_depth_m`` are kept (free space up to the
     mapper's ray length is still seen). Raises FrameRejected for frames that cannot be used:
     wrong shape or dtype, non-finite time, non-finite position, non-orthonormal rotation."""
+    out = np.array(validate_frame(frame), dtype=np.float32, copy=True)
+    bad = ~np.isfinite(out) | (out < frame.intrinsics.min_depth_m)
+    out[bad] = 0.0
+    return out
+
+
+def validate_frame(frame: DepthFrame) -> np.ndarray:
+    """``check_frame`` without the cleaning: the frame's depth image as a C-contiguous float32
+    array (the frame's own array when it is one: no copy), invalid pixels as they came. For
+    consumers that skip invalid pixels themselves (the mapper's ray casting skips exactly the
+    pixels ``check_frame`` would set to 0, on the skip grid only). Raises FrameRejected as
+    ``check_frame`` does."""
     intr = frame.intrinsics
     d = frame.depth_m
     if not isinstance(d, np.ndarray):
@@ -117,10 +129,7 @@ def check_frame(frame: DepthFrame) -> np.ndarray:
         raise FrameRejected("camera rotation must be a finite 3 x 3 matrix")
     if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0.0:
         raise FrameRejected("camera rotation is not a proper rotation matrix")
-    out = np.array(d, dtype=np.float32, copy=True)
-    bad = ~np.isfinite(out) | (out < intr.min_depth_m)
-    out[bad] = 0.0
-    return out
+    return np.ascontiguousarray(d, dtype=np.float32)
 
 
 def backproject(

@@ -232,8 +232,13 @@ def _combine(
     sub_cell: bool,
     cap: float,
     values: np.ndarray,
+    margin: float,
+    inflated: np.ndarray,
+    with_inflated: bool,
 ) -> None:
-    """Signed distance per cell from the two squared transforms (see the module docstring)."""
+    """Signed distance per cell from the two squared transforms (see the module docstring);
+    with ``with_inflated``, also ``inflated`` = the value minus ``margin`` within +-cap (what
+    ``EsdfField.inflated(margin)`` computes, in the same pass)."""
     nx = f_out.shape[0]
     ny = f_out.shape[1]
     nz = f_out.shape[2]
@@ -248,49 +253,54 @@ def _combine(
                 if not occ[i, j, k]:
                     a = f_out[i, j, k]
                     if a >= big:
-                        values[i, j, k] = cap
-                        continue
-                    if sub_cell:
-                        w = 3 * feat[i, j, k]
-                        dx = x - sp[w]
-                        dy = y - sp[w + 1]
-                        dz = z - sp[w + 2]
-                        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                        val = cap
                     else:
-                        d = math.sqrt(a) * res - offset
-                    values[i, j, k] = min(max(d, 0.0), cap)
-                    continue
-                a = f_in[i, j, k]
-                if a >= big:
-                    values[i, j, k] = -cap
-                    continue
-                d = -(math.sqrt(a) * res - offset)
-                if sub_cell and a <= 1.0:
-                    # a surface cell: signed distance of its centre to its own surface point
-                    # along the mean direction towards its observed free neighbours
-                    gx = 0.0
-                    gy = 0.0
-                    gz = 0.0
-                    if i > 0 and known[i - 1, j, k] and not occ[i - 1, j, k]:
-                        gx -= 1.0
-                    if i < nx - 1 and known[i + 1, j, k] and not occ[i + 1, j, k]:
-                        gx += 1.0
-                    if j > 0 and known[i, j - 1, k] and not occ[i, j - 1, k]:
-                        gy -= 1.0
-                    if j < ny - 1 and known[i, j + 1, k] and not occ[i, j + 1, k]:
-                        gy += 1.0
-                    if k > 0 and known[i, j, k - 1] and not occ[i, j, k - 1]:
-                        gz -= 1.0
-                    if k < nz - 1 and known[i, j, k + 1] and not occ[i, j, k + 1]:
-                        gz += 1.0
-                    gn = math.sqrt(gx * gx + gy * gy + gz * gz)
-                    if gn > 0.0:
-                        d = (
-                            (x - spt[i, j, k, 0]) * gx
-                            + (y - spt[i, j, k, 1]) * gy
-                            + (z - spt[i, j, k, 2]) * gz
-                        ) / gn
-                values[i, j, k] = max(d, -cap)
+                        if sub_cell:
+                            w = 3 * feat[i, j, k]
+                            dx = x - sp[w]
+                            dy = y - sp[w + 1]
+                            dz = z - sp[w + 2]
+                            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                        else:
+                            d = math.sqrt(a) * res - offset
+                        val = min(max(d, 0.0), cap)
+                else:
+                    a = f_in[i, j, k]
+                    if a >= big:
+                        val = -cap
+                    else:
+                        d = -(math.sqrt(a) * res - offset)
+                        if sub_cell and a <= 1.0:
+                            # a surface cell: signed distance of its centre to its own surface
+                            # point along the mean direction towards its observed free
+                            # neighbours
+                            gx = 0.0
+                            gy = 0.0
+                            gz = 0.0
+                            if i > 0 and known[i - 1, j, k] and not occ[i - 1, j, k]:
+                                gx -= 1.0
+                            if i < nx - 1 and known[i + 1, j, k] and not occ[i + 1, j, k]:
+                                gx += 1.0
+                            if j > 0 and known[i, j - 1, k] and not occ[i, j - 1, k]:
+                                gy -= 1.0
+                            if j < ny - 1 and known[i, j + 1, k] and not occ[i, j + 1, k]:
+                                gy += 1.0
+                            if k > 0 and known[i, j, k - 1] and not occ[i, j, k - 1]:
+                                gz -= 1.0
+                            if k < nz - 1 and known[i, j, k + 1] and not occ[i, j, k + 1]:
+                                gz += 1.0
+                            gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+                            if gn > 0.0:
+                                d = (
+                                    (x - spt[i, j, k, 0]) * gx
+                                    + (y - spt[i, j, k, 1]) * gy
+                                    + (z - spt[i, j, k, 2]) * gz
+                                ) / gn
+                        val = max(d, -cap)
+                values[i, j, k] = val
+                if with_inflated:
+                    e = val - margin
+                    inflated[i, j, k] = -cap if e < -cap else (cap if e > cap else e)
 
 
 @njit(cache=True, nogil=True)
@@ -310,10 +320,13 @@ def esdf_kernel(
     known: np.ndarray,
     spt: np.ndarray,
     values: np.ndarray,
+    margin: float = 0.0,
+    inflated: np.ndarray | None = None,
 ) -> int:
     """Signed distance of the ring-buffered window (see the module docstring) into values,
-    occ and known (window order); returns the number of occupied cells. f_out, feat, f_in and
-    spt (nx, ny, nz, 3) float32 are work buffers."""
+    occ and known (window order), and when ``inflated`` is given the values minus ``margin``
+    (within +-cap) into it; returns the number of occupied cells. f_out, feat, f_in and spt
+    (nx, ny, nz, 3) float32 are work buffers."""
     n_occ = _column_pass(logodds, surf, lo, l_occ, res, f_out, feat, f_in, occ, known, spt)
     big = 1e30
     _envelope_pass(f_out, 1, big, feat, sub_cell)
@@ -321,7 +334,40 @@ def esdf_kernel(
     if n_occ > 0:
         _envelope_pass(f_in, 1, 0.0, feat, False)
         _envelope_pass(f_in, 0, 0.0, feat, False)
-    _combine(f_out, feat, f_in, occ, known, spt, res, offset, sub_cell, cap, values)
+    if inflated is None:
+        _combine(
+            f_out,
+            feat,
+            f_in,
+            occ,
+            known,
+            spt,
+            res,
+            offset,
+            sub_cell,
+            cap,
+            values,
+            0.0,
+            values,
+            False,
+        )
+    else:
+        _combine(
+            f_out,
+            feat,
+            f_in,
+            occ,
+            known,
+            spt,
+            res,
+            offset,
+            sub_cell,
+            cap,
+            values,
+            margin,
+            inflated,
+            True,
+        )
     return n_occ
 
 
@@ -350,6 +396,7 @@ class EsdfField(GridField):
         self.occupied = occ
         self.inflation_m = float(inflation_m)
         self.stamp_s = float(stamp_s)
+        self._inflated: tuple[float, EsdfField] | None = None  # computed with the field
 
     def collision_free(self, points: np.ndarray, clearance_m: float = 0.0) -> np.ndarray:
         """Bool (K,): the point lies in observed space, at least ``inflation_m + clearance_m``
@@ -362,7 +409,13 @@ class EsdfField(GridField):
         """The field of the obstacles grown by ``margin_m``: every value minus the margin
         (within +-``UNKNOWN_DISTANCE``); its own collision check adds the rest of
         ``inflation_m``, if any."""
+        done = self._inflated
+        if done is not None and done[0] == margin_m:
+            return done[1]
         v = np.clip(self.values - margin_m, -UNKNOWN_DISTANCE, UNKNOWN_DISTANCE)
+        return self._with_inflated_values(v, margin_m)
+
+    def _with_inflated_values(self, v: np.ndarray, margin_m: float) -> EsdfField:
         v.setflags(write=False)
         known = self.known if self.known is not None else np.ones(self.shape, dtype=bool)
         return EsdfField(
@@ -390,8 +443,11 @@ class EsdfBuilder:
         self._shape: tuple[int, int, int] | None = None
         self._bufs: tuple[np.ndarray, ...] = ()
 
-    def build(self, omap: OccupancyMap, stamp_s: float = math.nan) -> EsdfField:
-        """The signed distance field of the map's current window."""
+    def build(
+        self, omap: OccupancyMap, stamp_s: float = math.nan, inflate_m: float | None = None
+    ) -> EsdfField:
+        """The signed distance field of the map's current window; with ``inflate_m``, its
+        ``inflated(inflate_m)`` is computed in the same pass (and returned by that call)."""
         shape = omap.shape
         if self._shape != shape:
             self._bufs = (
@@ -405,6 +461,7 @@ class EsdfBuilder:
             self._shape = shape
         f_out, feat, f_in, occ, known, spt = self._bufs
         values = np.empty(shape, dtype=np.float64)
+        inflated = None if inflate_m is None else np.empty(shape, dtype=np.float64)
         res = omap.res
         offset = 0.5 * res if self.surface_offset_m is None else self.surface_offset_m
         esdf_kernel(
@@ -423,6 +480,11 @@ class EsdfBuilder:
             known,
             spt,
             values,
+            0.0 if inflate_m is None else float(inflate_m),
+            inflated,
         )
         values.setflags(write=False)
-        return EsdfField(values, omap.origin, res, known, occ, omap.params.inflation_m, stamp_s)
+        field = EsdfField(values, omap.origin, res, known, occ, omap.params.inflation_m, stamp_s)
+        if inflate_m is not None and inflated is not None:
+            field._inflated = (inflate_m, field._with_inflated_values(inflated, inflate_m))
+        return field

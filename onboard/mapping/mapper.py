@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from onboard.mapping.camera import DepthFrame, FrameRejected, check_frame
+from onboard.mapping.camera import DepthFrame, FrameRejected, validate_frame
 from onboard.mapping.esdf import EsdfBuilder, EsdfField
 from onboard.mapping.occupancy import IngestResult, OccupancyMap, OccupancyParams
 
@@ -55,7 +55,8 @@ class LocalMapper:
         pose, a time older than the last accepted frame. Masked (pixels ignored): 0, NaN, inf,
         negative or below-minimum depths."""
         try:
-            depth = check_frame(frame)
+            # not cleaned: the ray casting skips the invalid pixels itself (on its skip grid)
+            depth = validate_frame(frame)
         except FrameRejected as e:
             self.rejected += 1
             return IngestResult(False, str(e))
@@ -75,7 +76,10 @@ class LocalMapper:
     def field(self) -> EsdfField:
         """The ESDF of the current window (recomputed only if the map changed since)."""
         if self._dirty or self._field is None:
-            self._field = self._builder.build(self.map, self.last_stamp_s)
+            # the planning field (inflated by the drone's radius) in the same pass
+            self._field = self._builder.build(
+                self.map, self.last_stamp_s, inflate_m=self.params.inflation_m
+            )
             self._planning = None
             self._dirty = False
         return self._field

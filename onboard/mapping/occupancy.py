@@ -521,6 +521,8 @@ class OccupancyMap:
         self.lo = self._lo_for(c)
         p = self.params
         self._l = (p.l_hit, p.l_miss, p.l_min, p.l_max)
+        self._coords_of: CameraIntrinsics | None = None  # normalised pixel coordinates of it
+        self._coords: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
 
     # --- geometry ---------------------------------------------------------------------------
 
@@ -605,7 +607,10 @@ class OccupancyMap:
         if not bool(self.contains(o[None, :])[0]):
             return IngestResult(False, "camera outside the map window")
         d = np.ascontiguousarray(depth, dtype=np.float32)
-        xn, yn = intrinsics.normalized_coords()
+        if self._coords_of != intrinsics:
+            self._coords = intrinsics.normalized_coords()
+            self._coords_of = intrinsics
+        xn, yn = self._coords
         k = self.params.skip_pixel if step is None else int(step)
         rays, masked, cells = ingest_depth_kernel(
             self.logodds,

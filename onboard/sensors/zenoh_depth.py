@@ -298,7 +298,8 @@ class DepthImage:
         return DepthImage(
             system_id=_integer("system_id", h["system_id"], 0, _MAX_ID),
             stamp_s=_number("stamp_s", h["stamp_s"]),
-            depth_m=mm.reshape(height, width).astype(np.float32) / np.float32(1000.0),
+            # one pass (uint16 -> float32, then the float32 division, as astype + divide)
+            depth_m=np.divide(mm.reshape(height, width), np.float32(1000.0), dtype=np.float32),
             position=np.array(_vector("position", h["position"], 3)),
             rotation=rot,
             intrinsics=intr,

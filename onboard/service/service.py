@@ -486,7 +486,8 @@ class FlightService:
     def _record_map(self, now: float, camera: np.ndarray) -> None:
         """Twice a second: what the map holds (occupied cells; the nearest mapped surface to the
         camera and where it is), in the counters and the flight record."""
-        occupied = int(np.count_nonzero(self.mapper.map.occupied()))
+        # the field just built holds the occupied cells (no copy of the whole log-odds grid)
+        occupied = int(np.count_nonzero(self.mapper.field().occupied))
         self.counters["map_occupied_cells"] = occupied
         rec = self.recorder
         if rec is None:
