@@ -12,6 +12,15 @@ sends in the field.
 4. the result (arrived, collisions reported by the mock, e_dist, e_sim, clearances, flight time,
    setpoint jitter) and the flight report (``gcs.report``) in the flight directory.
 
+With ``--secure`` the links are authenticated as in the field: MAVLink 2 signing between every
+flight service and its vehicle (a fresh random key per drone, a 0600 file in the flight
+directory's ``secrets/``; the mock imitates PX4 v1.17+ here, v1.16 cannot sign) and the swarm bus
+over Zenoh TLS with mutual authentication and access control (a demo CA made by ``swarm-gcs
+certs``'s code in ``pki/``). The mock's own Zenoh session (true poses and simulated depth
+frames, the simulator standing in for each drone's camera) is not the swarm bus and stays
+plain TCP. The run checks that the security is real (signed traffic only, TLS links only,
+intruders refused) and reports it with the bus latency.
+
 Every port is picked free on 127.0.0.1, so two demos on one machine do not collide. All child
 processes run in one process group of their own; it is stopped (SIGTERM, then SIGKILL) on
 success, on failure, on Ctrl-C and on SIGTERM. The exit status is 0 only on success.
@@ -66,7 +75,8 @@ class DemoConfig:
     the planner's speed limit (None: config/onboard.yaml's); onboard_sets / sitl_sets: extra
     ``--set KEY=VALUE`` for every service / the mock; startup_timeout_s: until every service
     is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
-    (None: from the route length and the speed limit); out_dir: the flight directory.
+    (None: from the route length and the speed limit); out_dir: the flight directory;
+    secure: MAVLink signing and Zenoh mutual TLS + access control (see the module docstring).
     """
 
     drones: int = 7
@@ -91,6 +101,7 @@ class DemoConfig:
     swarm: str = ""
     view_port: int | None = None
     report: bool = True
+    secure: bool = False
 
 
 # --- processes -------------------------------------------------------------------------------
@@ -224,6 +235,126 @@ class ProcessGroup:
                 f.close()
 
 
+# --- security (--secure) ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SecurityFiles:
+    """The secure demo's secrets in the flight directory (never logged, never in the records or
+    the result): ``secrets/`` (mode 0700) holds each drone's MAVLink signing key
+    (``mavlink-<id>.key``, 64 hex digits, mode 0600) and the mock's signing configuration (the
+    same keys by system id, ``sitl-signing.json``, 0600, given with ``--config`` so that no key
+    is on a command line); ``pki/`` the demo CA and the certificates of ``drone-<id>`` and
+    ``gcs`` (``gcs.certs.make_demo_pki``; keys 0600)."""
+
+    secrets_dir: Path
+    signing_keys: tuple[Path, ...]
+    sitl_config: Path
+    pki_dir: Path
+
+    @property
+    def signing_key_pattern(self) -> str:
+        """``autopilot.signing_key_file`` for every service (``{id}``: the drone id)."""
+        return str(self.secrets_dir.resolve() / "mavlink-{id}.key")
+
+    def tls_section(self) -> dict[str, str]:
+        """``zenoh.tls`` for every service (``{id}``: the drone id)."""
+        d = self.pki_dir.resolve()
+        return {
+            "root_ca_certificate": str(d / "ca.pem"),
+            "certificate": str(d / "drone-{id}.pem"),
+            "private_key": str(d / "drone-{id}.key"),
+        }
+
+    def gcs_tls(self) -> Any:
+        from onboard.comm.security import GCS_COMMON_NAME, TlsConfig
+
+        d = self.pki_dir.resolve()
+        return TlsConfig(
+            str(d / "ca.pem"), str(d / f"{GCS_COMMON_NAME}.pem"), str(d / f"{GCS_COMMON_NAME}.key")
+        )
+
+
+def _write_secret(path: Path, text: str) -> None:
+    """Create ``path`` with mode 0600 from the start (refuses an existing file or a link)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    fd = os.open(path, flags, 0o600)
+    with os.fdopen(fd, "w", encoding="ascii") as f:
+        f.write(text)
+
+
+def prepare_security(out: Path, drones: int, swarm: str) -> SecurityFiles:
+    """Fresh random signing keys (one per drone: 32 bytes from ``os.urandom``) and a demo PKI
+    in the flight directory ``out``. Mock system id = drone id + 1 (the services' default)."""
+    from gcs.certs import CertError, make_demo_pki
+
+    secrets, pki = out / "secrets", out / "pki"
+    for d in (secrets, pki):
+        if d.exists():
+            raise DemoError(f"{d} exists (secrets of another run): use a new flight directory")
+    secrets.mkdir(mode=0o700, parents=True)
+    os.chmod(secrets, 0o700)
+    keys = []
+    signing = []
+    for i in range(drones):
+        key_hex = os.urandom(32).hex()
+        path = secrets / f"mavlink-{i}.key"
+        _write_secret(path, key_hex + "\n")
+        keys.append(path)
+        signing.append({"key_hex": key_hex, "require": True, "system_id": i + 1})
+    sitl_config = secrets / "sitl-signing.json"
+    _write_secret(sitl_config, json.dumps({"signing": signing}) + "\n")  # JSON is YAML
+    try:
+        make_demo_pki(pki, drones, days=2, swarm=swarm)
+    except (CertError, ValueError) as e:
+        raise DemoError(f"cannot make the demo certificates: {e}") from e
+    return SecurityFiles(secrets, tuple(keys), sitl_config, pki)
+
+
+def _session_links(session: Any, timeout_s: float = 2.0) -> list[dict[str, Any]]:
+    """The links of a Zenoh session's unicast transports from its admin space (``src``,
+    ``dst`` locators, ``auth_identifier``: the peer's certificate name under mutual TLS)."""
+    zid = str(session.info.zid())
+    out = []
+    for reply in session.get(f"@/{zid}/session/transport/unicast/*/link/*", timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        link = json.loads(reply.ok.payload.to_bytes())
+        link["peer"] = str(reply.ok.key_expr).split("/")[-3]
+        out.append(link)
+    return out
+
+
+def _refused(endpoints: Any) -> bool:
+    """True if a session with these endpoints cannot open (every connect endpoint must be
+    reached within 1.5 s; a good handshake on loopback takes milliseconds)."""
+    import dataclasses
+
+    eps = dataclasses.replace(
+        endpoints,
+        extra={**endpoints.extra, "connect/timeout_ms": "1500", "connect/exit_on_failure": "true"},
+    )
+    try:
+        s = open_session(eps)
+    except RuntimeError:
+        return True
+    s.close()
+    return False
+
+
+def _percentiles(ms: Sequence[float]) -> dict[str, float | int | None]:
+    a = np.asarray(ms, dtype=np.float64)
+    if a.size == 0:
+        return {"median": None, "p90": None, "p99": None, "max": None, "count": 0}
+    return {
+        "median": float(np.median(a)),
+        "p90": float(np.percentile(a, 90)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(a.max()),
+        "count": int(a.size),
+    }
+
+
 # --- the mock's truth ------------------------------------------------------------------------
 
 
@@ -351,6 +482,13 @@ class Demo:
         self.flight = FlightLog()
         self.sitl_stats: dict[str, Any] = {}
         self.exit_codes: dict[str, int | None] = {}
+        self.security: SecurityFiles | None = None
+        self.security_checks: dict[str, Any] = {}
+        self.gs_session: Any = None
+        # drone trajectories as they reach this station's inbox: (sender, receive time,
+        # receive time minus the sender's stamp taken just before publishing)
+        self._traj_lock = threading.Lock()
+        self.traj_latency: list[tuple[int, float, float]] = []
 
     # -- lifecycle --
 
@@ -368,6 +506,9 @@ class Demo:
         if self.gs is not None:
             self.gs.close()
             self.gs = None
+        if self.gs_session is not None:
+            self.gs_session.close()
+            self.gs_session = None
         if self.truth is not None:
             self.truth.close()
             self.truth = None
@@ -394,6 +535,9 @@ class Demo:
             sock.close()
         self.base_port = base_port
         self.world_file = self._world_file()
+        if cfg.secure:
+            self.security = prepare_security(self.out, n, self.swarm)
+            self._event("signing keys and demo certificates made (secrets/, pki/)")
         sitl = [
             *_exe("swarm-sitl", "sitl_mock.cli"),
             "--count", str(n), "--world", str(self.world_file), "--seed", str(cfg.seed),
@@ -403,6 +547,8 @@ class Demo:
             "--depth-step", str(cfg.depth_step), "--depth-idle-rate", "1",
             "--stats-json", str(self.out / "sitl-stats.json"),
         ]  # fmt: skip
+        if self.security is not None:  # the keys by system id, in a 0600 file: not on argv
+            sitl += ["--config", str(self.security.sitl_config)]
         for s in cfg.sitl_sets:
             sitl += ["--set", s]
         self.procs.start("sitl", sitl, nice=cfg.sitl_nice)
@@ -424,8 +570,21 @@ class Demo:
             for s in cfg.onboard_sets:
                 argv += ["--set", s]
             self.procs.start(f"drone{i}", argv, env={"OPENBLAS_NUM_THREADS": "1"})
-        self.gs = GroundStation(self.swarm, mesh[0], config=StationConfig(ack_timeout_s=5.0))
+        gs_eps = mesh[0]
+        if self.security is not None:
+            from onboard.comm.security import SwarmAccessControl
+
+            gs_eps = gs_eps.secured(
+                self.security.gcs_tls(), SwarmAccessControl.for_count(self.swarm, n)
+            )
+        self.gs_endpoints = gs_eps
+        self.drone_endpoints = mesh[1:]
+        self.gs_session = open_session(gs_eps)
+        self.gs = GroundStation(
+            self.swarm, session=self.gs_session, config=StationConfig(ack_timeout_s=5.0)
+        )
         gs = self.gs
+        gs.node.on_trajectory(self._on_trajectory)
         ids = list(range(n))
 
         def all_idle() -> bool:
@@ -434,6 +593,8 @@ class Demo:
 
         self._wait("services", all_idle, cfg.startup_timeout_s)
         self._event(f"{n} flight services up and idle")
+        if self.security is not None:
+            self._check_bus_security()
         if cfg.view_port is not None:
             from gcs.commands import mock_world
             from gcs.view import SwarmView, station_input
@@ -441,6 +602,69 @@ class Demo:
             w = mock_world(str(self.world_file), n, cfg.seed, cfg.spacing_m)
             self.view = SwarmView(station_input(gs), w, port=cfg.view_port).start()
             self._event(f"Foxglove view on {self.view.url}")
+
+    def _on_trajectory(self, env: Any, _receive_s: float) -> None:
+        """A drone's trajectory accepted by this station's node (Zenoh's thread): its latency
+        from the publisher's stamp to the inbox, built as a drone's inbox builds it. Both clocks
+        are this machine's system clock (as in ``swarm-gcs bench bus``)."""
+        from onboard.comm.messages import TrajectoryMsg
+
+        TrajectoryMsg.from_envelope(env)
+        now = time.time()
+        with self._traj_lock:
+            self.traj_latency.append((int(env.sender), now, now - float(env.stamp_s)))
+
+    def bus_latency(self) -> dict[str, Any]:
+        """Trajectory latency (ms), publish -> this station's inbox, while the swarm flew (from
+        the take-off command to the landing command)."""
+        t0 = getattr(self, "t_takeoff", math.inf)
+        t1 = getattr(self, "t_land_cmd", math.inf)
+        with self._traj_lock:
+            kept = [(d, lat) for d, t, lat in self.traj_latency if t0 <= t <= t1]
+        out: dict[str, Any] = _percentiles([lat * 1e3 for _, lat in kept])
+        out["per_drone"] = {
+            str(d): sum(1 for s, _ in kept if s == d) for d in range(self.cfg.drones)
+        }
+        return out
+
+    def _check_bus_security(self) -> None:
+        """The swarm bus is secured in fact: every link of this station's session is TLS and
+        authenticated as a drone of the swarm, and intruders are refused: a plain TCP session
+        and a TLS session without a certificate, both to drone 0's listener."""
+        from onboard.comm.security import drone_common_name
+        from onboard.comm.zenoh_session import ZenohEndpoints
+
+        assert self.gs_session is not None and self.security is not None
+        links = _session_links(self.gs_session)
+        locators = sorted({ep for ln in links for ep in (ln.get("src"), ln.get("dst")) if ep})
+        idents = sorted({str(ln.get("auth_identifier")) for ln in links})
+        want = sorted(drone_common_name(i) for i in range(self.cfg.drones))
+        target = self.drone_endpoints[0].listen[0]  # tcp/127.0.0.1:PORT (its TLS listener)
+        ca = str(self.security.pki_dir.resolve() / "ca.pem")
+        plain = _refused(ZenohEndpoints(connect=(target,)))
+        no_cert = _refused(
+            ZenohEndpoints(
+                connect=(target.replace("tcp/", "tls/", 1),),
+                extra={"transport/link/tls/root_ca_certificate": json.dumps(ca)},
+            )
+        )
+        self.security_checks = {
+            "links": len(links),
+            "link_locators_tls_only": bool(locators)
+            and all(x.startswith("tls/") for x in locators),
+            "link_identities": idents,
+            "every_drone_authenticated": set(want) <= set(idents),
+            "plain_tcp_session_refused": plain,
+            "session_without_certificate_refused": no_cert,
+        }
+        self._event(
+            f"bus security: {len(links)} links, TLS only "
+            f"{self.security_checks['link_locators_tls_only']}, identities {idents}, "
+            f"plain session refused {plain}, no-certificate session refused {no_cert}"
+        )
+        bad = [k for k, v in self.security_checks.items() if v is False]
+        if bad:
+            raise DemoError(f"the swarm bus is not secured as configured: {', '.join(bad)}")
 
     def _world_file(self) -> Path:
         """The world as flown: the named world with per-drone ``starts`` and ``goals`` in the
@@ -471,13 +695,17 @@ class Demo:
         origins = {
             str(i): [float(p[0]), float(p[1]), ground] for i, p in enumerate(world["starts"])
         }
-        data = {
+        autopilot: dict[str, Any] = {
+            "url": f"udp://127.0.0.1:{base_port}",
+            "port_plus_id": True,
+            "local_origins_enu_m": origins,
+        }
+        if self.security is not None:
+            autopilot["signing_key_file"] = self.security.signing_key_pattern
+            autopilot["signing_required"] = True
+        data: dict[str, Any] = {
             "drone": {"swarm": self.swarm},
-            "autopilot": {
-                "url": f"udp://127.0.0.1:{base_port}",
-                "port_plus_id": True,
-                "local_origins_enu_m": origins,
-            },
+            "autopilot": autopilot,
             "depth": {
                 "source": "zenoh-sim",
                 "rate_hz": self.depth_rate_hz,
@@ -490,6 +718,11 @@ class Demo:
             "record": {"enabled": True, "directory": str(self.out.resolve())},
             "logging": {"format": "json"},
         }
+        if self.security is not None:
+            data["zenoh"] = {
+                "tls": self.security.tls_section(),
+                "access_control_drones": cfg.drones,
+            }
         return json.dumps(data, indent=2) + "\n"  # JSON is YAML
 
     # -- waiting --
@@ -621,6 +854,7 @@ class Demo:
             time.sleep(0.1)
         self.t_arrived = time.time()
         self._event(f"arrived after {self.t_arrived - self.t_goal:.1f} s")
+        self.t_land_cmd = time.time()
         self._need(gs.land())
 
         def all_landed() -> bool:
@@ -685,6 +919,53 @@ class Demo:
             self.sitl_stats = json.loads(stats_file.read_text())
         return self._result(live_collisions)
 
+    def signing_checks(self) -> dict[str, Any]:
+        """MAVLink signing as flown: each service's autopilot counters (the last ``/counters``
+        of its flight record: frames received, unsigned refused, bad signatures, unsigned let
+        through) and each mock vehicle's (messages accepted, unsigned refused). With signing
+        required on both ends, every frame accepted was signed with the drone's key."""
+        from onboard.record import read_record
+
+        services: dict[str, dict[str, int]] = {}
+        for path in sorted(self.out.glob("*.mcap")):
+            rec = read_record(path)
+            last = rec.messages("/counters")
+            if not last:
+                continue
+            c = last[-1]["counters"]
+            d = str(rec.drone_id)
+            prev = services.get(d, {})
+            services[d] = {
+                k: int(c.get(f"autopilot.{k}", 0)) + prev.get(k, 0)
+                for k in (
+                    "messages_received", "unsigned_rejected", "bad_signatures",
+                    "unsigned_accepted", "setpoints_sent",
+                )
+            }  # fmt: skip
+        vehicles = {
+            str(int(ln["system_id"])): {
+                "rx_messages": int(ln.get("rx_messages", 0)),
+                "rx_rejected_unsigned": int(ln.get("rx_rejected_unsigned", 0)),
+                "setpoints": int(ln.get("setpoints", 0)),
+            }
+            for ln in self.sitl_stats.get("links", [])
+        }
+        ok = (
+            len(services) == self.cfg.drones
+            and len(vehicles) == self.cfg.drones
+            and all(
+                v["messages_received"] > 0
+                and v["unsigned_rejected"] == 0
+                and v["bad_signatures"] == 0
+                and v["unsigned_accepted"] == 0
+                for v in services.values()
+            )
+            and all(
+                v["rx_messages"] > 0 and v["rx_rejected_unsigned"] == 0 for v in vehicles.values()
+            )
+        )
+        return {"signed_only": ok, "services": services, "vehicles": vehicles}
+
     def mission(self) -> dict[str, Any]:
         s = self.sitl_stats
         collisions = s.get("collisions")
@@ -727,8 +1008,26 @@ class Demo:
         collisions = sitl["collisions"] if sitl["collisions"] is not None else live_collisions
         arrived = hasattr(self, "t_arrived")
         services_ok = all(rc == 0 for n, rc in self.exit_codes.items() if n.startswith("drone"))
+        security: dict[str, Any] = {"signing": False, "zenoh_tls": False}
+        secure_ok = True
+        if self.security is not None:
+            signing = self.signing_checks()
+            bus = dict(self.security_checks)
+            security = {
+                "signing": True,
+                "zenoh_tls": True,
+                "access_control": True,
+                "signing_checks": signing,
+                "bus_checks": bus,
+            }
+            secure_ok = (
+                bool(signing["signed_only"])
+                and bool(bus)
+                and all(v is not False for v in bus.values())
+            )
+        latency = self.bus_latency()
         result = {
-            "success": bool(arrived and collisions == 0 and services_ok),
+            "success": bool(arrived and collisions == 0 and services_ok and secure_ok),
             "arrived": arrived,
             "collisions": collisions,
             "e_dist_m": flown["e_dist_m"],
@@ -743,6 +1042,8 @@ class Demo:
             "crossing_time_s": (self.t_arrived - self.t_goal) if arrived else None,
             "formation_change_reached_s": getattr(self, "change_reached_s", None),
             "setpoint_period_ms": {k: sp.get(k) for k in ("median", "p99", "max", "count")},
+            "bus_latency_ms": latency,
+            "security": security,
             "plan_ms": {k: summary.get("plan_ms", {}).get(k) for k in ("median", "p90", "max")},
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
@@ -841,14 +1142,20 @@ def demo_command() -> Any:
                   help="Override a setting of every flight service.")  # fmt: skip
     @click.option("--set-sitl", "sitl_sets", multiple=True, metavar="KEY=VALUE",
                   help="Override a setting of the mock fleet.")  # fmt: skip
+    @click.option("--secure", is_flag=True,
+                  help="MAVLink 2 signing between every service and its vehicle (fresh random "
+                  "keys, 0600, in the flight directory; the mock imitates PX4 v1.17+) and the "
+                  "swarm bus over Zenoh mutual TLS with access control (a demo CA). The mock's "
+                  "truth/depth session is the simulator, not the swarm bus: it stays plain "
+                  "TCP.")  # fmt: skip
     @click.option("--startup-timeout", type=float, default=180.0, show_default=True)
     @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
     @click.option("--quiet", "-q", is_flag=True, help="No progress display.")
     def demo(
         drones: int, formation: str, world: str, seed: int, change: str | None,
         depth_rate: float | None, v_max: float | None, out_dir: Path | None, view_port: int | None,
-        onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], startup_timeout: float,
-        as_json: bool, quiet: bool,
+        onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], secure: bool,
+        startup_timeout: float, as_json: bool, quiet: bool,
     ) -> None:  # fmt: skip
         """Fly the real stack on this machine: the mock fleet, one flight service per drone
         and this ground station, through a forest; print the result and write the report.
@@ -862,6 +1169,7 @@ def demo_command() -> Any:
             drones=drones, formation=formation, world=world, seed=seed, formation_change=fc,
             depth_rate_hz=depth_rate, v_max_m_s=v_max, view_port=view_port,
             onboard_sets=onboard_sets, sitl_sets=sitl_sets, startup_timeout_s=startup_timeout,
+            secure=secure,
         )  # fmt: skip
         console = Console(quiet=quiet or as_json, highlight=False, stderr=True)
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
@@ -929,6 +1237,35 @@ def result_text(r: dict[str, Any]) -> str:
         f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
         f"p99 {f(sp.get('p99'), '.1f')} ms, max {f(sp.get('max'), '.1f')} ms",
     ]
+    lat = r.get("bus_latency_ms") or {}
+    if lat:
+        lines.append(
+            f"bus latency (drone trajectory -> ground station inbox, {lat.get('count', 0)} "
+            f"messages): median {f(lat.get('median'), '.2f')} ms, p99 {f(lat.get('p99'), '.2f')} "
+            f"ms, max {f(lat.get('max'), '.2f')} ms"
+        )
+    sec = r.get("security") or {}
+    if sec.get("signing"):
+        sg = sec.get("signing_checks", {})
+        bus = sec.get("bus_checks", {})
+        rx = sum(v.get("messages_received", 0) for v in sg.get("services", {}).values())
+        vrx = sum(v.get("rx_messages", 0) for v in sg.get("vehicles", {}).values())
+
+        def yes(x: Any) -> str:
+            return "yes" if x else "NO"
+
+        refused = bus.get("plain_tcp_session_refused") and bus.get(
+            "session_without_certificate_refused"
+        )
+        idents = ", ".join(bus.get("link_identities", [])) or "-"
+        lines.append(
+            f"security: MAVLink 2 signing on (signed only: {yes(sg.get('signed_only'))}; {rx} "
+            f"frames to the services, {vrx} to the vehicles), Zenoh mutual TLS + access control "
+            f"on (TLS links only: {yes(bus.get('link_locators_tls_only'))}, identities {idents}; "
+            f"plain and certificate-less sessions refused: {yes(refused)})"
+        )
+    else:
+        lines.append("security: off (MAVLink unsigned, swarm bus plain TCP; --secure turns it on)")
     if r.get("formation_change_reached_s") is not None:
         lines.append(f"new formation reached after {f(r['formation_change_reached_s'], '.1f')} s")
     lines.append(f"flight directory: {r['flight_dir']} (report in report/)")

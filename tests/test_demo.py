@@ -69,6 +69,7 @@ def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path)
     services' depth-lost timeout follows the rate (4 frame periods, at least 0.5 s)."""
     for n, formation, rate, timeout in ((3, "triangle-3", 10.0, 0.5), (7, "hexagon-7", 5.0, 0.8)):
         d = Demo(DemoConfig(drones=n, formation=formation, out_dir=tmp_path / formation))
+        d.world_file = d._world_file()  # the services' local origins come from its starts
         assert d.depth_rate_hz == rate
         onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
         assert onboard["depth"]["rate_hz"] == rate
@@ -76,6 +77,7 @@ def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path)
     d = Demo(
         DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=2.0, out_dir=tmp_path / "c")
     )
+    d.world_file = d._world_file()
     onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
     assert onboard["reactions"]["depth_lost"]["timeout_s"] == pytest.approx(2.0)
     with pytest.raises(DemoError, match="depth_rate_hz"):
