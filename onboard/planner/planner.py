@@ -37,6 +37,13 @@ from onboard.planner.params import PlannerParams
 from onboard.planner.timemap import T_from_tau, tau_from_T
 from onboard.planner.trajectory import Trajectory
 
+COMFORT_LOOKAHEAD_S = 1.0
+"""``comfort_obstacle_m`` looks at the trajectory from this long after its start (the replan
+period): an approach sooner than that is flown before another way could be taken."""
+COMFORT_ASTAR_MARGIN_M = 1.5
+"""The A* box of the comfort alternative grows the start-target box by this much (3 m for the
+fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
+
 
 class PlanStatus(str, enum.Enum):
     """Outcome of one replan."""
@@ -325,6 +332,7 @@ class FormationPlanner:
         field: DistanceField,
         previous: Trajectory | None,
         force_astar: bool,
+        astar_margin_m: float = 3.0,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Initial path (K, 3) and, when it follows the previous trajectory, its times (K,)
         relative to t_start (the warm start keeps the previous timing)."""
@@ -347,6 +355,7 @@ class FormationPlanner:
             target,
             clearance_m=p.obstacle_clearance_m,
             resolution_m=p.astar_resolution_m,
+            margin_m=astar_margin_m,
             z_limits=p.altitude_band_inner_m,
         )
         if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
@@ -356,6 +365,7 @@ class FormationPlanner:
                 target,
                 clearance_m=p.check_obstacle_m,
                 resolution_m=p.astar_resolution_m,
+                margin_m=astar_margin_m,
                 z_limits=p.altitude_band_inner_m,
             )
         return (line if astar is None else astar), None
@@ -413,6 +423,7 @@ class FormationPlanner:
         previous: Trajectory | None = None,
         use_formation: bool = True,
         force_astar: bool = False,
+        astar_margin_m: float = 3.0,
     ) -> Problem:
         """Build the optimisation problem of one replan (validated inputs, initial guess)."""
         p = self.params
@@ -430,7 +441,9 @@ class FormationPlanner:
                 raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
             seen.add(pt.slot)
         target = self._local_target(sp, gl, field)
-        path, times = self._guess_path(t_start_s, sp, target, field, previous, force_astar)
+        path, times = self._guess_path(
+            t_start_s, sp, target, field, previous, force_astar, astar_margin_m
+        )
         path[0] = sp
         length = _polyline_length(path)
         M = int(np.clip(np.ceil(length / p.piece_length_m), 1, p.max_pieces))
@@ -487,7 +500,7 @@ class FormationPlanner:
         field has not observed (``field.is_known``); a start in
         unobserved space may be left.
         """
-        ok, why, _ = self._check(traj, t_from_s, field, peers)
+        ok, why, _, _ = self._check(traj, t_from_s, field, peers)
         return ok, why
 
     def _check(
@@ -496,15 +509,15 @@ class FormationPlanner:
         t_from_s: float,
         field: DistanceField,
         peers: Sequence[PeerTrajectory],
-    ) -> tuple[bool, str, float]:
-        """``check`` plus the trajectory's closest approach to an obstacle (NaN when the test
-        stopped before the obstacle distances)."""
+    ) -> tuple[bool, str, float, float]:
+        """``check`` plus the trajectory's closest approach to an obstacle, over all of it and
+        from ``COMFORT_LOOKAHEAD_S`` on (NaN when the test stopped before the distances)."""
         p = self.params
         t_end = max(traj.t_end_s, t_from_s)
         ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
         pos = traj.sample(ts)
         if not np.all(np.isfinite(pos)):
-            return False, "non-finite trajectory", float("nan")
+            return False, "non-finite trajectory", float("nan"), float("nan")
         lo, hi = p.z_limits_m
         ok, k = _altitude_check(pos[:, 2], lo, hi)
         if not ok:
@@ -513,14 +526,17 @@ class FormationPlanner:
                 f"altitude {pos[k, 2]:.2f} m at t={ts[k] - t_from_s:.2f} s outside the band "
                 f"[{lo:g}, {hi:g}] m",
                 float("nan"),
+                float("nan"),
             )
         d, _ = field.distance(pos)
         clearance = float(np.min(d))
+        later = ts >= t_from_s + COMFORT_LOOKAHEAD_S
+        ahead = float(np.min(d[later])) if np.any(later) else float("inf")
         ok, why = _band_check(d, p.check_obstacle_m)
         if not ok:
             k = int(np.argmin(d))
             reason = f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
-            return False, reason, clearance
+            return False, reason, clearance, ahead
         for pt in peers:
             other = pt.trajectory.sample(ts)
             dd = np.linalg.norm(pos - other, axis=1)
@@ -528,7 +544,7 @@ class FormationPlanner:
             if not ok:
                 k = int(np.argmin(dd))
                 reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
-                return False, reason, clearance
+                return False, reason, clearance, ahead
         if p.check_known_s > 0.0:
             n = int(np.searchsorted(ts, t_from_s + p.check_known_s, side="right"))
             known = field.is_known(pos[:n])
@@ -538,8 +554,8 @@ class FormationPlanner:
                 if entered.size:
                     k = first_known + int(entered[0])
                     reason = f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
-                    return False, reason, clearance
-        return True, "", clearance
+                    return False, reason, clearance, ahead
+        return True, "", clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest."""
@@ -603,19 +619,20 @@ class FormationPlanner:
                 messages.append("non-finite solution")
                 continue
             traj = problem.trajectory(x)
-            safe, why, clearance = self._check(traj, t_start_s, field, peers)
+            safe, why, clearance, ahead = self._check(traj, t_start_s, field, peers)
             if not safe:
                 x2, st2 = problem.solve(x, self._lb_prm_refine)
                 if st2 != LbfgsStatus.CANCELED and np.all(np.isfinite(x2)):
                     x, last_status = x2, st2
                     traj = problem.trajectory(x)
-                    safe, why, clearance = self._check(traj, t_start_s, field, peers)
-            if safe and not force_astar and clearance < self.params.comfort_obstacle_m:
+                    safe, why, clearance, ahead = self._check(traj, t_start_s, field, peers)
+            if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
-                # chose when the gap was far): try the way an A* path at the optimiser's
-                # clearance takes, with the same terms, and fly the roomier of the two
+                # chose when the gap was far) far enough ahead to choose another: try the way
+                # an A* path at the optimiser's clearance takes, with the same terms, and fly
+                # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
-                if clearance < start_d - 1e-3:
+                if ahead < start_d - 1e-3:
                     alt = self.prepare(
                         t_start_s,
                         sp,
@@ -627,6 +644,7 @@ class FormationPlanner:
                         previous,
                         use_formation=use_formation,
                         force_astar=True,
+                        astar_margin_m=COMFORT_ASTAR_MARGIN_M,
                     )
                     self._active = alt
                     x_alt, st_alt = alt.solve()
@@ -635,7 +653,7 @@ class FormationPlanner:
                     evals += alt.evaluations
                     if st_alt != LbfgsStatus.CANCELED and np.all(np.isfinite(x_alt)):
                         traj_alt = alt.trajectory(x_alt)
-                        ok_alt, _, clr_alt = self._check(traj_alt, t_start_s, field, peers)
+                        ok_alt, _, clr_alt, _ = self._check(traj_alt, t_start_s, field, peers)
                         if ok_alt and clr_alt > clearance:
                             problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
                             messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
