@@ -113,3 +113,46 @@ def test_depth_codec_converts_millimetres_in_one_pass_as_before() -> None:
     mm = np.clip(np.rint(d.astype(np.float64) * 1000.0), 0, 65535).astype("<u2")
     np.testing.assert_array_equal(back.depth_m, mm.astype(np.float32) / np.float32(1000.0))
     assert back.depth_m.dtype == np.float32
+
+
+def _column(om: OccupancyMap) -> tuple[np.ndarray, ...]:
+    from onboard.mapping.esdf import _column_pass
+
+    shape = om.shape
+    f_out = np.empty(shape, np.float32)
+    feat = np.empty(shape, np.int32)
+    f_in = np.empty(shape, np.float32)
+    occ = np.empty(shape, np.bool_)
+    known = np.empty(shape, np.bool_)
+    spt = np.empty((*shape, 3), np.float32)
+    n = _column_pass(
+        om.logodds, om.surf, om.lo, om.params.l_occ, om.res, f_out, feat, f_in, occ, known, spt
+    )
+    return f_in, feat, occ, n
+
+
+def test_inside_search_equals_the_envelope_transform_or_leaves_it_to_it() -> None:
+    from onboard.mapping.esdf import _envelope_pass, _inside_local
+
+    rng = np.random.default_rng(11)
+    searched = fell_back = 0
+    for t in range(12):
+        p = OccupancyParams(size_m=(3.2, 2.8, 2.4), floor_z_m=None)
+        om = OccupancyMap(p, center=rng.normal(size=3))
+        dens = [0.01, 0.05, 0.2, 0.5, 0.8, 0.95, 1.0, 0.3, 0.02, 0.1, 0.6, 0.4][t]
+        lo = np.where(rng.random(om.shape) < dens, 2.0, -1.0).astype(np.float32)
+        if t in (3, 8):  # a solid block: inside distances beyond the search radius
+            lo[2:30, 1:27, 1:23] = 2.0
+        om.logodds[...] = lo
+        f_in, feat, occ, n = _column(om)
+        ref = f_in.copy()
+        _envelope_pass(ref, 1, 0.0, feat, False)
+        _envelope_pass(ref, 0, 0.0, feat, False)
+        before = f_in.copy()
+        if _inside_local(occ, f_in, n, 8):
+            searched += 1
+            np.testing.assert_array_equal(f_in[occ], ref[occ])
+        else:
+            fell_back += 1
+            np.testing.assert_array_equal(f_in, before)  # untouched: the envelope runs
+    assert searched >= 6 and fell_back >= 2
