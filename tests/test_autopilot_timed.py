@@ -109,7 +109,8 @@ def _poll(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 
 @pytest.mark.timeout(60)
-def test_pymavlink_link_streams_through_the_timed_sender() -> None:
+@pytest.mark.parametrize("timed", [True, False])
+def test_pymavlink_link_streams_through_the_timed_sender(timed: bool) -> None:
     _ready()
     socks = bind_consecutive_udp(1)
     port = socks[0].getsockname()[1]
@@ -130,6 +131,7 @@ def test_pymavlink_link_streams_through_the_timed_sender() -> None:
             url=f"udpin://127.0.0.1:{port}", implementation="pymavlink", local_origin_enu_m=spawn
         )
     )
+    link.timed_setpoints = timed  # False: from Python, as serial and MAVSDK links do
     calls: list[tuple[float, float]] = []  # (sample time asked for, wall clock at the call)
 
     def source(t: float) -> Setpoint:
@@ -141,11 +143,18 @@ def test_pymavlink_link_streams_through_the_timed_sender() -> None:
         link.connect(10.0)
         link.wait_healthy(10.0)
         link.start_streaming(source)
-        _poll(lambda: link.timed_setpoints_sent >= 25, 10.0, "timed setpoints")
+        _poll(lambda: link.counters().setpoints_sent >= 25, 10.0, "setpoints")
         sp = fleet.autopilots[0].offboard_setpoint
         assert sp is not None and math.dist(sp.position_m, (spawn[0] + 0.5, spawn[1], 0.0)) < 1e-4
-        # each tick is prepared ahead and sampled at the time it will be sent
-        assert any(t > wall + 1e-3 for t, wall in calls)
+        if timed:
+            # all of them (the kernel was compiled before connecting; read in this order, the
+            # two counters may differ by the setpoint being counted at that instant)
+            timed_n = link.timed_setpoints_sent
+            assert timed_n >= link.counters().setpoints_sent - 1 >= 24
+            # each tick is prepared ahead and sampled at the time it will be sent
+            assert any(t > wall + 1e-3 for t, wall in calls)
+        else:
+            assert link.timed_setpoints_sent == 0
         assert all(b[0] > a[0] for a, b in zip(calls, calls[1:], strict=False))
         link.stop_streaming()
         sent = link.counters().setpoints_sent

@@ -215,9 +215,10 @@ class AutopilotLink(ABC):
     """
 
     implementation = "abstract"
-    timed_setpoints = True
-    """Send setpoints from the native timed sender where the implementation supports it (set
-    False on an instance before ``connect`` to send from Python)."""
+    timed_setpoints = False
+    """Send setpoints from the native timed sender (``timed_send``): implementations that
+    support it (``_timed_ready``, ``_send_setpoint_at``) set it; False on an instance before
+    ``connect`` sends from Python."""
 
     def __init__(
         self,

@@ -54,6 +54,7 @@ class PymavlinkLink(AutopilotLink):
     None opens the one ``config.url`` names."""
 
     implementation = "pymavlink"
+    timed_setpoints = True  # over UDP (see _timed_ready)
 
     def __init__(
         self,
