@@ -756,6 +756,7 @@ def run_service_bench(
                     "peak_rss_mb": mem.get("VmHWM", 0) / 1024.0,
                     "depth_frames_per_s": frames,
                     "depth_frames_missed_per_s": delta("service.frames_missed") / wall,
+                    "esdf_refreshes_per_s": delta("service.esdf_builds") / wall,
                     "cpu_cores_by_worker": workers,
                     "autopilot_late_ticks": delta("autopilot.late_ticks"),
                     "replans": c1.get("service.replans", 0) - c0.get("service.replans", 0),
@@ -897,6 +898,7 @@ def bench_service(
     t.add_row("first start to READY, s", _fmt(report["first_start_to_ready_s"], ".2f"), "")
     t.add_row("depth frames mapped per s", _fmt(report["depth_frames_per_s"]), f"{depth_rate:g}")
     t.add_row("depth frames missed per s", _fmt(report["depth_frames_missed_per_s"]), "0")
+    t.add_row("ESDF refreshes per s", _fmt(report.get("esdf_refreshes_per_s")), ">= 10")
     for name, cores in sorted(report["cpu_cores_by_worker"].items()):
         t.add_row(f"  CPU of the {name} thread, cores", _fmt(cores, ".3f"), "")
     t.add_row("replans (failed)", f"{report['replans']} ({report['plans_failed']})", "")

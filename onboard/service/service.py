@@ -196,7 +196,7 @@ class FlightService:
         self.mapper: Any = None
         self._last_frame_s = -math.inf
         self._last_frame_stamp = -math.inf
-        self._last_esdf_s = -math.inf
+        self._next_esdf_s = -math.inf  # the ESDF refresh's next deadline (a fixed phase)
         self._offboard_seen = False
         self._land_seen = False
         self._depth_lost = False
@@ -468,9 +468,15 @@ class FlightService:
             self.counters["frames_missed"] += max(0, int(round(gap)) - 1)
         self._last_frame_stamp = stamp
         self._last_frame_s = now
-        if now - self._last_esdf_s >= 1.0 / self.cfg.mapping.esdf_rate_hz - 1e-3:
+        if now >= self._next_esdf_s:
             self._field = self.mapper.planning_field()
-            self._last_esdf_s = now
+            # deadlines a period apart, each refresh at the first frame at or after one: the
+            # refreshes keep esdf_rate_hz on average whatever the frames' jitter (a period
+            # measured from the last refresh lost a whole frame interval to a frame that came
+            # a little early); after a stall the schedule restarts from now
+            period = 1.0 / self.cfg.mapping.esdf_rate_hz
+            nxt = self._next_esdf_s + period
+            self._next_esdf_s = nxt if now < nxt else now + period
             self.counters["esdf_builds"] += 1
             self._cpu("esdf", time.thread_time() - c1)
             if now - self._last_map_record_s >= 0.5:
