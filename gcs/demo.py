@@ -1100,6 +1100,8 @@ def run_demo(cfg: DemoConfig, progress: Progress | None = None) -> dict[str, Any
     if error is not None:
         result["success"] = False
         result["error"] = error
+        # result.json (written by finish) says why too
+        (demo.out / "result.json").write_text(json.dumps(_json_safe(result), indent=2) + "\n")
     return result
 
 
