@@ -291,6 +291,11 @@ class AutopilotLink(ABC):
     def _send_setpoint(self, sp: NedSetpoint) -> bool:
         """Send SET_POSITION_TARGET_LOCAL_NED (frame 1, time_boot_ms 0) for ``sp``."""
 
+    def _timed_capable(self) -> bool:
+        """Whether this link, once open, can send setpoints at their deadlines (then the timed
+        sender is set up at ``connect``)."""
+        return self.timed_setpoints
+
     def _timed_ready(self) -> bool:
         """Whether ``_send_setpoint_at`` can send at a deadline now (default: never)."""
         return False
@@ -324,7 +329,7 @@ class AutopilotLink(ABC):
         if not self._opened:
             self._open()
             self._opened = True
-            if self._timed is None and timed_send.available and self.timed_setpoints:
+            if self._timed is None and timed_send.available and self._timed_capable():
                 timed_send.start_compile()
                 self._timed = timed_send.TimedSender()
             self._start_thread(self._stream_loop, "autopilot-stream")

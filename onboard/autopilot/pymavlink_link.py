@@ -270,6 +270,9 @@ class PymavlinkLink(AutopilotLink):
             mav.seq = (mav.seq + 1) % 256
             return t.write(buf)
 
+    def _timed_capable(self) -> bool:
+        return self.timed_setpoints and isinstance(self._transport, UdpTransport)
+
     def _timed_ready(self) -> bool:
         t = self._transport
         return (
