@@ -79,6 +79,19 @@ def test_tls_and_access_control_reach_the_bus_endpoints(tmp_path: Path) -> None:
     )
     ep = cfg.zenoh.endpoints(cfg.drone.id, cfg.drone.swarm)
     assert ep.listen == ("tls/127.0.0.1:7450",)
+    # endpoints already written as tls/ are taken as they are (they used to be refused)
+    tls_cfg = load_onboard_config(
+        drone_id=1,
+        overrides={
+            "zenoh": {
+                "listen": ["tls/127.0.0.1:7450"],
+                "connect": ["tls/127.0.0.1:7451"],
+                "tls": dict(cfg.zenoh.tls.__dict__) if cfg.zenoh.tls is not None else None,
+            }
+        },
+    )
+    tls_ep = tls_cfg.zenoh.endpoints(1, cfg.drone.swarm)
+    assert tls_ep.listen == ("tls/127.0.0.1:7450",) and tls_ep.connect == ("tls/127.0.0.1:7451",)
     assert ep.tls is not None and ep.tls.certificate.endswith(cert)
     assert ep.access_control is not None
     plain = load_onboard_config(drone_id=1).zenoh.endpoints(1, "s")

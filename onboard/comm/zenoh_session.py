@@ -81,14 +81,15 @@ class ZenohEndpoints:
         ``access_control``."""
         return dataclasses.replace(
             self,
-            listen=tuple(_as_tls(ep) for ep in self.listen),
-            connect=tuple(_as_tls(ep) for ep in self.connect),
+            listen=tuple(as_tls_endpoint(ep) for ep in self.listen),
+            connect=tuple(as_tls_endpoint(ep) for ep in self.connect),
             tls=tls,
             access_control=access_control,
         )
 
 
-def _as_tls(endpoint: str) -> str:
+def as_tls_endpoint(endpoint: str) -> str:
+    """``tcp/HOST:PORT`` as ``tls/HOST:PORT``; other endpoints unchanged."""
     proto, _, rest = endpoint.partition("/")
     return f"tls/{rest}" if proto in ("tcp", "tls") else endpoint
 

@@ -190,16 +190,15 @@ class ZenohSection:
     def endpoints(self, drone_id: int | None = None, swarm: str | None = None) -> Any:
         """The endpoints of drone ``drone_id`` (TLS files and access control need the id and the
         swarm name; without TLS they are not used)."""
-        from onboard.comm.zenoh_session import ZenohEndpoints
+        from onboard.comm.zenoh_session import ZenohEndpoints, as_tls_endpoint
 
-        plain = ZenohEndpoints(
-            listen=self.listen,
-            connect=self.connect,
-            mode=self.mode,
-            multicast_scouting=self.multicast_scouting,
-        )
         if self.tls is None:
-            return plain
+            return ZenohEndpoints(
+                listen=self.listen,
+                connect=self.connect,
+                mode=self.mode,
+                multicast_scouting=self.multicast_scouting,
+            )
         if drone_id is None or swarm is None:
             raise ValueError("zenoh.tls: the drone id and swarm name are needed")
         from onboard.comm.security import SwarmAccessControl, TlsConfig
@@ -217,7 +216,15 @@ class ZenohSection:
             if self.access_control_drones is not None
             else None
         )
-        return plain.secured(tls, acl)
+        # tcp/ endpoints become tls/; tls/ endpoints stay as given
+        return ZenohEndpoints(
+            listen=tuple(as_tls_endpoint(e) for e in self.listen),
+            connect=tuple(as_tls_endpoint(e) for e in self.connect),
+            mode=self.mode,
+            multicast_scouting=self.multicast_scouting,
+            tls=tls,
+            access_control=acl,
+        )
 
 
 @dataclass(frozen=True)
