@@ -125,7 +125,7 @@ def _wait(cond: Callable[[], bool], timeout_s: float) -> bool:
 
 def _drain(drones: list[_Drone], cfg: BusBenchConfig) -> None:
     want = (cfg.drones - 1) * (cfg.messages + cfg.warmup)
-    _wait(lambda: all(d.received() >= want for d in drones), 3.0)
+    _wait(lambda: all(d.received() >= want for d in drones), 10.0)
 
 
 def _worker(drone: int, endpoints: Any, cfg: BusBenchConfig) -> None:
@@ -137,6 +137,8 @@ def _worker(drone: int, endpoints: Any, cfg: BusBenchConfig) -> None:
         every = set(range(cfg.drones))
         if not _wait(lambda: d.node.alive_drones() == every, 60.0):
             raise RuntimeError(f"drone {drone} sees {sorted(d.node.alive_drones())} only")
+        if not _wait(d.node.heard_by_someone, 30.0):  # subscriptions lag liveliness
+            raise RuntimeError(f"drone {drone}: nobody subscribes to its trajectories")
         print("ready", flush=True)
         start = float(sys.stdin.readline())
         for k in range(cfg.messages + cfg.warmup):
@@ -219,7 +221,12 @@ def _run_sessions(cfg: BusBenchConfig, eps: list[Any]) -> list[dict[str, Any]]:
         for i in range(cfg.drones):
             drones.append(_Drone(i, eps[i], cfg))
         every = set(range(cfg.drones))
-        if not _wait(lambda: all(d.node.alive_drones() == every for d in drones), 30.0):
+        if not _wait(
+            lambda: all(
+                d.node.alive_drones() == every and d.node.heard_by_someone() for d in drones
+            ),
+            30.0,
+        ):
             raise RuntimeError("the sessions did not all see each other")
         schedule = sorted(
             (_offset_s(cfg, d.i, k), d.i, k)

@@ -34,7 +34,7 @@ from onboard.planner.trajectory import Trajectory
 from onboard.service.adapters import SwarmBusAdapter
 
 SWARM = "t/swarm"
-DEADLINE_S = 10.0
+DEADLINE_S = 30.0  # a deadline on a loaded machine, not a timed assert
 
 
 def wait_for(cond: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
@@ -63,6 +63,10 @@ def mesh() -> Iterator[Callable[..., list[SwarmNode]]]:
             drones = {i for i in ids if i is not None}
             for n in nodes:
                 wait_for(partial(_sees, n, drones), "every drone alive")
+            if len(nodes) > 1:  # the subscriptions too, not only the liveliness tokens
+                for n in nodes:
+                    if n.drone_id is not None:
+                        wait_for(n.heard_by_someone, "a subscriber of the trajectories")
             return nodes
 
         yield make

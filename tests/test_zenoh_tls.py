@@ -80,7 +80,7 @@ class Victim:
             return list(self.got)
 
 
-def wait_for(pred: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
+def wait_for(pred: Callable[[], bool], what: str, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
         if time.monotonic() > deadline:

@@ -509,6 +509,14 @@ class SwarmNode:
         with self._lock:
             return self._gcs_up
 
+    def heard_by_someone(self, kind: str = "traj") -> bool:
+        """Whether some other session subscribes to this drone's ``kind`` messages (``traj``,
+        ``state``, ``status``, ``ack``): Zenoh's matching status. A liveliness token can arrive
+        before the subscriptions, so a message put right after a peer shows up may reach
+        nobody; False for a ground-station node (it publishes no such kind)."""
+        pub = self._pubs.get(kind)
+        return bool(pub is not None and pub.matching_status.matching)
+
     def query_alive(self, timeout_s: float = 1.0) -> tuple[set[int], bool]:
         """Ask the network now: (drones up, ground station up)."""
         drones: set[int] = set()
