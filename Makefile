@@ -55,17 +55,16 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy onboard gcs sitl_mock
 
-# With a Python 3.10 suite to follow, the default interpreter skips the slow scenario tests
-# (marker `slow`: flights against the mock, the demo): they run once, on 3.10, the interpreter
-# of the drone, whose onboard service they fly. Everything else runs on both.
-ifeq ($(strip $(PYTHON310)),)
-PYTEST_SELECT :=
-else
-PYTEST_SELECT := -m "not slow"
-endif
-
+# The quick tests run on every core (pytest-xdist, `-n auto`); the slow scenario tests (marker
+# `slow`: flights against the mock, the demo, whose processes are timing-sensitive) one at a
+# time, and only once: on Python 3.10, the interpreter of the drone whose service they fly
+# (on the default interpreter when no 3.10 is found). Everything else runs on both.
+PYTEST_FAST := -m "not slow" -n auto
 pytest: $(STAMP)
-	$(VENV)/bin/pytest -q $(PYTEST_SELECT)
+	$(VENV)/bin/pytest -q $(PYTEST_FAST)
+ifeq ($(strip $(PYTHON310)),)
+	$(VENV)/bin/pytest -q -m slow
+endif
 
 # The same environment and suite on Python 3.10. numba names its cache files after the Python
 # version (*.py310.nbi next to *.py311.nbi), so the two runs do not overwrite each other's kernels.
@@ -86,7 +85,8 @@ pytest310:
 	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PYTHON) -V 2>&1) only"
 else
 pytest310: $(STAMP310) | system-deps
-	$(VENV310)/bin/pytest -q -p no:cacheprovider
+	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_FAST)
+	$(VENV310)/bin/pytest -q -p no:cacheprovider -m slow
 endif
 
 # The two suites run one after the other (TEST_JOBS=2: side by side, one core each, faster but
