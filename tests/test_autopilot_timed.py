@@ -185,3 +185,32 @@ def test_the_kernel_is_compiled_once_for_the_types_it_is_called_with() -> None:
         ts.close()
         s.close()
         r.close()
+
+
+def test_realtime_request_is_the_callers_alone_and_not_inherited() -> None:
+    import os
+
+    out: dict[str, object] = {}
+
+    def child() -> None:
+        out["child"] = os.sched_getscheduler(threading.get_native_id())
+
+    def streamer() -> None:
+        tid = threading.get_native_id()
+        before = os.sched_getscheduler(tid)
+        out["granted"] = timed_send.request_realtime()
+        out["policy"] = os.sched_getscheduler(tid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+        out["before"] = before
+        t = threading.Thread(target=child)
+        t.start()
+        t.join()
+
+    t = threading.Thread(target=streamer)
+    t.start()
+    t.join()
+    if out["granted"]:
+        assert out["policy"] == os.SCHED_FIFO
+    else:  # no privilege: nothing changed
+        assert out["policy"] == out["before"]
+    assert out["child"] == os.SCHED_OTHER  # a thread it starts runs normally
+    assert os.sched_getscheduler(threading.get_native_id()) == os.SCHED_OTHER

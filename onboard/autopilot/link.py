@@ -10,7 +10,9 @@ Threads (all daemon, all stopped and joined by ``close``):
   the tick's time, the message encoded, and the native ``timed_send`` kernel sends it at the
   deadline without the interpreter lock, so the stream's timing does not depend on when the
   thread gets the GIL back from the mapping, planning and decoding threads; elsewhere the loop
-  sleeps to the deadline and sends from Python. Heartbeat and setpoints come from this one
+  sleeps to the deadline and sends from Python. The streamer thread then asks for real-time
+  priority (SCHED_FIFO 10, where permitted) or else a short scheduler slice, so that its
+  wake-up at the deadline is not queued behind other processes on a busy machine. Heartbeat and setpoints come from this one
   loop, so if it dies both stop (and PX4's offboard-loss failsafe follows). It takes no lock
   that slow code holds: the source is read through an atomic reference, and the only lock it
   takes (``_send_lock``, to make ``stop_streaming`` exact) is held by others just long enough
@@ -687,8 +689,11 @@ class AutopilotLink(ABC):
 
     def _stream_loop(self) -> None:
         self._streamer_alive = True
-        if self._timed is not None and timed_send.request_short_slice():
-            log.debug("%s: streamer thread asked for a short scheduler slice", self.name)
+        if self._timed is not None:
+            if timed_send.request_realtime():
+                log.info("%s: setpoint streamer at real-time priority", self.name)
+            elif timed_send.request_short_slice():
+                log.info("%s: setpoint streamer with a short scheduler slice", self.name)
         period = self.config.setpoint_period_s
         hb_period = 1.0 / self.config.heartbeat_rate_hz
         next_t = time.monotonic()
