@@ -113,6 +113,9 @@ class SimConfig:
     """A silent peer may have flown on this long after its newest message before it stopped
     (``DroneAgent``): with 10 Hz states and 28 % of them missing (20 % loss, 10 % held back),
     five in a row are missing with probability 0.2 %."""
+    peer_deviation_m: float = 0.3
+    """A peer reported further than this from its trajectory (a stuck drone whose new hover is
+    late) is also avoided where it reported itself (``DroneAgent``; tracking here is perfect)."""
     state_period_s: float = 0.1
     """Every drone whose process runs broadcasts its state (time, position) this often, over
     the bus's delay and ``bus_faults`` (drawn independently of the trajectories'); receivers
@@ -161,6 +164,8 @@ class SimConfig:
             raise ValueError(f"peer_silence_s must be > 0, got {self.peer_silence_s!r}")
         if not (math.isfinite(self.ghost_window_s) and self.ghost_window_s >= 0.0):
             raise ValueError(f"ghost_window_s must be >= 0, got {self.ghost_window_s!r}")
+        if not self.peer_deviation_m > 0.0:
+            raise ValueError(f"peer_deviation_m must be > 0, got {self.peer_deviation_m!r}")
         if not self.ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {self.ghost_forget_s!r}")
         n = self.formation.n
@@ -551,6 +556,7 @@ def run_sim(
             peer_silence_s=cfg.peer_silence_s,
             ghost_forget_s=cfg.ghost_forget_s,
             ghost_window_s=cfg.ghost_window_s,
+            peer_deviation_m=cfg.peer_deviation_m,
             on_inputs=record,
         )
         for i in range(n)

@@ -30,13 +30,16 @@ have died (its autopilot then holds where it was: PX4's offboard-loss failsafe) 
 its last trajectory after it was last heard: it leaves the formation term and, besides its last
 trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
 trajectory from where it was last heard to where it could have flown in ``ghost_window_s`` more
-(its messages in between lost), and at its last reported position. ``watch`` (called at the
-state rate) asks for a replan at once when a peer falls silent. A peer whose newest trajectory
-started more than ``validity_s`` ago (a stuck drone re-announcing its hover) leaves the
-formation term too. A silent peer's last trajectory is forgotten ``peer_forget_s`` after it fell
-silent (or after its message's validity, if earlier); its ghosts, where its vehicle may still
-hold, ``ghost_forget_s`` after it fell silent. A trajectory with a lower ``traj_id`` than one
-already received from the same peer (a late, reordered or duplicated copy) never replaces it.
+(its messages in between lost), and at its last reported position. A peer heard alive whose
+last reported position is further than ``peer_deviation_m`` from its trajectory (stuck or
+lagging, its new trajectory late) is also avoided as a hover there. ``watch`` (called at the
+state rate) asks for a replan at once when a peer falls silent or leaves its trajectory. A peer
+whose newest trajectory started more than ``validity_s`` ago (a stuck drone re-announcing its
+hover) leaves the formation term too. A silent peer's last trajectory is forgotten
+``peer_forget_s`` after it fell silent (or after its message's validity, if earlier); its
+ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell silent. A trajectory
+with a lower ``traj_id`` than one already received from the same peer (a late, reordered or
+duplicated copy) never replaces it.
 
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
 immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
@@ -146,6 +149,8 @@ class PlanReport:
     ``agent.planner.check(trajectory, t, field, peers)``."""
     silent_peers: tuple[int, ...] = ()
     """Peers judged silent: only avoided, along their last trajectory and at their ghosts."""
+    deviating_peers: tuple[int, ...] = ()
+    """Peers heard alive but reported off their trajectory: also avoided where they reported."""
 
 
 @dataclass(frozen=True)
@@ -231,7 +236,9 @@ class DroneAgent:
     message a silent peer may have flown on before it stopped (its messages in between lost;
     one replan period more for a peer heard only through trajectories); peer_silence_s: a
     peer heard of nothing newer for this long is silent (see the module docstring; inf:
-    never); ghost_spacing_m:
+    never); peer_deviation_m: a peer whose reported position is further than this from its
+    trajectory (a stuck or lagging vehicle) is also avoided as a hover where it reported
+    itself (inf: never; more than the vehicles' tracking error); ghost_spacing_m:
     spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
     them by that distance);
@@ -263,6 +270,7 @@ class DroneAgent:
         peer_silence_s: float = math.inf,
         ghost_forget_s: float = 60.0,
         ghost_window_s: float = 0.5,
+        peer_deviation_m: float = math.inf,
         ghost_spacing_m: float = 0.25,
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
@@ -280,6 +288,8 @@ class DroneAgent:
             raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
         if not (math.isfinite(ghost_window_s) and ghost_window_s >= 0.0):
             raise ValueError(f"ghost_window_s must be >= 0, got {ghost_window_s!r}")
+        if not peer_deviation_m > 0.0:
+            raise ValueError(f"peer_deviation_m must be > 0, got {peer_deviation_m!r}")
         if not ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {ghost_forget_s!r}")
         if not (math.isfinite(ghost_spacing_m) and ghost_spacing_m > 0.0):
@@ -298,6 +308,8 @@ class DroneAgent:
         self.ghost_spacing_m = float(ghost_spacing_m)
         self.ghost_forget_s = float(ghost_forget_s)
         self.ghost_window_s = float(ghost_window_s)
+        self.peer_deviation_m = float(peer_deviation_m)
+        self._deviant: set[int] = set()  # peers off their trajectory at the last ``watch``
         self.on_inputs = on_inputs
         self.on_plan = on_plan
         self.timer = timer
@@ -522,20 +534,49 @@ class DroneAgent:
         return self.peer_silence_s + self.replan_period_s
 
     def watch(self, now_s: float) -> tuple[int, ...]:
-        """Peers that fell silent since the last call (see the module docstring); a replan is
-        requested at once when there is one. Call at the rate of the state messages."""
-        if not math.isfinite(self.peer_silence_s):
-            return ()
+        """Peers that fell silent, or whose reported position left their trajectory, since the
+        last call (see the module docstring); a replan is requested at once when there is one.
+        Call at the rate of the state messages; with ``peer_deviation_m`` set it reads the bus
+        first (states are compared with the newest trajectories)."""
         out = []
+        fresh = None
+        if math.isfinite(self.peer_deviation_m):  # compare states with the newest trajectories
+            fresh = self.bus.receive(self.drone_id, now_s)
         with self._peer_lock:
+            if fresh is not None:
+                self._take(fresh, now_s)
             for pid in sorted(set(self._seen) | set(self._heard)):
                 h = self._heard_s(pid)
-                if now_s - h > self._silence_limit(pid) and self._flagged.get(pid) != h:
-                    self._flagged[pid] = h
-                    out.append(pid)
+                if now_s - h > self._silence_limit(pid):
+                    if self._flagged.get(pid) != h:
+                        self._flagged[pid] = h
+                        out.append(pid)
+                elif self._deviation(pid) is not None:
+                    if pid not in self._deviant:
+                        self._deviant.add(pid)
+                        out.append(pid)
+                else:
+                    self._deviant.discard(pid)
         if out and self._assign.goal is not None:
             self.request_replan()
         return tuple(out)
+
+    def _deviation(self, pid: int) -> np.ndarray | None:
+        """Where ``pid`` last reported itself if that is further than ``peer_deviation_m``
+        from its newest trajectory at the report's time (a report older than the trajectory's
+        start is not compared), else None. Under ``_peer_lock``."""
+        if not math.isfinite(self.peer_deviation_m):
+            return None
+        st = self._heard.get(pid)
+        seen = self._seen.get(pid)
+        if st is None or st.position is None or seen is None:
+            return None
+        tr = seen.msg.trajectory
+        if st.stamp_s < tr.t0_s - EPS_T:
+            return None
+        if float(np.linalg.norm(st.position - tr.sample(st.stamp_s))) <= self.peer_deviation_m:
+            return None
+        return st.position
 
     # --- the cycle --------------------------------------------------------------------------
 
@@ -600,6 +641,13 @@ class DroneAgent:
         msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         formed, avoided = self._split_peers(msgs, a, now, silent)
         ghosts = self._ghosts(silent, now)
+        with self._peer_lock:
+            deviating = {
+                pid: p
+                for pid in msgs
+                if pid not in silent and (p := self._deviation(pid)) is not None
+            }
+        ghosts += [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in sorted(deviating.items())]
         n_form = a.formation.shape[0]
         n_av = len(avoided)
         peers = (
@@ -666,6 +714,7 @@ class DroneAgent:
             avoided_peers=tuple(m.drone_id for m in avoided),
             peers=peers,
             silent_peers=tuple(sorted(silent)),
+            deviating_peers=tuple(sorted(deviating)),
         )
         self._last = report
         if self.on_plan is not None:
@@ -686,6 +735,31 @@ class DroneAgent:
         self.bus.publish(msg, now)
         return seq
 
+    def _take(self, msgs: dict[int, TrajectoryMsg], now: float) -> None:
+        """Keep the newest trajectory of each peer from ``msgs``: an older one (lower
+        ``traj_id``, or the same with an earlier start) never replaces a newer one. Under
+        ``_peer_lock``."""
+        for pid, m in msgs.items():
+            if pid == self.drone_id:
+                continue
+            old = self._seen.get(pid)
+            if old is not None:
+                o = old.msg
+                if m is o or (m.trajectory is o.trajectory and m.valid_until_s == o.valid_until_s):
+                    continue  # the same message again
+                if m.traj_id < o.traj_id or (
+                    m.traj_id == o.traj_id and m.trajectory.t0_s < o.trajectory.t0_s - EPS_T
+                ):
+                    self.refused_older += 1
+                    continue
+            if math.isfinite(self.validity_s) and math.isfinite(m.valid_until_s):
+                sent = m.valid_until_s - self.validity_s
+            else:
+                sent = now  # no better bound: when it was first seen
+            if old is not None:
+                sent = max(sent, old.sent_s)
+            self._seen[pid] = _Seen(m, sent)
+
     def _peers_now(
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float
     ) -> tuple[dict[int, TrajectoryMsg], set[int]]:
@@ -693,28 +767,7 @@ class DroneAgent:
         a newer one); the peers whose trajectory to consider (not ignored, not forgotten) and
         the silent peers whose ghosts to avoid (not ignored, ghosts not forgotten)."""
         with self._peer_lock:
-            for pid, m in msgs.items():
-                if pid == self.drone_id:
-                    continue
-                old = self._seen.get(pid)
-                if old is not None:
-                    o = old.msg
-                    if m is o or (
-                        m.trajectory is o.trajectory and m.valid_until_s == o.valid_until_s
-                    ):
-                        continue  # the same message again
-                    if m.traj_id < o.traj_id or (
-                        m.traj_id == o.traj_id and m.trajectory.t0_s < o.trajectory.t0_s - EPS_T
-                    ):
-                        self.refused_older += 1
-                        continue
-                if math.isfinite(self.validity_s) and math.isfinite(m.valid_until_s):
-                    sent = m.valid_until_s - self.validity_s
-                else:
-                    sent = now  # no better bound: when it was first seen
-                if old is not None:
-                    sent = max(sent, old.sent_s)
-                self._seen[pid] = _Seen(m, sent)
+            self._take(msgs, now)
             out: dict[int, TrajectoryMsg] = {}
             silent: set[int] = set()
             for pid in sorted(self._seen):

@@ -411,3 +411,34 @@ def test_silence_without_states_waits_one_replan_period_more() -> None:
         _agent(0, bus, me, None, ghost_forget_s=-1.0)
     with pytest.raises(ValueError, match="ghost_window_s"):
         _agent(0, bus, me, None, ghost_window_s=float("inf"))
+
+
+def test_a_peer_reported_off_its_trajectory_is_avoided_where_it_reported() -> None:
+    """Peer 1's trajectory flies on but its states say it stays at x = 0 (a stuck vehicle whose
+    hover announcement is late): once more than peer_deviation_m off, a replan is due at once
+    and it is also avoided as a hover where it reported itself, until its trajectory agrees."""
+    bus = InMemoryBus()
+    me = np.array([0.0, 0, 1])
+    a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_silence_s=0.5,
+               peer_deviation_m=0.3)  # fmt: skip
+    p0 = np.array([0.0, 3.0, 1.0])
+    bus.publish(TrajectoryMsg(1, 1, 1, _line(p0, np.array([1.0, 0, 0]), 0.0), valid_until_s=3.0), 0)
+    a.replan(0.0)
+    a.heard(1, 0.2, p0)  # 0.2 m off: within the bound
+    assert a.watch(0.25) == () and not a.due(0.25)
+    a.heard(1, 0.4, p0)
+    assert a.watch(0.45) == (1,) and a.due(0.45)
+    assert a.watch(0.5) == ()  # flagged once
+    rep = a.replan(0.45)
+    assert rep.deviating_peers == (1,) and rep.silent_peers == () and rep.formation_peers == (1,)
+    ghosts = [p for p in rep.peers if p.drone_id == 1][1:]
+    assert len(ghosts) == 1 and ghosts[0].slot >= 3
+    np.testing.assert_allclose(ghosts[0].trajectory.sample(9.0), p0)
+    # its hover arrives: nothing more to avoid than that
+    bus.publish(TrajectoryMsg(1, 2, 1, Trajectory.hover(p0, 0.5, 30.0), valid_until_s=3.5), 0.5)
+    a.heard(1, 0.6, p0)
+    rep = a.replan(0.7)
+    assert rep.deviating_peers == () and [p.drone_id for p in rep.peers] == [1]
+    assert a.watch(0.7) == ()
+    with pytest.raises(ValueError, match="peer_deviation_m"):
+        _agent(0, bus, me, None, peer_deviation_m=0.0)
