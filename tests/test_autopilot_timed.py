@@ -214,3 +214,43 @@ def test_realtime_request_is_the_callers_alone_and_not_inherited() -> None:
         assert out["policy"] == out["before"]
     assert out["child"] == os.SCHED_OTHER  # a thread it starts runs normally
     assert os.sched_getscheduler(threading.get_native_id()) == os.SCHED_OTHER
+
+
+@pytest.mark.timeout(60)
+def test_a_source_with_nothing_to_send_does_not_spin_the_streamer() -> None:
+    # nothing to send and nothing to hold: the timed streamer must still keep its 50 Hz pace
+    # (it once looped without waiting, at real-time priority where permitted)
+    _ready()
+    socks = bind_consecutive_udp(1)
+    port = socks[0].getsockname()[1]
+    socks[0].close()
+    fleet = Fleet(
+        FleetConfig(
+            count=1,
+            base_port=port,
+            local_port_offset=None,
+            speedup=1.0,
+            autopilot=AutopilotParams(boot_time_s=0.5),
+        )
+    )
+    link = open_link(LinkConfig(url=f"udpin://127.0.0.1:{port}", implementation="pymavlink"))
+    calls: list[float] = []
+
+    def nothing(t: float) -> None:
+        calls.append(time.monotonic())
+        return None
+
+    try:
+        fleet.start()
+        link.connect(10.0)
+        link._last_good = None
+        link.start_streaming(nothing)  # type: ignore[arg-type]
+        link._last_good = None  # no hold position either: every tick sends nothing
+        t0 = time.monotonic()
+        time.sleep(0.5)
+        n = sum(1 for c in calls if c >= t0)
+        assert n <= 0.5 * 50 + 3, n  # one call per 20 ms tick at most
+        assert link.counters().setpoints_sent == 0
+    finally:
+        link.close()
+        fleet.stop()

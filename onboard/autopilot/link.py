@@ -12,12 +12,13 @@ Threads (all daemon, all stopped and joined by ``close``):
   thread gets the GIL back from the mapping, planning and decoding threads; elsewhere the loop
   sleeps to the deadline and sends from Python. The streamer thread then asks for real-time
   priority (SCHED_FIFO 10, where permitted) or else a short scheduler slice, so that its
-  wake-up at the deadline is not queued behind other processes on a busy machine. Heartbeat and setpoints come from this one
-  loop, so if it dies both stop (and PX4's offboard-loss failsafe follows). It takes no lock
-  that slow code holds: the source is read through an atomic reference, and the only lock it
-  takes (``_send_lock``, to make ``stop_streaming`` exact) is held by others just long enough
-  to flip a flag; the streamer holds it while a timed setpoint waits for its deadline, and
-  whoever stops the stream first cancels that wait (the setpoint is then not sent).
+  wake-up at the deadline is not queued behind other processes on a busy machine. Heartbeat
+  and setpoints come from this one loop, so if it dies both stop (and PX4's offboard-loss
+  failsafe follows). It takes no lock that slow code holds: the source is read through an
+  atomic reference, and the only lock it takes (``_send_lock``, to make ``stop_streaming``
+  exact) is held by others just long enough to flip a flag; the streamer holds it while a
+  timed setpoint waits for its deadline, and whoever stops the stream first cancels that wait
+  (the setpoint is then not sent).
 - **receiver**: owned by the implementation (a socket reader for pymavlink, MAVSDK's own
   threads plus a byte pump for MAVSDK). It only decodes and stores telemetry, routes
   acknowledgements and detects mode changes; it never waits on anything slow.
@@ -724,6 +725,12 @@ class AutopilotLink(ABC):
                         next_hb = now + hb_period
                 if self._streaming:
                     self._stream_tick(deadline if timed else None)
+                if timed:
+                    # a tick that sent nothing (nothing to hold, or stopped meanwhile) did not
+                    # wait for its deadline in the sender: wait here, never run ahead of it
+                    left = deadline - time.monotonic()
+                    if left > 0.0:
+                        stop.wait(left)
         except Exception:  # noqa: BLE001 - logged; heartbeat and setpoints stop together
             log.exception(
                 "%s: the setpoint streamer died; heartbeat and setpoints stopped", self.name
