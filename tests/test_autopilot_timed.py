@@ -244,7 +244,7 @@ def test_a_source_with_nothing_to_send_does_not_spin_the_streamer() -> None:
         fleet.start()
         link.connect(10.0)
         link._last_good = None
-        link.start_streaming(nothing)  # type: ignore[arg-type]
+        link.start_streaming(nothing)
         link._last_good = None  # no hold position either: every tick sends nothing
         t0 = time.monotonic()
         time.sleep(0.5)
