@@ -256,7 +256,7 @@ class MappingSection:
     esdf_rate_hz: float = 10.0
     """The planner's field is rebuilt at least this often while frames arrive."""
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
-    thread_nice: int = 5
+    thread_nice: int = 0
     """Niceness added to the mapping thread (Linux, per thread): when the CPU is short, the
     setpoint stream and the planner go first and frames are dropped instead (0: as the rest)."""
 
