@@ -784,13 +784,20 @@ def run_service_bench(
         for k in ("collisions", "min_obstacle_distance_m", "depth", "process_cpu_s", "error")
         if k in sitl
     }
-    sp = report.get("setpoint_period_ms", {})
+    # the setpoint period as the mock's side sees it: the kernel's receive stamp of each
+    # datagram where the platform gives one (the tap thread's own stamp adds the delay of this
+    # bench process, which shares the machine)
+    kp = report.get("setpoint_period_kernel_stamp_ms", {})
+    sp = kp if kp.get("n") else report.get("setpoint_period_ms", {})
+    report["setpoint_period_judged_on"] = "kernel receive stamp" if sp is kp else "tap stamp"
+    # the CPU figure stands for the configured frame rate only if the frames were mapped
+    mapped = report.get("depth_frames_per_s", 0.0) >= 0.9 * cfg.depth_rate_hz
     report["targets"] = TARGETS
     report["met"] = {
         "setpoint_p99_ms": sp.get("p99") is not None and sp["p99"] < TARGETS["setpoint_p99_ms"],
         "setpoint_max_ms": sp.get("max") is not None and sp["max"] < TARGETS["setpoint_max_ms"],
         "start_to_ready_s": report.get("start_to_ready_s", 1e9) < TARGETS["start_to_ready_s"],
-        "cpu_cores": report.get("cpu_cores", 1e9) <= TARGETS["cpu_cores"],
+        "cpu_cores": mapped and report.get("cpu_cores", 1e9) <= TARGETS["cpu_cores"],
     }
     report["load_average"] = {"start": list(load0), "end": list(os.getloadavg())}
     report["host"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
