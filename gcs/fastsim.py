@@ -18,11 +18,12 @@ tracking of the trajectory in control, and the ``FlightMonitor`` that judges the
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -436,6 +437,33 @@ class StateMsg:
     position: np.ndarray
 
 
+class StateChannel:
+    """Where the simulator's state messages travel: each becomes visible ``delay_s`` after it
+    is handed over, and a receiver gets the newest (by stamp) of every sender that has arrived,
+    as a subscriber that passes each state to ``DroneAgent.heard`` would keep it (a late copy
+    never hides a newer state; a bus that keeps only the last delivered would). Senders in
+    ``silent`` reach nobody."""
+
+    def __init__(self, delay_s: float, silent: frozenset[int] = frozenset()) -> None:
+        self.delay_s = float(delay_s)
+        self.silent = silent
+        self._pending: list[tuple[float, int, StateMsg]] = []
+        self._n = 0
+        self._newest: dict[int, StateMsg] = {}
+
+    def publish(self, msg: StateMsg, now_s: float) -> None:
+        heapq.heappush(self._pending, (float(now_s) + self.delay_s, self._n, msg))
+        self._n += 1
+
+    def receive(self, drone_id: int, now_s: float) -> dict[int, StateMsg]:
+        while self._pending and self._pending[0][0] <= now_s:
+            _, _, m = heapq.heappop(self._pending)
+            old = self._newest.get(m.drone_id)
+            if old is None or m.stamp_s > old.stamp_s:
+                self._newest[m.drone_id] = m
+        return {s: m for s, m in self._newest.items() if s != drone_id and s not in self.silent}
+
+
 class SensedWorld:
     """A drone's map in the ground-truth perception: the exact distance to every obstacle whose
     surface has come within ``radius_m`` of the drone at one of its replans (a ``MapSource``)."""
@@ -508,9 +536,9 @@ def run_sim(
     )
     bus = PeerAudit(plain if faulty is None else faulty)
     # states travel the same way, their faults drawn from their own generator
-    state_plain = InMemoryBus(cfg.bus_delay_s, drop=(lambda s, r: s in silent) if silent else None)
+    state_plain = StateChannel(cfg.bus_delay_s, silent)
     state_faulty = (
-        FaultyBus(state_plain, cfg.bus_faults, seed=cfg.fault_seed + 7919, gate=False)
+        FaultyBus(cast(Any, state_plain), cfg.bus_faults, seed=cfg.fault_seed + 7919, gate=False)
         if cfg.bus_faults is not None
         else None
     )
@@ -577,6 +605,10 @@ def run_sim(
     status_counts: dict[str, int] = {}
 
     def replan(ag: DroneAgent, t: float, p_now: np.ndarray) -> None:
+        # the states that have arrived by now (a service's subscriber hands them over as they
+        # come; between the 10 Hz looks a peer would seem up to 0.1 s quieter than it is)
+        for sender, sm in state_bus.receive(ag.drone_id, t).items():
+            ag.heard(sender, sm.stamp_s, sm.position)
         rep = ag.replan(t, p_now)
         replan_ms.append(rep.plan_ms)
         iterations.append(float(rep.iterations))
