@@ -307,7 +307,7 @@ def test_plans_stay_inside_the_altitude_band() -> None:
 
 
 def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
-    field = AnalyticField(World.empty(0.0))
+    field = AnalyticField(World.empty(None))  # no ground: the band alone bounds z
     planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
     z3 = np.zeros(3)
 
@@ -342,6 +342,7 @@ def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
         ({"z_limits_m": (0.3, 2e4)}, "10 km"),
         ({"w_altitude": -1.0}, "w_altitude"),
         ({"altitude_margin_m": float("inf")}, "altitude_margin_m"),
+        ({"comfort_obstacle_m": -0.1}, "comfort_obstacle_m"),
     ],
 )
 def test_bad_altitude_band_raises(kwargs: dict, match: str) -> None:
@@ -351,12 +352,12 @@ def test_bad_altitude_band_raises(kwargs: dict, match: str) -> None:
 
 def test_a_narrow_gap_is_left_for_a_roomier_way_with_the_comfort_clearance() -> None:
     """Two trunks 0.5 m apart on the straight way: the optimiser alone threads the gap at
-    0.25 m (the check allows it); with comfort_obstacle_m the A* way round is flown instead."""
+    0.25 m (a check at 0.22 m allows it); with comfort_obstacle_m the A* way round is flown."""
     field = AnalyticField(_world([[3.0, 0.5, 0.25, 0.0, 3.0], [3.0, -0.5, 0.25, 0.0, 3.0]]))
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([7.0, 0.0, 1.0])
 
     def closest(comfort: float) -> float:
-        params = PlannerParams(v_max_m_s=1.0, comfort_obstacle_m=comfort)
+        params = PlannerParams(v_max_m_s=1.0, comfort_obstacle_m=comfort, check_obstacle_m=0.22)
         res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
         assert res.status == PlanStatus.OK, res.message
         ts = np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 400)

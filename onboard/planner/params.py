@@ -49,7 +49,10 @@ class PlannerParams:
     limit_margin: float = 1.0
     """J_d penalises speed, acceleration and jerk above this fraction of their limits: a soft
     penalty balances the other terms slightly past where it starts, so a margin below 1 keeps
-    the flown values within the limits without a stiff weight."""
+    the flown values within the limits without a stiff weight. Table (3 x 20 forests, 0.5 m/s):
+    margin 1 flies at most 0.518 / 0.519 / 0.522 m/s, 0.97 at most 0.503 / 0.513 / 0.510 m/s
+    with mean e_sim 0.0107 / 0.0209 / 0.0218 -> 0.0110 / 0.0166 / 0.0282 and flights 2-3 s
+    longer; not the default yet (BENCHMARKS.md section 8)."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
     w_formation: float = 3.0e4
@@ -69,7 +72,12 @@ class PlannerParams:
 
     # --- acceptance and fallbacks --------------------------------------------------------------
     check_obstacle_m: float = 0.22
-    """A trajectory is unsafe where it comes closer than this to an obstacle surface."""
+    """A trajectory is unsafe where it comes closer than this to an obstacle surface. The
+    table's closest approaches sit at this value (0.220 m; 54 of 60 flights below 0.3 m): the
+    warm start keeps a narrow gap chosen when it was far. 0.3 with ``comfort_obstacle_m`` 0.4
+    and ``astar_keeps_formation`` kept every table flight >= 0.300 m, but mean e_sim went from
+    0.0107 / 0.0209 / 0.0218 to 0.0132 / 0.0457 / 0.0297 with one medium forest folding to 0.34
+    (drones taking different gaps), so it is not the default (BENCHMARKS.md section 8)."""
     check_drone_m: float = 0.45
     """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
     check_step_s: float = 0.05
@@ -103,7 +111,8 @@ class PlannerParams:
     """When the first attempt fails the check, retry from an A* path with the formation term
     before the retry without it (the latter flies its own way around and can split the shape).
     Off by default: alone it took one medium forest from e_sim 0.048 to 0.139 (a drone left
-    behind); see ``lead_slowdown_m``."""
+    behind). With the check at 0.3 m and the comfort test it helps (4 forests per density:
+    mean e_sim 0.0168 / 0.0242 / 0.0332 without, 0.0162 / 0.0176 / 0.0274 with)."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
     z_limits_m: tuple[float, float] = (0.3, 3.1)
