@@ -62,6 +62,7 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
         ("mapping:\n  occupancy: {resolution_m: -1}\n", "mapping.occupancy", "resolution_m"),
         ("drone:\n  swarm: 'a b'\n", "swarm", "letters"),
         ("flight:\n  takeoff_altitude_m: 9\n", "takeoff_altitude_m", "geofence"),
+        ("geofence:\n  max_enu_m: [50, 50, 0.5]\n", "planner.z_limits_m", "too narrow"),
         ("autopilot:\n  local_origin_enu_m: [0, 2e4, 0]\n", "local_origin_enu_m", "10 km"),
         ("autopilot:\n  local_origins_enu_m: {x: [0, 0, 0]}\n", "local_origins_enu_m", "ids"),
         ("autopilot:\n  local_origins_enu_m: {7: [0, 0]}\n", "local_origins_enu_m.7", ""),
@@ -90,6 +91,12 @@ def test_each_drone_gets_its_own_autopilot_origin(tmp_path: Path) -> None:
     assert link.local_origin_enu_m == (1.0, 2.0, 0.0)
     # 1 m north and 2 m up of the origin in PX4's NED frame
     assert position_ned_to_enu((1.0, 0.0, -2.0), link.local_origin_enu_m) == (1.0, 3.0, 2.0)
+
+
+def test_the_planner_band_is_cut_to_the_geofence(tmp_path: Path) -> None:
+    cfg = load_onboard_config(_write(tmp_path, "geofence:\n  max_enu_m: [50, 50, 2.5]\n"))
+    assert cfg.planner.z_limits_m == (0.3, 2.5)
+    assert load_onboard_config(_write(tmp_path, "")).planner.z_limits_m == (0.3, 3.1)
 
 
 def test_drone_id_out_of_range_is_an_error() -> None:

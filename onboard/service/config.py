@@ -14,6 +14,7 @@ only the autopilot link converts to PX4's local NED frame, whose origin in the s
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -463,6 +464,19 @@ class OnboardConfig:
 
     def __post_init__(self) -> None:
         g = self.geofence
+        # plans never leave the geofence: the planner's altitude band is cut to its z range
+        lo, hi = self.planner.z_limits_m
+        band = (max(lo, g.min_enu_m[2]), min(hi, g.max_enu_m[2]))
+        if band != (lo, hi):
+            try:
+                planner = dataclasses.replace(self.planner, z_limits_m=band)
+            except ValueError as e:
+                raise ValueError(
+                    f"planner.z_limits_m: the planner's altitude band [{lo:g}, {hi:g}] cut to "
+                    f"the geofence's z range [{g.min_enu_m[2]:g}, {g.max_enu_m[2]:g}] is "
+                    f"too narrow ({e})"
+                ) from None
+            object.__setattr__(self, "planner", planner)
         if not g.min_enu_m[2] + self.flight.takeoff_altitude_m <= g.max_enu_m[2]:
             raise ValueError(
                 "flight.takeoff_altitude_m: the take-off altitude must lie inside the geofence "
