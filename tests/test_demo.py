@@ -99,9 +99,6 @@ def _force_stop(info: dict[str, Any]) -> None:
             pass  # already gone
 
 
-# a process-level test (the demo starts the mock and three services): with the slow tests, one
-# at a time (next to other tests on both cores, Ctrl-C once ended the demo with 1, not 130)
-@pytest.mark.slow
 @pytest.mark.timeout(330)
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
 def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None:

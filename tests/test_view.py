@@ -277,7 +277,6 @@ def test_view_survives_a_bad_snapshot(client_of: Any) -> None:
         SwarmView(flaky, None, port=0, rate_hz=0.0)
 
 
-@pytest.mark.slow  # a process with its own server: one at a time, with the slow tests
 def test_view_command_end_to_end(client_of: Any) -> None:
     """``swarm-gcs view`` as a process: it serves on a free port, a client gets the world's
     obstacles, and Ctrl-C ends it cleanly."""
