@@ -19,6 +19,13 @@ from gcs.demo import Demo, DemoConfig, DemoError, parse_change, run_demo
 DEMO = "import sys; from gcs.demo import demo; sys.argv[0] = 'swarm-gcs demo'; demo()"
 
 
+def sigint_default() -> None:
+    """In the child before exec: SIGINT back to its default, so that Python installs its Ctrl-C
+    handler (a shell starting a job in the background, as CI runners may, leaves SIGINT
+    ignored, and an ignored SIGINT stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -108,7 +115,8 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
     args = ["--drones", "3", "--formation", "triangle-3", "--world", "forest-small",
             "--out", str(out), "-q"]  # fmt: skip
     proc = subprocess.Popen([sys.executable, "-c", DEMO, *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=sigint_default)  # fmt: skip
     info: dict[str, Any] = {}
     try:
         pfile = out / "logs" / "processes.json"

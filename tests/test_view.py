@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import signal
 import socket
 import struct
 import time
@@ -98,6 +99,13 @@ class WsClient:
 
 
 # --- a minimal protobuf reader ------------------------------------------------------------------
+
+
+def sigint_default() -> None:
+    """In the child before exec: SIGINT back to its default, so that Python installs its Ctrl-C
+    handler (a shell starting a job in the background, as CI runners may, leaves SIGINT
+    ignored, and an ignored SIGINT stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _varint(buf: bytes, i: int) -> tuple[int, int]:
@@ -290,7 +298,8 @@ def test_view_command_end_to_end(client_of: Any) -> None:
     args = ["--listen", free_loopback_endpoint(), "--wait", "0", "--port", "0",
             "--world", "forest-small", "--seed", "2", "--count", "3"]  # fmt: skip
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=sigint_default)  # fmt: skip
     try:
         assert proc.stdout is not None and proc.stderr is not None
         line = proc.stdout.readline()  # blocks until the server is up (or the process ends)
