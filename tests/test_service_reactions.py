@@ -104,6 +104,15 @@ class Harness:
         assert ok, why
         self.until(lambda: self.state is S.HOVER, 10.0, "hover after take-off")
 
+    def fly_to(self, x: float, z: float = 1.0) -> np.ndarray:
+        """Peers flying their slots alongside (``peers_along``), then the goal ``(x, 0, z)``,
+        which must be accepted; returns the goal."""
+        goal = np.array([x, 0.0, z])
+        self.peers_along(goal)
+        ok, why = self.command(Goal(tuple(goal)))
+        assert ok, why
+        return goal
+
     def peers_along(self, goal_center: np.ndarray, valid_for_s: float = 60.0) -> None:
         """Two peers flying their slots from the start formation to the goal formation."""
         start_center = np.array([0.0, 0.0, 1.0])
@@ -122,10 +131,7 @@ def test_nominal_flight_takeoff_formation_goal_land_with_a_record(tmp_path: Path
     h.airborne()
     assert h.ap.calls[:3] == ["stream", "offboard", "arm"]
     assert h.ap.position[2] == pytest.approx(1.0, abs=0.05)
-    goal = np.array([4.0, 0.0, 1.0])
-    h.peers_along(goal)
-    ok, why = h.command(Goal(tuple(goal)))
-    assert ok, why
+    goal = h.fly_to(4.0)
     assert h.state is S.FORMATION_FLIGHT
     h.until(lambda: h.state is S.HOVER, 30.0, "arrival")
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
@@ -170,9 +176,7 @@ def test_plans_never_leave_the_geofence() -> None:
 def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
     h = Harness(tmp_path)
     h.airborne()
-    goal = np.array([6.0, 0.0, 1.0])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    goal = h.fly_to(6.0)
     h.step(20)
     assert h.state is S.FORMATION_FLIGHT
     h.depth.on = False  # type: ignore[union-attr]
@@ -197,9 +201,7 @@ def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
     until frames come steadily for ``recover_s``; the stop itself stays bounded."""
     h = Harness(tmp_path)
     h.airborne()
-    goal = np.array([6.0, 0.0, 1.0])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    h.fly_to(6.0)
     h.step(20)
     assert h.state is S.FORMATION_FLIGHT
     states = []
@@ -245,9 +247,7 @@ def test_autopilot_heartbeat_lost_stops_commanding_and_never_resumes_by_itself(
 def test_pilot_switching_out_of_offboard_is_obeyed_at_once(tmp_path: Path) -> None:
     h = Harness(tmp_path, depth=False)
     h.airborne()
-    goal = np.array([4.0, 0.0, 1.0])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    h.fly_to(4.0)
     h.step(10)
     h.ap.mode = "POSCTL"  # the pilot's switch
     h.step(1)
@@ -264,9 +264,7 @@ def test_pilot_switching_out_of_offboard_is_obeyed_at_once(tmp_path: Path) -> No
 def test_gcs_lost_finishes_the_goal_then_hovers_or_lands(tmp_path: Path, action: str) -> None:
     h = Harness(tmp_path, depth=False, reactions={"gcs_lost": {"timeout_s": 1.0, "action": action}})
     h.airborne()
-    goal = np.array([3.0, 0.0, 1.0])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    goal = h.fly_to(3.0)
     h.gcs = False
     h.step(30)
     assert not h.svc.machine.gcs_ok
@@ -300,9 +298,7 @@ def test_a_restarted_service_finds_its_vehicle_airborne_and_waits_for_resume(
     h.step(10)
     assert h.state is S.HOVER and h.ap.streaming and h.ap.mode == "OFFBOARD"
     assert np.linalg.norm(h.ap.position - (2.0, 1.0, 1.2)) < 0.05  # held where it was
-    goal = np.array([5.0, 0.0, 1.2])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    h.fly_to(5.0, 1.2)
     h.until(lambda: h.state is S.FORMATION_FLIGHT, 5.0, "rejoined")
 
 
@@ -311,9 +307,7 @@ def test_a_clock_beyond_the_bound_stops_formation_flight_and_says_why(tmp_path: 
     the reason, and flies on once the clocks agree again."""
     h = Harness(tmp_path, depth=False)
     h.airborne()
-    goal = np.array([3.0, 0.0, 1.0])
-    h.peers_along(goal)
-    assert h.command(Goal(tuple(goal)))[0]
+    goal = h.fly_to(3.0)
     h.step(10)
     assert h.state is S.FORMATION_FLIGHT
     h.bus.clock_offsets_exceeded = {2: 0.12}
