@@ -88,7 +88,9 @@ class SetpointTap:
     the service at ``service_addr`` from its own back socket, and forwards whatever the service
     answers to the mock's address (learned from the mock's datagrams). The arrival time
     (``time.monotonic()``) of every datagram from the service that carries message ``msgid``
-    is kept in ``arrivals``. Runs in its own thread; ``close`` stops it.
+    is kept in ``arrivals``. ``cut = True`` cuts the path: every datagram, both ways, is
+    dropped (counted in ``cut_dropped``) and none is recorded. Runs in its own thread;
+    ``close`` stops it.
     """
 
     def __init__(
@@ -114,6 +116,8 @@ class SetpointTap:
         self.to_service = 0
         self.to_mock = 0
         self.dropped = 0  # datagrams from the service before the mock was heard
+        self.cut = False
+        self.cut_dropped = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="setpoint-tap", daemon=True)
@@ -136,6 +140,9 @@ class SetpointTap:
                         else:
                             data, addr = sock.recvfrom(65535)
                     except OSError:
+                        continue
+                    if self.cut:
+                        self.cut_dropped += 1
                         continue
                     t = time.monotonic()
                     if key.data == "front":

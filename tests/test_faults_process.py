@@ -12,9 +12,6 @@ formation. Judged on the mock's ground truth.
 from __future__ import annotations
 
 import os
-import selectors
-import socket
-import threading
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -24,10 +21,9 @@ import numpy as np
 import pytest
 
 from gcs.bench_service import (
-    SET_POSITION_TARGET_LOCAL_NED,
     MockProcess,
     ServiceProcess,
-    mavlink_msgids,
+    SetpointTap,
     poll_until,
     service_config,
     write_world,
@@ -186,52 +182,6 @@ def test_a_killed_service_fails_safe_comes_back_out_of_control_and_rejoins(
         assert truth[1].collisions == 0 and truth[2].collisions == 0
 
 
-class CuttableUdpPath:
-    """The UDP path between the mock and one service, with a switch: the mock sends to
-    ``front_port``, the service listens on ``service_port``; ``cut = True`` drops everything
-    both ways. Counts the setpoints the service sends after the last restore."""
-
-    def __init__(self, service_port: int) -> None:
-        self.service_addr = ("127.0.0.1", service_port)
-        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.front.bind(("127.0.0.1", 0))
-        self.back.bind(("127.0.0.1", 0))
-        self.front_port = int(self.front.getsockname()[1])
-        self.mock_addr: tuple[str, int] | None = None
-        self.cut = False
-        self.setpoints = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        sel = selectors.DefaultSelector()
-        sel.register(self.front, selectors.EVENT_READ, "front")
-        sel.register(self.back, selectors.EVENT_READ, "back")
-        while not self._stop.is_set():
-            for key, _ in sel.select(0.1):
-                sock = key.fileobj
-                assert isinstance(sock, socket.socket)
-                data, addr = sock.recvfrom(65535)
-                if self.cut:
-                    continue
-                if key.data == "front":
-                    self.mock_addr = addr
-                    self.back.sendto(data, self.service_addr)
-                elif self.mock_addr is not None:
-                    if SET_POSITION_TARGET_LOCAL_NED in mavlink_msgids(data):
-                        self.setpoints += 1
-                    self.front.sendto(data, self.mock_addr)
-        sel.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.front.close()
-        self.back.close()
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
@@ -250,8 +200,7 @@ def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
     svc_port.close()
     mesh = peer_mesh(2)
     with ExitStack() as stack:
-        path = CuttableUdpPath(port)
-        stack.callback(path.close)
+        path = stack.enter_context(SetpointTap(("127.0.0.1", port)))
         mock = stack.enter_context(
             MockProcess(
                 world,
@@ -297,11 +246,12 @@ def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
         held = np.array(mock.latest_truth()[1].position_m)
         assert held[0] < 6.0  # stopped well short of the goal
 
-        path.setpoints = 0
         path.cut = False
+        t_back = time.monotonic()
         time.sleep(3.0)
         t = mock.latest_truth()[1]
-        assert path.setpoints == 0, "setpoints flowed again without a command"
+        sent = path.arrivals_between(t_back, time.monotonic())
+        assert sent.size == 0, "setpoints flowed again without a command"
         assert t.mode != "OFFBOARD" and _states(gs).get(0) == "link-lost"
         assert np.linalg.norm(np.array(t.position_m) - held) < 0.3
 
