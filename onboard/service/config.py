@@ -47,9 +47,9 @@ def _positive(name: str, value: float) -> None:
         raise ValueError(f"{name}: expected a number > 0, got {value!r}")
 
 
-def _check_origin(name: str, origin: Vec3) -> None:
-    if max(abs(v) for v in origin) > 10_000.0:
-        raise ValueError(f"{name}: must be within 10 km of the swarm origin, got {list(origin)}")
+def _within_10_km(name: str, point: Vec3) -> None:
+    if max(abs(v) for v in point) > 10_000.0:
+        raise ValueError(f"{name}: must be within 10 km of the swarm origin, got {list(point)}")
 
 
 @dataclass(frozen=True)
@@ -102,13 +102,13 @@ class AutopilotSection:
     overrides ``local_origin_enu_m``. One config file then serves the whole swarm."""
 
     def __post_init__(self) -> None:
-        _check_origin("local_origin_enu_m", self.local_origin_enu_m)
+        _within_10_km("local_origin_enu_m", self.local_origin_enu_m)
         for key, origin in self.local_origins_enu_m.items():
             if not (key.isdigit() and 0 <= int(key) <= 253):
                 raise ValueError(
                     f"local_origins_enu_m: keys are drone ids in [0, 253], got {key!r}"
                 )
-            _check_origin(f"local_origins_enu_m.{key}", origin)
+            _within_10_km(f"local_origins_enu_m.{key}", origin)
         if self.signing_key_file is not None and self.implementation == "mavsdk":
             raise ValueError(
                 "signing_key_file: the mavsdk implementation cannot sign (MAVSDK 4.x has no "
@@ -305,8 +305,7 @@ class GeofenceSection:
 
     def __post_init__(self) -> None:
         for name in ("min_enu_m", "max_enu_m"):
-            if max(abs(v) for v in getattr(self, name)) > 10_000.0:
-                raise ValueError(f"{name}: must be within 10 km of the origin")
+            _within_10_km(name, getattr(self, name))
         for k in range(3):
             if not self.min_enu_m[k] < self.max_enu_m[k]:
                 raise ValueError(
