@@ -588,13 +588,12 @@ class FormationPlanner:
             hover = Trajectory.hover(gl, t_start_s, duration_s=1.0)
             return PlanResult(PlanStatus.OK, hover, message="at goal")
         iters = evals = 0
-        messages = []
-        last_status: LbfgsStatus | None = None
-        attempts = [(True, False, PlanStatus.OK)]
-        if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
-            attempts.append((True, True, PlanStatus.OK))
-        attempts.append((False, True, PlanStatus.OK_NO_FORMATION))
-        for use_formation, force_astar, ok_status in attempts:
+
+        def solve(
+            use_formation: bool, force_astar: bool, **kw: float
+        ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
+            """Prepare and solve one attempt (cancellable meanwhile), counting its work."""
+            nonlocal iters, evals
             problem = self.prepare(
                 t_start_s,
                 sp,
@@ -606,12 +605,23 @@ class FormationPlanner:
                 previous,
                 use_formation=use_formation,
                 force_astar=force_astar,
+                **kw,
             )
             self._active = problem
-            x, last_status = problem.solve()
+            x, status = problem.solve()
             self._active = None
             iters += problem.iterations
             evals += problem.evaluations
+            return problem, x, status
+
+        messages = []
+        last_status: LbfgsStatus | None = None
+        attempts = [(True, False, PlanStatus.OK)]
+        if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
+            attempts.append((True, True, PlanStatus.OK))
+        attempts.append((False, True, PlanStatus.OK_NO_FORMATION))
+        for use_formation, force_astar, ok_status in attempts:
+            problem, x, last_status = solve(use_formation, force_astar)
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
                 break
@@ -633,24 +643,9 @@ class FormationPlanner:
                 # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
                 if ahead < start_d - 1e-3:
-                    alt = self.prepare(
-                        t_start_s,
-                        sp,
-                        sv,
-                        sa,
-                        gl,
-                        peers,
-                        field,
-                        previous,
-                        use_formation=use_formation,
-                        force_astar=True,
-                        astar_margin_m=COMFORT_ASTAR_MARGIN_M,
+                    alt, x_alt, st_alt = solve(
+                        use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M
                     )
-                    self._active = alt
-                    x_alt, st_alt = alt.solve()
-                    self._active = None
-                    iters += alt.iterations
-                    evals += alt.evaluations
                     if st_alt != LbfgsStatus.CANCELED and np.all(np.isfinite(x_alt)):
                         traj_alt = alt.trajectory(x_alt)
                         ok_alt, _, clr_alt, _ = self._check(traj_alt, t_start_s, field, peers)
