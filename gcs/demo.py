@@ -681,6 +681,11 @@ class Demo:
             off = self.template.centered
             data["starts"] = (np.asarray(spec.start_center) + off).tolist()
             data["goals"] = (np.asarray(spec.goal_center) + off).tolist()
+        # where the mock stands each vehicle: its start on the ground
+        ground = 0.0 if spec.ground_z is None else float(spec.ground_z)
+        self.spawns: list[list[float]] = [
+            [float(p[0]), float(p[1]), ground] for p in data["starts"]
+        ]
         out = self.out / "world.json"
         out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
         return out
@@ -690,11 +695,7 @@ class Demo:
         planner = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
         # like PX4, each mock vehicle starts its local frame where it stands (its EKF origin):
         # every service is told where that is in the swarm frame
-        world = json.loads(self.world_file.read_text(encoding="utf-8"))
-        ground = 0.0 if world.get("ground_z") is None else float(world["ground_z"])
-        origins = {
-            str(i): [float(p[0]), float(p[1]), ground] for i, p in enumerate(world["starts"])
-        }
+        origins = {str(i): p for i, p in enumerate(self.spawns)}
         autopilot: dict[str, Any] = {
             "url": f"udp://127.0.0.1:{base_port}",
             "port_plus_id": True,
