@@ -72,6 +72,7 @@ from onboard.autopilot.model import (
     Vec3,
     VehicleState,
 )
+from onboard.threadname import named_thread
 
 log = logging.getLogger("onboard.autopilot")
 
@@ -380,7 +381,7 @@ class AutopilotLink(ABC):
         self.close()
 
     def _start_thread(self, target: Callable[[], None], name: str) -> None:
-        t = threading.Thread(target=target, name=f"{name}-{self.config.system_id}", daemon=True)
+        t = named_thread(target, f"{name}-{self.config.system_id}")
         self._threads.append(t)
         t.start()
 

@@ -85,6 +85,7 @@ from onboard.service.state import (
     Transition,
     Waypoints,
 )
+from onboard.threadname import named_thread
 
 log = logging.getLogger("onboard.service")
 
@@ -1020,7 +1021,7 @@ class FlightService:
         if self.depth is not None:
             specs.append(("depth", self._depth_loop))
         for name, target in specs:
-            t = threading.Thread(target=target, name=f"svc-{name}", daemon=True)
+            t = named_thread(target, f"svc-{name}")
             t.start()
             self._threads.append(t)
 
