@@ -98,11 +98,12 @@ class InMemoryTruth:
     def depth_source(self, system_id: int) -> TruthDepthSource:
         """Frames of one vehicle as an ``onboard.sensors.DepthSource``."""
 
-        def latest() -> DepthImage | None:
+        def after(stamp_s: float) -> DepthImage | None:
             with self._lock:
-                return self.depth.get(system_id)
+                img = self.depth.get(system_id)
+            return img if img is not None and img.stamp_s > stamp_s else None
 
-        return TruthDepthSource(latest)
+        return TruthDepthSource(after)
 
     def pose_provider(self, system_id: int) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         """Camera pose of one vehicle, as ``onboard.sensors.PoseProvider``."""

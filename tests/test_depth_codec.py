@@ -220,7 +220,7 @@ def test_fuzz_mutated_frames_only_raise_decode_errors(
 def test_depth_source_reads_each_frame_once() -> None:
     holder: list[DepthImage | None] = [None]
     closed: list[bool] = []
-    src = TruthDepthSource(lambda: holder[0], on_close=lambda: closed.append(True))
+    src = TruthDepthSource(lambda _after: holder[0], on_close=lambda: closed.append(True))
     assert src.read() is None and src.intrinsics.width == 640  # D435 before any frame
     holder[0] = _image(stamp=2.0)
     f = src.read()
@@ -342,5 +342,39 @@ def test_subscriber_of_one_vehicle_never_receives_the_others_frames(
         c = sub.counters()
         assert sub.depth_image(3) is None and sub.pose(3) is None
         assert c["depth.rx"] >= 1 and sub.errors == 0
+    finally:
+        sub.close()
+
+
+@pytest.mark.parametrize("queue_len", [4, 2])
+def test_a_busy_reader_gets_the_frames_that_came_meanwhile_in_order(
+    publisher: tuple[Any, ZenohEndpoints], queue_len: int
+) -> None:
+    """The mapping thread is busy for a while during an ESDF refresh: the frames that arrive
+    meanwhile wait (up to the queue's length; beyond it the oldest go) instead of all but the
+    newest being lost."""
+    pub, ep = publisher
+    with pytest.raises(ValueError, match="depth_queue"):
+        ZenohTruthSubscriber("t/q", endpoints=ep, system_id=5, depth_queue=0)
+    sub = ZenohTruthSubscriber("t/q", endpoints=ep, system_id=5, depth_queue=queue_len)
+    try:
+        src = sub.depth_source(5)
+
+        def first() -> bool:
+            pub.put("t/q/5/depth", _image(sid=5, stamp=1.0).to_bytes())
+            time.sleep(0.02)
+            return sub.depth_image(5) is not None
+
+        _wait(first, "the first frame")
+        f = src.read()
+        assert f is not None and f.stamp_s == 1.0
+        for stamp in (2.0, 3.0, 4.0):
+            pub.put("t/q/5/depth", _image(sid=5, stamp=stamp).to_bytes())
+        _wait(lambda: sub.counters()["depth.rx"] >= 4, "three more frames")
+        got = []
+        while (f := src.read()) is not None:
+            got.append(f.stamp_s)
+        assert got == [2.0, 3.0, 4.0][-min(3, queue_len) :]
+        assert src.read() is None
     finally:
         sub.close()

@@ -23,6 +23,7 @@ import logging
 import math
 import struct
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -347,15 +348,18 @@ def _intrinsics(v: Any) -> dict[str, float]:
 
 class TruthDepthSource:
     """One vehicle's simulated frames as a depth source (``onboard.sensors.DepthSource``):
-    ``read`` returns the newest frame not returned before (a ``DepthFrame``), or None when there
-    is no new one. ``on_close``: called by ``close`` (e.g. to close a subscriber it owns)."""
+    ``read`` returns the oldest frame newer than the last one returned (a ``DepthFrame``), or
+    None when there is none. ``next_after(stamp_s)`` gives that frame: a subscriber that keeps a
+    few recent frames hands them out in order, so a reader busy for a while (an ESDF refresh)
+    catches up instead of losing the frames that came meanwhile. ``on_close``: called by
+    ``close`` (e.g. to close a subscriber it owns)."""
 
     def __init__(
         self,
-        latest: Callable[[], DepthImage | None],
+        next_after: Callable[[float], DepthImage | None],
         on_close: Callable[[], None] | None = None,
     ) -> None:
-        self._latest = latest
+        self._next_after = next_after
         self._on_close = on_close
         self._last_stamp = -math.inf
         self._intrinsics: CameraIntrinsics | None = None
@@ -366,7 +370,7 @@ class TruthDepthSource:
         return self._intrinsics if self._intrinsics is not None else CameraIntrinsics()
 
     def read(self) -> DepthFrame | None:
-        img = self._latest()
+        img = self._next_after(self._last_stamp)
         if img is None or img.stamp_s <= self._last_stamp:
             return None
         self._last_stamp = img.stamp_s
@@ -402,9 +406,15 @@ def _sender(key: str, prefix: str) -> int | None:
     return int(head) if head.isdigit() else None
 
 
+DEPTH_QUEUE = 4
+"""Depth frames a ``ZenohTruthSubscriber`` keeps per vehicle (133 ms at 30 frames/s): a reader
+busy for up to that long still gets every frame."""
+
+
 class ZenohTruthSubscriber:
-    """Subscribes to the poses and depth frames the mock publishes; keeps the latest of each
-    per vehicle (a frame older than the one kept is dropped).
+    """Subscribes to the poses and depth frames the mock publishes; keeps the latest pose and
+    the ``depth_queue`` newest depth frames per vehicle (a frame older than the newest kept is
+    dropped; when the queue is full the oldest goes).
 
     The session comes from ``session`` (shared, left open by ``close``), else is opened with
     ``endpoints`` (``ZenohEndpoints``), else with ``connect`` / ``listen`` endpoint lists.
@@ -424,14 +434,18 @@ class ZenohTruthSubscriber:
         session: Any = None,
         limits: CodecLimits = DEFAULT_LIMITS,
         system_id: int | None = None,
+        depth_queue: int = DEPTH_QUEUE,
     ) -> None:
         if system_id is not None and (isinstance(system_id, bool) or not 0 < system_id < 256):
             raise ValueError(f"system_id must be a MAVLink system id 1..255, got {system_id!r}")
+        if isinstance(depth_queue, bool) or not 1 <= depth_queue <= 64:
+            raise ValueError(f"depth_queue must be 1..64 frames, got {depth_queue!r}")
+        self._queue_len = int(depth_queue)
         self.prefix = prefix.rstrip("/")
         self.limits = limits
         self._lock = threading.Lock()
         self._poses: dict[int, TruthSample] = {}
-        self._depth: dict[int, DepthImage] = {}
+        self._depth: dict[int, deque[DepthImage]] = {}
         self._counts: dict[str, int] = {"pose.rx": 0, "depth.rx": 0, "depth.out-of-order": 0}
         for stream in ("pose", "depth"):
             self._counts.update({f"{stream}.{r}": 0 for r in REJECT_REASONS})
@@ -494,11 +508,13 @@ class ZenohTruthSubscriber:
         if img is None:
             return
         with self._lock:
-            old = self._depth.get(img.system_id)
-            if old is not None and img.stamp_s < old.stamp_s:
+            q = self._depth.get(img.system_id)
+            if q is None:
+                q = self._depth[img.system_id] = deque(maxlen=self._queue_len)
+            elif q and img.stamp_s < q[-1].stamp_s:
                 self._counts["depth.out-of-order"] += 1
                 return
-            self._depth[img.system_id] = img
+            q.append(img)
             self._counts["depth.rx"] += 1
 
     def counters(self) -> dict[str, int]:
@@ -516,12 +532,22 @@ class ZenohTruthSubscriber:
             return self._poses.get(system_id)
 
     def depth_image(self, system_id: int) -> DepthImage | None:
+        """The newest depth frame of a vehicle."""
         with self._lock:
-            return self._depth.get(system_id)
+            q = self._depth.get(system_id)
+            return q[-1] if q else None
+
+    def depth_after(self, system_id: int, stamp_s: float) -> DepthImage | None:
+        """The oldest kept depth frame of a vehicle newer than ``stamp_s``."""
+        with self._lock:
+            for img in self._depth.get(system_id, ()):
+                if img.stamp_s > stamp_s:
+                    return img
+        return None
 
     def depth_source(self, system_id: int) -> TruthDepthSource:
         """The frames of one vehicle (closing the source leaves the subscriber open)."""
-        return TruthDepthSource(lambda: self.depth_image(system_id))
+        return TruthDepthSource(lambda after: self.depth_after(system_id, after))
 
     def pose_provider(self, system_id: int) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         return pose_provider(lambda: self.pose(system_id))
@@ -546,4 +572,4 @@ def open_depth_source(
     sub = ZenohTruthSubscriber(
         prefix, endpoints=endpoints or ZenohEndpoints(), session=session, system_id=system_id
     )
-    return TruthDepthSource(lambda: sub.depth_image(system_id), on_close=sub.close)
+    return TruthDepthSource(lambda after: sub.depth_after(system_id, after), on_close=sub.close)
