@@ -33,19 +33,20 @@ trajectory from where it was last heard to where it could have flown in ``ghost_
 (its messages in between lost), and at its last reported position. A peer heard alive whose
 last reported position is further than ``peer_deviation_m`` from its trajectory (stuck or
 lagging, its new trajectory late) is also avoided as a hover there. ``watch`` (called at the
-state rate) asks for a replan at once when a peer falls silent or leaves its trajectory. A peer
-whose newest trajectory started more than ``validity_s`` ago (a stuck drone re-announcing its
-hover) leaves the formation term too. A silent peer's last trajectory is forgotten
-``peer_forget_s`` after it fell silent (or after its message's validity, if earlier); its
-ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell silent. A trajectory
-with a lower ``traj_id`` than one already received from the same peer (a late, reordered or
-duplicated copy) never replaces it.
+state rate) asks for a replan at once when a peer falls silent or leaves its trajectory;
+``peer_view`` gives what a plan made now would avoid (for a safety monitor between replans).
+A peer whose newest trajectory started more than ``validity_s`` ago (a stuck drone
+re-announcing its hover) leaves the formation term too. A silent peer's last trajectory is
+forgotten ``peer_forget_s`` after it fell silent (or after its message's validity, if
+earlier); its ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell
+silent. A trajectory with a lower ``traj_id`` than one already received from the same peer (a
+late, reordered or duplicated copy) never replaces it.
 
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
 immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
 loop); ``advance``, ``schedule`` and ``reset`` lock; the setters (goal, formation, slot, peer
-roles), ``request_replan`` and ``cancel`` may be called from any thread; ``replan`` and
-``step`` run one at a time (a second caller waits).
+roles), ``heard``, ``watch``, ``peer_view``, ``request_replan`` and ``cancel`` may be called
+from any thread; ``replan`` and ``step`` run one at a time (a second caller waits).
 """
 
 from __future__ import annotations
@@ -71,6 +72,18 @@ from onboard.planner.trajectory import Trajectory
 
 EPS_T = 1e-9
 """Times closer than this count as equal (a trajectory starting at t is in control at t)."""
+
+# The silent and stuck peer reaction as flown: the flight service's defaults
+# (``reactions.peer_lost``) and the values of the fast-time fault trials (BENCHMARKS 9b). The
+# agent's own arguments leave silence and deviation off (inf) unless they are passed.
+PEER_SILENCE_S = 0.5
+"""A peer heard of nothing newer for this long is silent (10 Hz states: five in a row lost)."""
+PEER_DEVIATION_M = 0.3
+"""A peer reported further than this from its trajectory is also avoided where it reported."""
+GHOST_WINDOW_S = 0.5
+"""A silent peer may have flown on this long after its newest message before it stopped."""
+GHOST_FORGET_S = 60.0
+"""A silent peer's ghosts (where its vehicle may hold) are avoided this long."""
 
 
 class MapSource(Protocol):
@@ -151,6 +164,26 @@ class PlanReport:
     """Peers judged silent: only avoided, along their last trajectory and at their ghosts."""
     deviating_peers: tuple[int, ...] = ()
     """Peers heard alive but reported off their trajectory: also avoided where they reported."""
+
+
+@dataclass(frozen=True, eq=False)
+class PeerView:
+    """The peers as a plan made at ``t_s`` would avoid them (``DroneAgent.peer_view``): what a
+    safety monitor checks the trajectory in control against between replans."""
+
+    t_s: float
+    trajectories: tuple[PeerTrajectory, ...]
+    """Every peer trajectory still considered (in the formation or only avoided), by id."""
+    hover_ids: tuple[int, ...]
+    """The drone of each row of ``hover_points``."""
+    hover_points: np.ndarray
+    """(K, 3) ENU m, read-only: the silent peers' ghosts (where each may have stopped), then
+    where the deviating peers reported themselves: the hovers a plan avoids besides the
+    trajectories."""
+    silent: tuple[int, ...]
+    """Peers judged silent (out of the formation, avoided at their ghosts too)."""
+    deviating: tuple[int, ...]
+    """Peers heard alive but reported off their trajectory."""
 
 
 @dataclass(frozen=True)
@@ -236,9 +269,10 @@ class DroneAgent:
     message a silent peer may have flown on before it stopped (its messages in between lost;
     one replan period more for a peer heard only through trajectories); peer_silence_s: a
     peer heard of nothing newer for this long is silent (see the module docstring; inf:
-    never); peer_deviation_m: a peer whose reported position is further than this from its
-    trajectory (a stuck or lagging vehicle) is also avoided as a hover where it reported
-    itself (inf: never; more than the vehicles' tracking error); ghost_spacing_m:
+    never; flown with ``PEER_SILENCE_S``); peer_deviation_m: a peer whose reported position is
+    further than this from its trajectory (a stuck or lagging vehicle) is also avoided as a
+    hover where it reported itself (inf: never; more than the vehicles' tracking error; flown
+    with ``PEER_DEVIATION_M``); ghost_spacing_m:
     spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
     them by that distance);
@@ -268,8 +302,8 @@ class DroneAgent:
         validity_s: float = math.inf,
         peer_forget_s: float = 5.0,
         peer_silence_s: float = math.inf,
-        ghost_forget_s: float = 60.0,
-        ghost_window_s: float = 0.5,
+        ghost_forget_s: float = GHOST_FORGET_S,
+        ghost_window_s: float = GHOST_WINDOW_S,
         peer_deviation_m: float = math.inf,
         ghost_spacing_m: float = 0.25,
         on_inputs: Callable[[PlanInputs], None] | None = None,
@@ -640,13 +674,8 @@ class DroneAgent:
         sp, sv, sa = flying.state(t_start)
         msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         formed, avoided = self._split_peers(msgs, a, now, silent)
-        ghosts = self._ghosts(silent, now)
-        with self._peer_lock:
-            deviating = {
-                pid: p
-                for pid in msgs
-                if pid not in silent and (p := self._deviation(pid)) is not None
-            }
+        ghosts = [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in self._ghosts(silent, now)]
+        deviating = self._deviating(msgs, silent)
         ghosts += [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in sorted(deviating.items())]
         n_form = a.formation.shape[0]
         n_av = len(avoided)
@@ -783,11 +812,46 @@ class DroneAgent:
                 out[pid] = m
         return out, silent
 
-    def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, Trajectory]]:
-        """Hovers where each silent peer may have stopped: points ``ghost_spacing_m`` apart
-        along its last reported position and its last trajectory from when it was last heard
-        to ``ghost_window_s`` later (one replan period more without states; at most now)."""
-        out: list[tuple[int, Trajectory]] = []
+    def _deviating(self, msgs: dict[int, TrajectoryMsg], silent: set[int]) -> dict[int, np.ndarray]:
+        """Where each peer of ``msgs`` that is not silent reported itself, if off its
+        trajectory (``_deviation``)."""
+        with self._peer_lock:
+            return {
+                pid: p
+                for pid in msgs
+                if pid not in silent and (p := self._deviation(pid)) is not None
+            }
+
+    def peer_view(self, now_s: float) -> PeerView:
+        """The peers as a plan made at ``now_s`` would see them: their trajectories still
+        considered, the silent peers' ghosts and the deviating peers' reported positions
+        (module docstring). Reads the bus (newer trajectories are taken as a cycle takes
+        them); changes nothing else. Any thread."""
+        now = float(now_s)
+        a = self._assign
+        msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
+        hovers = self._ghosts(silent, now)
+        deviating = self._deviating(msgs, silent)
+        hovers += sorted(deviating.items())
+        points = np.array([p for _, p in hovers], dtype=np.float64).reshape(-1, 3)
+        points.setflags(write=False)
+        return PeerView(
+            t_s=now,
+            trajectories=tuple(
+                PeerTrajectory(pid, m.slot, m.trajectory) for pid, m in msgs.items()
+            ),
+            hover_ids=tuple(pid for pid, _ in hovers),
+            hover_points=points,
+            silent=tuple(sorted(silent)),
+            deviating=tuple(sorted(deviating)),
+        )
+
+    def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, np.ndarray]]:
+        """Where each silent peer may have stopped (its ghosts, avoided as hovers): points
+        ``ghost_spacing_m`` apart along its last reported position and its last trajectory
+        from when it was last heard to ``ghost_window_s`` later (one replan period more without
+        states; at most now)."""
+        out: list[tuple[int, np.ndarray]] = []
         for pid in sorted(silent):
             with self._peer_lock:
                 seen = self._seen[pid]
@@ -802,7 +866,7 @@ class DroneAgent:
             if state is not None and state.position is not None and state.stamp_s >= h - EPS_T:
                 pts = np.vstack([state.position, pts])
             for p in _spaced(pts, self.ghost_spacing_m):
-                out.append((pid, Trajectory.hover(p, now, 3600.0)))
+                out.append((pid, p))
         return out
 
     def _split_peers(
