@@ -583,6 +583,7 @@ class AutopilotLink(ABC):
             unsigned_rejected=c["unsigned_rejected"],
             bad_signatures=c["bad_signatures"],
             unsigned_accepted=c["unsigned_accepted"],
+            frames_ignored=c["frames_ignored"],
             rejected_by_reason=dict(self._rejected),
         )
 

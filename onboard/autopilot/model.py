@@ -277,6 +277,9 @@ class LinkCounters:
     """Signed frames whose signature or timestamp did not verify (wrong key, replay)."""
     unsigned_accepted: int = 0
     """(signing not required) unsigned frames let through."""
+    frames_ignored: int = 0
+    """(pymavlink over UDP) frames of message types the link does not use, skipped undecoded
+    (and unverified: nothing in them is acted on)."""
     rejected_by_reason: dict[str, int] = field(default_factory=dict)
 
 
