@@ -253,11 +253,19 @@ class GridField:
         origin: np.ndarray,
         res: float,
         known: np.ndarray | None = None,
+        *,
+        adopt: bool = False,
     ) -> None:
+        """``adopt``: (for producers that guarantee it, e.g. the ESDF builder) the values are a
+        finite read-only float64 C-contiguous array and ``known`` a read-only bool array of
+        the same shape, taken as they are: no copy, no finiteness pass."""
         v = np.asarray(values, dtype=np.float64)
         if v.ndim != 3 or min(v.shape) < 1:
             raise ValueError(f"GridField values must have shape (nx, ny, nz), got {v.shape}")
-        if not np.all(np.isfinite(v)):
+        if adopt:
+            if v.flags.writeable or not v.flags.c_contiguous:
+                raise ValueError("adopted GridField values must be read-only and C-contiguous")
+        elif not np.all(np.isfinite(v)):
             raise ValueError("GridField values must be finite")
         o = np.asarray(origin, dtype=np.float64).reshape(-1)
         if o.shape != (3,) or not np.all(np.isfinite(o)):
@@ -265,7 +273,10 @@ class GridField:
         if not (math.isfinite(res) and res > 0.0):
             raise ValueError(f"GridField res must be > 0, got {res}")
         if known is not None:
-            k = np.array(known, dtype=bool, copy=True)
+            if adopt and known.dtype == np.bool_ and not known.flags.writeable:
+                k = known
+            else:
+                k = np.array(known, dtype=bool, copy=True)
             if k.shape != v.shape:
                 raise ValueError(f"known mask shape {k.shape} differs from values {v.shape}")
             k.setflags(write=False)
