@@ -389,9 +389,10 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
         final = {d: _status_after(gs, d, time.time(), 5.0) for d in range(N)}
         # the services stop (SIGTERM closes their flight records); PX4's offboard-loss failsafe
         # takes the hovering vehicles
-        for s in services:  # all at once, then wait for each
+        for s in services:  # all at once (a second signal would make one exit at once)
             assert s.proc is not None
             s.proc.send_signal(signal.SIGTERM)
+        poll_until(lambda: not any(s.alive() for s in services), 20.0, "the services stopped")
         for s in services:
             s.stop()
         sitl = mock.stop()
