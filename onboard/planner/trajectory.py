@@ -62,6 +62,89 @@ def eval_piecewise(
             out[3, d] = 0.0
 
 
+@njit(cache=True, nogil=True)
+def _piece_at(durations: np.ndarray, t_rel: float) -> tuple[int, float, bool]:
+    """(piece i, time t on it, inside) of ``eval_piecewise``: the same search and clamping."""
+    m = durations.shape[0]
+    inside = True
+    if t_rel <= 0.0:
+        i = 0
+        t = 0.0
+        inside = t_rel == 0.0
+    else:
+        i = 0
+        t = t_rel
+        while i < m - 1 and t > durations[i]:
+            t -= durations[i]
+            i += 1
+        if t > durations[i]:
+            t = durations[i]
+            inside = False
+    return i, t, inside
+
+
+@njit(cache=True, nogil=True)
+def eval_position_velocity(
+    coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray
+) -> None:
+    """Rows p and v of ``eval_piecewise`` (the same arithmetic, so the same values) into
+    out[0] and out[1]; the rows below are left alone."""
+    i, t, inside = _piece_at(durations, t_rel)
+    t2 = t * t
+    t3 = t2 * t
+    t4 = t3 * t
+    t5 = t4 * t
+    for d in range(3):
+        c0 = coeffs[i, 0, d]
+        c1 = coeffs[i, 1, d]
+        c2 = coeffs[i, 2, d]
+        c3 = coeffs[i, 3, d]
+        c4 = coeffs[i, 4, d]
+        c5 = coeffs[i, 5, d]
+        out[0, d] = c0 + c1 * t + c2 * t2 + c3 * t3 + c4 * t4 + c5 * t5
+        if inside:
+            out[1, d] = c1 + 2.0 * c2 * t + 3.0 * c3 * t2 + 4.0 * c4 * t3 + 5.0 * c5 * t4
+        else:
+            out[1, d] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def eval_position(
+    coeffs: np.ndarray, durations: np.ndarray, t_rel: float
+) -> tuple[float, float, float]:
+    """Position of ``eval_piecewise`` (the same arithmetic, so the same values)."""
+    i, t, _ = _piece_at(durations, t_rel)
+    t2 = t * t
+    t3 = t2 * t
+    t4 = t3 * t
+    t5 = t4 * t
+    x = (
+        coeffs[i, 0, 0]
+        + coeffs[i, 1, 0] * t
+        + coeffs[i, 2, 0] * t2
+        + coeffs[i, 3, 0] * t3
+        + coeffs[i, 4, 0] * t4
+        + coeffs[i, 5, 0] * t5
+    )
+    y = (
+        coeffs[i, 0, 1]
+        + coeffs[i, 1, 1] * t
+        + coeffs[i, 2, 1] * t2
+        + coeffs[i, 3, 1] * t3
+        + coeffs[i, 4, 1] * t4
+        + coeffs[i, 5, 1] * t5
+    )
+    z = (
+        coeffs[i, 0, 2]
+        + coeffs[i, 1, 2] * t
+        + coeffs[i, 2, 2] * t2
+        + coeffs[i, 3, 2] * t3
+        + coeffs[i, 4, 2] * t4
+        + coeffs[i, 5, 2] * t5
+    )
+    return x, y, z
+
+
 @njit(cache=True)
 def eval_piecewise_many(
     coeffs: np.ndarray, durations: np.ndarray, t_rel: np.ndarray, order: int
@@ -106,6 +189,20 @@ class Trajectory:
         object.__setattr__(self, "coeffs", c)
         object.__setattr__(self, "durations_s", T)
         object.__setattr__(self, "t0_s", float(self.t0_s))
+
+    @classmethod
+    def trusted(cls, t0_s: float, coeffs: np.ndarray, durations_s: np.ndarray) -> Trajectory:
+        """A trajectory of arrays already known valid, without the checks of the constructor
+        (the planner's compiled code made them and checked them finite): coeffs (M, 6, 3) and
+        durations_s (M,) C-contiguous float64, finite, durations > 0, t0_s finite. They are
+        made read-only, not copied."""
+        tr = object.__new__(cls)
+        coeffs.setflags(write=False)
+        durations_s.setflags(write=False)
+        object.__setattr__(tr, "t0_s", float(t0_s))
+        object.__setattr__(tr, "coeffs", coeffs)
+        object.__setattr__(tr, "durations_s", durations_s)
+        return tr
 
     @property
     def n_pieces(self) -> int:
