@@ -34,10 +34,18 @@ from numba import njit
 
 from onboard.planner.field import FieldData, field_eval
 from onboard.planner.formation import metric_own_rate
-from onboard.planner.lbfgs import LbfgsStatus, lbfgs_cancel, lbfgs_iterate, lbfgs_start
+from onboard.planner.lbfgs import (
+    LbfgsStatus,
+    lbfgs_cancel,
+    lbfgs_evaluations,
+    lbfgs_iterate,
+    lbfgs_iterations,
+    lbfgs_start,
+    lbfgs_workspace,
+)
 from onboard.planner.minco import energy, propagate_gradient, solve_coeffs
 from onboard.planner.timemap import T_from_tau, grad_tau_from_grad_T
-from onboard.planner.trajectory import eval_piecewise
+from onboard.planner.trajectory import eval_position_velocity
 
 # indices into the packed parameter vector ``prm``
 P_W_TIME = 0
@@ -159,7 +167,7 @@ def sampled_costs(
 
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
-    pst = np.empty((4, 3))  # a peer's p, v, a, j
+    pst = np.empty((2, 3))  # a peer's p, v
     peer_pos = np.empty((max(P, 1), 3))
     peer_vel = np.empty((max(P, 1), 3))
     nf = max(n_form, 1)
@@ -261,7 +269,7 @@ def sampled_costs(
             if P > 0:
                 t_glob = t_piece0 + t
                 for ph in range(P):
-                    eval_piecewise(peer_c[ph], peer_T[ph], t_glob - peer_t0[ph], pst)
+                    eval_position_velocity(peer_c[ph], peer_T[ph], t_glob - peer_t0[ph], pst)
                     for d in range(3):
                         peer_pos[ph, d] = pst[0, d]
                         peer_vel[ph, d] = pst[1, d]
@@ -494,6 +502,23 @@ def solve(
         f = objective(x, prob, fld, work, g)
         status = lbfgs_iterate(ws, iw, lb_prm, x, f, g)
     return status
+
+
+@njit(cache=True, nogil=True)
+def solve_counted(
+    x: np.ndarray,
+    prob: tuple,
+    fld: tuple,
+    work: tuple,
+    lb_prm: np.ndarray,
+    mem_size: int,
+    cancel: np.ndarray,
+) -> tuple[int, int, int]:
+    """``solve`` in a fresh workspace: (status, iterations, evaluations); x holds the best
+    point on return."""
+    ws, iw = lbfgs_workspace(x.shape[0], mem_size)
+    status = solve(x, prob, fld, work, lb_prm, ws, iw, cancel)
+    return status, lbfgs_iterations(iw), lbfgs_evaluations(iw)
 
 
 @njit(cache=True, nogil=True)
