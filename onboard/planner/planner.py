@@ -17,24 +17,21 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from collections.abc import Sequence
+import functools
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from onboard.planner import kernels as kn
 from onboard.planner import objective as obj
-from onboard.planner.astar import astar_path, segment_is_free
+from onboard.planner.astar import astar_path
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask, normalized_adjacency
-from onboard.planner.lbfgs import (
-    LbfgsStatus,
-    lbfgs_evaluations,
-    lbfgs_iterations,
-    lbfgs_workspace,
-)
+from onboard.planner.lbfgs import LbfgsStatus
 from onboard.planner.minco import BAND_COLS, Minco
 from onboard.planner.params import PlannerParams
-from onboard.planner.timemap import T_from_tau, tau_from_T
 from onboard.planner.trajectory import Trajectory
 
 COMFORT_LOOKAHEAD_S = 1.0
@@ -43,6 +40,12 @@ period): an approach sooner than that is flown before another way could be taken
 COMFORT_ASTAR_MARGIN_M = 1.5
 """The A* box of the comfort alternative grows the start-target box by this much (3 m for the
 fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
+
+
+_NO_COEFFS = np.zeros((1, 6, 3))
+_NO_DURATIONS = np.ones(1)
+for _a in (_NO_COEFFS, _NO_DURATIONS):
+    _a.setflags(write=False)  # read-only like a Trajectory's arrays (one compiled signature)
 
 
 class PlanStatus(str, enum.Enum):
@@ -77,7 +80,16 @@ class PlanResult:
     evaluations: int = 0
     solver_status: LbfgsStatus | None = None
     message: str = ""
-    costs: dict[str, float] = field(default_factory=dict)
+    cost_terms: Callable[[], dict[str, float]] | None = field(
+        default=None, repr=False, compare=False
+    )
+    """Computes ``costs`` (the replan does not spend an objective evaluation on them)."""
+
+    @functools.cached_property
+    def costs(self) -> dict[str, float]:
+        """The weighted value of each cost term at the solution (empty when the trajectory is
+        not a new solution); computed on first access."""
+        return {} if self.cost_terms is None else self.cost_terms()
 
 
 class Problem:
@@ -89,19 +101,18 @@ class Problem:
         t_start_s: float,
         head: np.ndarray,
         tail: np.ndarray,
-        q0: np.ndarray,
-        T0: np.ndarray,
+        x0: np.ndarray,
         prob: tuple,
         fld: tuple,
         lb_prm: np.ndarray,
     ) -> None:
         self.params = params
         self.t_start_s = t_start_s
-        self.M = int(T0.shape[0])
+        self.M = (int(x0.shape[0]) + 3) // 4  # x0 holds 3 (M - 1) + M values
         self.head = head
         self.tail = tail
         self.tau_scale = float(prob[3][obj.P_TAU_SCALE])
-        self.x0 = np.concatenate([q0.ravel(), tau_from_T(T0) / self.tau_scale])
+        self.x0 = x0
         self.prob = prob
         self.fld = fld
         M = self.M
@@ -137,74 +148,63 @@ class Problem:
         """Run L-BFGS from x_start (default x0) with the packed solver parameters lb_prm
         (default the planner's); returns (best x, solver status). Counters accumulate."""
         x = (self.x0 if x_start is None else x_start).copy()
-        ws, iw = lbfgs_workspace(x.shape[0], self.params.lbfgs.mem_size)
         prm = self.lb_prm if lb_prm is None else lb_prm
-        status = obj.solve(x, self.prob, self.fld, self.work, prm, ws, iw, self.cancel_flag)
-        self.iterations += int(lbfgs_iterations(iw))
-        self.evaluations += int(lbfgs_evaluations(iw))
+        status, iters, evals = obj.solve_counted(
+            x, self.prob, self.fld, self.work, prm, self.params.lbfgs.mem_size, self.cancel_flag
+        )
+        self.iterations += iters
+        self.evaluations += evals
         return x, LbfgsStatus(status)
 
     def trajectory(self, x: np.ndarray) -> Trajectory:
         """The trajectory that x describes."""
-        M = self.M
-        q = x[: 3 * (M - 1)].reshape(M - 1, 3)
-        T = T_from_tau(np.ascontiguousarray(x[3 * (M - 1) :]) * self.tau_scale)
-        m = Minco(M)
-        m.set_conditions(self.head, self.tail)
-        m.set_parameters(q, T)
-        return Trajectory(self.t_start_s, m.coeffs, T)
+        coeffs, T, finite = kn.trajectory_from_x(
+            np.ascontiguousarray(x, dtype=np.float64), self.head, self.tail, self.tau_scale
+        )
+        if not finite:
+            raise ValueError("durations must be positive and all parameters finite")
+        return Trajectory.trusted(self.t_start_s, coeffs, T)
+
+
+@dataclass(frozen=True)
+class _PeerPack:
+    """The peers' trajectories as the compiled code reads them: ``c (P, K, 6, 3)`` and
+    ``T (P, K)``, the first ``n[k]`` pieces the peer's own, the rest a hover at its end point
+    (1 s each); ``t0 (P,)`` global start times."""
+
+    c: np.ndarray
+    T: np.ndarray
+    n: np.ndarray
+    t0: np.ndarray
+
+
+def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
+    trs = [pt.trajectory for pt in peers]
+    P = len(trs)
+    ns = [tr.durations_s.shape[0] for tr in trs]
+    K = max(ns, default=1)
+    t0 = np.array([tr.t0_s for tr in trs], dtype=np.float64)
+    if P and min(ns) == K:
+        pc = np.concatenate([tr.coeffs for tr in trs]).reshape(P, K, 6, 3)
+        pT = np.concatenate([tr.durations_s for tr in trs]).reshape(P, K)
+    else:
+        pc = np.zeros((P, K, 6, 3))
+        pT = np.ones((P, K))
+        for k, tr in enumerate(trs):
+            n = ns[k]
+            pc[k, :n] = tr.coeffs
+            pT[k, :n] = tr.durations_s
+            if n < K:
+                # unused pieces continue as a hover at the end point (zero velocity)
+                pc[k, n:, 0] = tr.end_position
+    return _PeerPack(pc, pT, np.array(ns, dtype=np.int64), t0)
 
 
 def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
-    a = np.asarray(v, dtype=np.float64)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
+    a = np.array(v, dtype=np.float64)
+    if a.shape != (3,) or not all(map(math.isfinite, a.tolist())):
         raise ValueError(f"{name} must be a finite 3-vector, got {v!r}")
-    return a.copy()
-
-
-def _resample_polyline(path: np.ndarray, n_pieces: int) -> tuple[np.ndarray, np.ndarray]:
-    """n_pieces + 1 points equally spaced in arc length along a polyline (K, 3), and their
-    arc lengths."""
-    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    targets = np.linspace(0.0, s[-1], n_pieces + 1)
-    if s[-1] <= 0.0:
-        return np.repeat(path[:1], n_pieces + 1, axis=0), targets
-    pts = np.stack([np.interp(targets, s, path[:, d]) for d in range(3)], axis=1)
-    return pts, targets
-
-
-def _band_check(d: np.ndarray, threshold: float) -> tuple[bool, str]:
-    """Distances d (K,) along a trajectory, d[0] at its start: (ok, reason suffix).
-
-    Clear of ``threshold`` everywhere; or, starting inside it but not inside the obstacle itself
-    (d[0] >= 0), never closer than the start (1 mm tolerance) and outside the threshold at some
-    point (the trajectory backs out). Inside an obstacle nothing is safe."""
-    d0 = float(d[0])
-    if d0 >= threshold or d0 < 0.0:
-        return bool(np.min(d) >= threshold), ""
-    if np.min(d) < d0 - 1e-3:
-        return False, f" (started inside at {d0:.2f} m and comes closer)"
-    if np.max(d) < threshold:
-        return False, f" (started inside at {d0:.2f} m and does not back out)"
-    return True, ""
-
-
-def _altitude_check(z: np.ndarray, lo: float, hi: float) -> tuple[bool, int]:
-    """Altitudes z (K,) along a trajectory, z[0] at its start: (ok, index of the worst sample).
-
-    Inside [lo, hi] everywhere (1 um tolerance for a tail placed on the edge); or, starting
-    outside, never farther outside than the start (1 mm tolerance) and inside at some point."""
-    s = np.minimum(z - lo, hi - z)  # signed distance into the band
-    k = int(np.argmin(s))
-    s0 = float(s[0])
-    if s0 >= 0.0:
-        return bool(s[k] >= -1e-6), k
-    return bool(s[k] >= s0 - 1e-3 and np.max(s) >= 0.0), k
-
-
-def _polyline_length(path: np.ndarray) -> float:
-    return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+    return a
 
 
 class FormationPlanner:
@@ -292,99 +292,90 @@ class FormationPlanner:
 
     # --- problem set-up ---------------------------------------------------------------------
 
-    def _local_target(
-        self, start: np.ndarray, goal: np.ndarray, field: DistanceField
-    ) -> np.ndarray:
-        """Goal if within the horizon, else the point horizon_m along the line, moved along the
-        line to the nearest point clear of obstacles by the optimiser's clearance."""
-        d = goal - start
-        dist = float(np.linalg.norm(d))
-        p = self.params
-        if dist <= p.horizon_m:
-            return goal.copy()
-        # into the altitude band (the line from a start outside it may leave it)
-        return self._into_band(self._local_target_on_line(start, goal, d, dist, field))
-
-    def _local_target_on_line(
-        self, start: np.ndarray, goal: np.ndarray, d: np.ndarray, dist: float, field: DistanceField
-    ) -> np.ndarray:
-        p = self.params
-        u = d / dist
-        first = start + p.horizon_m * u
-        dd0, _ = field.distance(first[None, :])
-        if dd0[0] >= p.obstacle_clearance_m:
-            return first
-        offsets = np.arange(0.0, dist - p.horizon_m, 0.1)
-        cand = np.concatenate([p.horizon_m + offsets, p.horizon_m - np.arange(0.1, 3.0, 0.1)])
-        cand = cand[(cand > 0.5) & (cand <= dist)]
-        pts = start + cand[:, None] * u
-        dd, _ = field.distance(pts)
-        ok = np.nonzero(dd >= p.obstacle_clearance_m)[0]
-        if ok.size == 0:
-            return start + p.horizon_m * u
-        return pts[ok[np.argmin(np.abs(cand[ok] - p.horizon_m))]]
-
-    def _guess_path(
+    def _initial_x(
         self,
         t_start: float,
-        start: np.ndarray,
-        target: np.ndarray,
+        sp: np.ndarray,
+        sv: np.ndarray,
+        goal: np.ndarray,
         field: DistanceField,
+        fld: tuple,
         previous: Trajectory | None,
         force_astar: bool,
-        astar_margin_m: float = 3.0,
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Initial path (K, 3) and, when it follows the previous trajectory, its times (K,)
-        relative to t_start (the warm start keeps the previous timing)."""
+        astar_margin_m: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(local target, solver start x0). The initial path is the previous trajectory (the
+        warm start keeps its timing), else a straight line, else an A* path when the line is
+        blocked; it is resampled into MINCO pieces of about ``piece_length_m``."""
         p = self.params
-        if not force_astar and previous is not None and previous.t_end_s > t_start + 0.2:
-            ts = np.linspace(t_start, previous.t_end_s, 24)
-            path = previous.sample(ts)
-            times = ts - t_start
-            extra = float(np.linalg.norm(path[-1] - target))
-            if extra > 1e-3:
-                path = np.vstack([path, target])
-                times = np.append(times, times[-1] + extra / p.v_max_m_s + 0.5)
-            return path, times
-        line = np.vstack([start, target])
-        if not force_astar and segment_is_free(field, start, target, p.check_obstacle_m):
-            return line, None
-        astar = astar_path(
+        lo, hi = p.z_limits_m
+        use_prev = previous is not None and not force_astar
+        code, target, x0 = kn.initial_guess(
+            t_start,
+            sp,
+            sv,
+            goal,
+            p.horizon_m,
+            p.obstacle_clearance_m,
+            lo,
+            hi,
+            fld,
+            previous.coeffs if previous is not None else _NO_COEFFS,
+            previous.durations_s if previous is not None else _NO_DURATIONS,
+            previous.t0_s if previous is not None else 0.0,
+            use_prev,
+            not force_astar,
+            p.check_obstacle_m,
+            p.v_max_m_s,
+            p.a_max_m_s2,
+            p.piece_length_m,
+            p.max_pieces,
+            p.tau_scale,
+        )
+        if code == kn.GUESS_NEEDS_ASTAR:
+            path = self._astar(sp, target, field, astar_margin_m)
+            path[0] = sp
+            x0 = kn.path_guess(
+                path,
+                _NO_DURATIONS,
+                False,
+                sv,
+                p.v_max_m_s,
+                p.a_max_m_s2,
+                p.piece_length_m,
+                p.max_pieces,
+                p.tau_scale,
+            )
+        return target, x0
+
+    def _astar(
+        self, start: np.ndarray, target: np.ndarray, field: DistanceField, margin_m: float
+    ) -> np.ndarray:
+        """An A* path start-target at the optimiser's clearance, else at the check's, else the
+        straight line, (K, 3)."""
+        p = self.params
+        path = astar_path(
             field,
             start,
             target,
             clearance_m=p.obstacle_clearance_m,
             resolution_m=p.astar_resolution_m,
-            margin_m=astar_margin_m,
+            margin_m=margin_m,
             z_limits=p.altitude_band_inner_m,
         )
-        if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
-            astar = astar_path(
+        if path is None and p.obstacle_clearance_m > p.check_obstacle_m:
+            path = astar_path(
                 field,
                 start,
                 target,
                 clearance_m=p.check_obstacle_m,
                 resolution_m=p.astar_resolution_m,
-                margin_m=astar_margin_m,
+                margin_m=margin_m,
                 z_limits=p.altitude_band_inner_m,
             )
-        return (line if astar is None else astar), None
-
-    def _peer_arrays(self, t_start: float, peers: Sequence[PeerTrajectory]) -> tuple:
-        P = len(peers)
-        K = max((pt.trajectory.n_pieces for pt in peers), default=1)
-        pc = np.zeros((P, K, 6, 3))
-        pT = np.ones((P, K))
-        pt0 = np.zeros(P)
-        for k, pt in enumerate(peers):
-            tr = pt.trajectory
-            n = tr.n_pieces
-            pc[k, :n] = tr.coeffs
-            pT[k, :n] = tr.durations_s
-            # unused pieces continue as a hover at the end point (zero velocity)
-            pc[k, n:, 0] = tr.end_position
-            pt0[k] = tr.t0_s - t_start
-        return pc, pT, pt0
+        if path is None:
+            return np.vstack([start, target])
+        return np.ascontiguousarray(path, dtype=np.float64)
 
     def _lead(
         self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
@@ -411,6 +402,19 @@ class FormationPlanner:
         off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
         return float(off @ u)
 
+    def _check_time_and_peers(self, t_start_s: float, peers: Sequence[PeerTrajectory]) -> None:
+        """ValueError unless t_start_s is finite and every peer has its own formation slot."""
+        if not math.isfinite(t_start_s):
+            raise ValueError("t_start_s must be finite")
+        n = self.formation.shape[0]
+        seen: set[int] = {self.slot}
+        for pt in peers:
+            if not 0 <= pt.slot < n:
+                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot} outside the formation")
+            if pt.slot in seen:
+                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
+            seen.add(pt.slot)
+
     def prepare(
         self,
         t_start_s: float,
@@ -426,42 +430,47 @@ class FormationPlanner:
         astar_margin_m: float = 3.0,
     ) -> Problem:
         """Build the optimisation problem of one replan (validated inputs, initial guess)."""
-        p = self.params
-        if not np.isfinite(t_start_s):
-            raise ValueError("t_start_s must be finite")
-        sp = _vec3("start_p", start_p)
-        sv = _vec3("start_v", start_v)
-        sa = _vec3("start_a", start_a)
-        gl = self._into_band(_vec3("goal", goal))
-        seen: set[int] = {self.slot}
-        for pt in peers:
-            if not 0 <= pt.slot < self.formation.shape[0]:
-                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot} outside the formation")
-            if pt.slot in seen:
-                raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
-            seen.add(pt.slot)
-        target = self._local_target(sp, gl, field)
-        path, times = self._guess_path(
-            t_start_s, sp, target, field, previous, force_astar, astar_margin_m
+        self._check_time_and_peers(t_start_s, peers)
+        return self._prepare(
+            t_start_s,
+            _vec3("start_p", start_p),
+            _vec3("start_v", start_v),
+            _vec3("start_a", start_a),
+            self._into_band(_vec3("goal", goal)),
+            peers,
+            _pack_peers(peers),
+            field,
+            obj.field_args(field.kernel_data()),
+            previous,
+            use_formation,
+            force_astar,
+            astar_margin_m,
         )
-        path[0] = sp
-        length = _polyline_length(path)
-        M = int(np.clip(np.ceil(length / p.piece_length_m), 1, p.max_pieces))
-        wps, arc = _resample_polyline(path, M)
-        if times is not None:
-            # keep the previous timing along the path (arc length -> time)
-            s_path = np.concatenate(
-                [[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
-            )
-            T0 = np.maximum(np.diff(np.interp(arc, s_path, times)), 0.2)
-        else:
-            seg = np.diff(arc)
-            T0 = np.maximum(seg / p.v_max_m_s, 0.3)
-            T0[0] += 2.0 * max(0.0, p.v_max_m_s - float(np.linalg.norm(sv))) / p.a_max_m_s2
-            T0[-1] += 1.0  # braking at the target
+
+    def _prepare(
+        self,
+        t_start_s: float,
+        sp: np.ndarray,
+        sv: np.ndarray,
+        sa: np.ndarray,
+        gl: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        pack: _PeerPack,
+        field: DistanceField,
+        fld: tuple,
+        previous: Trajectory | None,
+        use_formation: bool,
+        force_astar: bool,
+        astar_margin_m: float,
+    ) -> Problem:
+        """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
+        p = self.params
+        target, x0 = self._initial_x(
+            t_start_s, sp, sv, gl, field, fld, previous, force_astar, astar_margin_m
+        )
         head = np.stack([sp, sv, sa])
-        tail = np.stack([target, np.zeros(3), np.zeros(3)])
-        pc, pT, pt0 = self._peer_arrays(t_start_s, peers)
+        tail = np.zeros((3, 3))
+        tail[0] = target
         if use_formation and p.w_formation > 0 and len(peers) > 0:
             sdes, m, fpts = self._desired((self.slot, *(pt.slot for pt in peers)))
         else:
@@ -474,10 +483,9 @@ class FormationPlanner:
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
-        prob = (head, tail, p.kappa, prm, pc, pT, pt0, sdes, m, fpts)
-        fld = obj.field_args(field.kernel_data())
-        problem = Problem(p, float(t_start_s), head, tail, wps[1:-1], T0, prob, fld, self._lb_prm)
-        return problem
+        pt0 = pack.t0 - t_start_s
+        prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts)
+        return Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
 
     # --- acceptance -------------------------------------------------------------------------
 
@@ -498,9 +506,12 @@ class FormationPlanner:
         leaves the band, so it can always back out; (2) during the first ``check_known_s``
         (the part flown before the next replan can replace it) it does not enter space the
         field has not observed (``field.is_known``); a start in
-        unobserved space may be left.
+        unobserved space may be left. Positions are sampled every ``check_step_s`` from
+        ``t_from_s`` to the end; obstacle distances are those of ``field.kernel_data()`` (the
+        field the optimiser sees).
         """
-        ok, why, _, _ = self._check(traj, t_from_s, field, peers)
+        fld = obj.field_args(field.kernel_data())
+        ok, why, _, _ = self._check(traj, t_from_s, field, fld, peers, _pack_peers(peers))
         return ok, why
 
     def _check(
@@ -508,54 +519,120 @@ class FormationPlanner:
         traj: Trajectory,
         t_from_s: float,
         field: DistanceField,
+        fld: tuple,
         peers: Sequence[PeerTrajectory],
+        pack: _PeerPack,
     ) -> tuple[bool, str, float, float]:
         """``check`` plus the trajectory's closest approach to an obstacle, over all of it and
         from ``COMFORT_LOOKAHEAD_S`` on (NaN when the test stopped before the distances)."""
         p = self.params
-        t_end = max(traj.t_end_s, t_from_s)
-        ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
-        pos = traj.sample(ts)
-        if not np.all(np.isfinite(pos)):
-            return False, "non-finite trajectory", float("nan"), float("nan")
-        lo, hi = p.z_limits_m
-        ok, k = _altitude_check(pos[:, 2], lo, hi)
-        if not ok:
+        res = kn.check_trajectory(
+            traj.coeffs,
+            traj.durations_s,
+            traj.t0_s,
+            float(t_from_s),
+            p.check_step_s,
+            p.z_limits_m[0],
+            p.z_limits_m[1],
+            fld,
+            p.check_obstacle_m,
+            pack.c,
+            pack.T,
+            pack.n,
+            pack.t0,
+            p.check_drone_m,
+            COMFORT_LOOKAHEAD_S,
+        )
+        return self._verdict(res, traj, t_from_s, field, peers)
+
+    def _verdict(
+        self,
+        res: tuple,
+        traj: Trajectory,
+        t_from_s: float,
+        field: DistanceField,
+        peers: Sequence[PeerTrajectory],
+    ) -> tuple[bool, str, float, float]:
+        """(ok, reason, clearance, ahead) from ``kernels.check_trajectory``'s answer, with the
+        unknown-space test (2) on top."""
+        code, band, k, ph, value, start, t_k, clearance, ahead, n = res
+        if code == kn.CHECK_OK:
+            why = self._unknown_space(traj, t_from_s, field)
+            return not why, why, clearance, ahead
+        if code == kn.CHECK_NON_FINITE:
+            return False, "non-finite trajectory", clearance, ahead
+        if code == kn.CHECK_ALTITUDE:
+            lo, hi = self.params.z_limits_m
             return (
                 False,
-                f"altitude {pos[k, 2]:.2f} m at t={ts[k] - t_from_s:.2f} s outside the band "
-                f"[{lo:g}, {hi:g}] m",
-                float("nan"),
-                float("nan"),
+                f"altitude {value:.2f} m at t={t_k:.2f} s outside the band [{lo:g}, {hi:g}] m",
+                clearance,
+                ahead,
             )
-        d, _ = field.distance(pos)
-        clearance = float(np.min(d))
-        later = ts >= t_from_s + COMFORT_LOOKAHEAD_S
-        ahead = float(np.min(d[later])) if np.any(later) else float("inf")
-        ok, why = _band_check(d, p.check_obstacle_m)
-        if not ok:
-            k = int(np.argmin(d))
-            reason = f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
-            return False, reason, clearance, ahead
-        for pt in peers:
-            other = pt.trajectory.sample(ts)
-            dd = np.linalg.norm(pos - other, axis=1)
-            ok, why = _band_check(dd, p.check_drone_m)
-            if not ok:
-                k = int(np.argmin(dd))
-                reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from_s:.2f} s{why}"
-                return False, reason, clearance, ahead
-        if p.check_known_s > 0.0:
-            n = int(np.searchsorted(ts, t_from_s + p.check_known_s, side="right"))
-            known = field.is_known(pos[:n])
-            if not np.all(known):
-                first_known = int(np.argmax(known)) if np.any(known) else n
-                entered = np.nonzero(~known[first_known:])[0]
-                if entered.size:
-                    k = first_known + int(entered[0])
-                    reason = f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
-                    return False, reason, clearance, ahead
-        return True, "", clearance, ahead
+        if band == kn.BAND_COMES_CLOSER:
+            why = f" (started inside at {start:.2f} m and comes closer)"
+        elif band == kn.BAND_NO_BACK_OUT:
+            why = f" (started inside at {start:.2f} m and does not back out)"
+        else:
+            why = ""
+        if code == kn.CHECK_OBSTACLE:
+            reason = f"obstacle clearance {value:.2f} m at t={t_k:.2f} s{why}"
+        else:
+            reason = f"drone {peers[ph].drone_id} at {value:.2f} m at t={t_k:.2f} s{why}"
+        return False, reason, clearance, ahead
+
+    def _unknown_space(self, traj: Trajectory, t_from_s: float, field: DistanceField) -> str:
+        """Test (2) of ``check``: the reason when ``traj`` enters unobserved space during its
+        first ``check_known_s`` from t_from_s, else ""."""
+        p = self.params
+        if p.check_known_s <= 0.0:
+            return ""
+        t_end = max(traj.t_end_s, t_from_s)
+        ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
+        n = int(np.searchsorted(ts, t_from_s + p.check_known_s, side="right"))
+        known = field.is_known(traj.sample(ts[:n]))
+        if not np.all(known):
+            first_known = int(np.argmax(known)) if np.any(known) else n
+            entered = np.nonzero(~known[first_known:])[0]
+            if entered.size:
+                k = first_known + int(entered[0])
+                return f"enters unobserved space at t={ts[k] - t_from_s:.2f} s"
+        return ""
+
+    def _finish(
+        self,
+        problem: Problem,
+        x: np.ndarray,
+        field: DistanceField,
+        peers: Sequence[PeerTrajectory],
+        pack: _PeerPack,
+    ) -> tuple[Trajectory | None, bool, str, float, float]:
+        """(trajectory, safe, reason, clearance, ahead) of an attempt's solution x (trajectory
+        None and not safe when x or its trajectory is not finite)."""
+        p = self.params
+        finite, coeffs, T, res = kn.finish_attempt(
+            x,
+            problem.head,
+            problem.tail,
+            problem.tau_scale,
+            problem.t_start_s,
+            p.check_step_s,
+            p.z_limits_m[0],
+            p.z_limits_m[1],
+            problem.fld,
+            p.check_obstacle_m,
+            pack.c,
+            pack.T,
+            pack.n,
+            pack.t0,
+            p.check_drone_m,
+            COMFORT_LOOKAHEAD_S,
+        )
+        if not finite:
+            return None, False, "non-finite solution", math.nan, math.nan
+        traj = Trajectory.trusted(problem.t_start_s, coeffs, T)
+        safe, why, clearance, ahead = self._verdict(res, traj, problem.t_start_s, field, peers)
+        return traj, safe, why, clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest."""
@@ -587,25 +664,30 @@ class FormationPlanner:
         if np.linalg.norm(gl - sp) < 0.02 and np.linalg.norm(sv) < 0.05:
             hover = Trajectory.hover(gl, t_start_s, duration_s=1.0)
             return PlanResult(PlanStatus.OK, hover, message="at goal")
+        self._check_time_and_peers(t_start_s, peers)
+        pack = _pack_peers(peers)
+        fld = obj.field_args(field.kernel_data())
         iters = evals = 0
 
         def solve(
-            use_formation: bool, force_astar: bool, **kw: float
+            use_formation: bool, force_astar: bool, astar_margin_m: float = 3.0
         ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
             """Prepare and solve one attempt (cancellable meanwhile), counting its work."""
             nonlocal iters, evals
-            problem = self.prepare(
+            problem = self._prepare(
                 t_start_s,
                 sp,
                 sv,
                 sa,
                 gl,
                 peers,
+                pack,
                 field,
+                fld,
                 previous,
-                use_formation=use_formation,
-                force_astar=force_astar,
-                **kw,
+                use_formation,
+                force_astar,
+                astar_margin_m,
             )
             self._active = problem
             x, status = problem.solve()
@@ -625,17 +707,17 @@ class FormationPlanner:
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
                 break
-            if not np.all(np.isfinite(x)):
-                messages.append("non-finite solution")
+            traj, safe, why, clearance, ahead = self._finish(problem, x, field, peers, pack)
+            if traj is None:
+                messages.append(why)
                 continue
-            traj = problem.trajectory(x)
-            safe, why, clearance, ahead = self._check(traj, t_start_s, field, peers)
             if not safe:
                 x2, st2 = problem.solve(x, self._lb_prm_refine)
-                if st2 != LbfgsStatus.CANCELED and np.all(np.isfinite(x2)):
-                    x, last_status = x2, st2
-                    traj = problem.trajectory(x)
-                    safe, why, clearance, ahead = self._check(traj, t_start_s, field, peers)
+                if st2 != LbfgsStatus.CANCELED:
+                    refined = self._finish(problem, x2, field, peers, pack)
+                    if refined[0] is not None:
+                        x, last_status = x2, st2
+                        traj, safe, why, clearance, ahead = refined
             if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
                 # chose when the gap was far) far enough ahead to choose another: try the way
@@ -646,13 +728,15 @@ class FormationPlanner:
                     alt, x_alt, st_alt = solve(
                         use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M
                     )
-                    if st_alt != LbfgsStatus.CANCELED and np.all(np.isfinite(x_alt)):
-                        traj_alt = alt.trajectory(x_alt)
-                        ok_alt, _, clr_alt, _ = self._check(traj_alt, t_start_s, field, peers)
-                        if ok_alt and clr_alt > clearance:
+                    if st_alt != LbfgsStatus.CANCELED:
+                        traj_alt, ok_alt, _, clr_alt, _ = self._finish(
+                            alt, x_alt, field, peers, pack
+                        )
+                        if traj_alt is not None and ok_alt and clr_alt > clearance:
                             problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
                             messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
             if safe:
+                assert traj is not None
                 return PlanResult(
                     ok_status,
                     traj,
@@ -660,12 +744,12 @@ class FormationPlanner:
                     evals,
                     last_status,
                     "; ".join(messages),
-                    problem.cost_terms(x),
+                    functools.partial(problem.cost_terms, x),
                 )
             what = "a* retry" if force_astar else "formation"
             messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
         if previous is not None:
-            safe, why = self.check(previous, t_start_s, field, peers)
+            safe, why, _, _ = self._check(previous, t_start_s, field, fld, peers, pack)
             if safe:
                 return PlanResult(
                     PlanStatus.KEPT_PREVIOUS,

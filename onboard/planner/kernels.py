@@ -1,0 +1,471 @@
+"""Compiled set-up and safety check of one replan (``planner.FormationPlanner`` calls them).
+
+They do what the planner's Python did before, operation for operation, with the numpy calls
+replaced by their rounding-exact twins of ``npexact``, so plans are bit-identical; they only
+save the interpreter's time (about 40 numpy calls of the set-up and 30 of the check per replan).
+
+- ``local_target``: the point ``horizon`` along the line to the goal, moved along the line to
+  the nearest point clear of obstacles by ``clearance``, then into the altitude band;
+- ``initial_guess``: the local target and the initial path (the previous trajectory, else the
+  straight line if it is clear) resampled into MINCO pieces, as the solver's start vector x0;
+- ``path_guess``: x0 from a given path (the A* fallback's);
+- ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
+- ``check_trajectory``: the safety check of ``FormationPlanner.check`` up to the unknown-space
+  test, answering with a code and the numbers of its reason;
+- ``finish_attempt``: trajectory and check of a solution in one call.
+
+``fld`` is the objective's field tuple (``objective.field_args``); peers are packed as
+``peer_c (P, K, 6, 3)``, ``peer_T (P, K)`` (the first ``peer_n[k]`` pieces are the peer's own)
+and ``peer_t0 (P,)`` (global start times).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from onboard.planner.field import field_eval
+from onboard.planner.minco import BAND_COLS, solve_coeffs
+from onboard.planner.npexact import interp_at, norm3, np_arange, np_linspace, np_sum
+from onboard.planner.timemap import T_from_tau, tau_from_T
+from onboard.planner.trajectory import eval_position
+
+# initial_guess codes
+GUESS_OK = 0
+GUESS_NEEDS_ASTAR = 1
+"""The line to the target is blocked (or A* was asked for): the caller finds an A* path and
+calls ``path_guess`` with it."""
+
+# check_trajectory codes
+CHECK_OK = 0
+CHECK_NON_FINITE = 1
+CHECK_ALTITUDE = 2
+CHECK_OBSTACLE = 3
+CHECK_DRONE = 4
+# how a band check failed (``_band``)
+BAND_OK = 0
+BAND_INSIDE = 1
+"""Closer than the threshold, started outside it (or inside the obstacle itself)."""
+BAND_COMES_CLOSER = 2
+"""Started inside the threshold and comes closer than the start."""
+BAND_NO_BACK_OUT = 3
+"""Started inside the threshold and never leaves it."""
+
+GUESS_SAMPLES = 24
+"""Points sampled along the previous trajectory for the warm start."""
+
+
+@njit(cache=True, nogil=True)
+def _dist(fld: tuple, x: float, y: float, z: float) -> float:
+    kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
+    return field_eval(kind, grid, origin, res, cyl, rings, boxes, ground_z, x, y, z)[0]
+
+
+@njit(cache=True, nogil=True)
+def into_band(z: float, lo: float, hi: float) -> float:
+    """``min(max(z, lo), hi)`` with Python's choice of argument on ties."""
+    m = lo if lo > z else z
+    return hi if hi < m else m
+
+
+@njit(cache=True, nogil=True)
+def local_target(
+    start: np.ndarray,
+    goal: np.ndarray,
+    horizon: float,
+    clearance: float,
+    z_lo: float,
+    z_hi: float,
+    fld: tuple,
+) -> np.ndarray:
+    """Goal if within ``horizon``, else the point ``horizon`` along the line to it, moved along
+    the line (0.1 m steps, up to the goal, back to 2.9 m before, never nearer than 0.5 m to the
+    start) to the nearest point whose field distance is >= ``clearance`` (the horizon point
+    when there is none), with its z moved into [z_lo, z_hi]. start, goal: (3,)."""
+    d0 = goal[0] - start[0]
+    d1 = goal[1] - start[1]
+    d2 = goal[2] - start[2]
+    dist = norm3(d0, d1, d2)
+    out = np.empty(3)
+    if dist <= horizon:
+        out[:] = goal
+        return out
+    u0 = d0 / dist
+    u1 = d1 / dist
+    u2 = d2 / dist
+    out[0] = start[0] + horizon * u0
+    out[1] = start[1] + horizon * u1
+    out[2] = start[2] + horizon * u2
+    if not _dist(fld, out[0], out[1], out[2]) >= clearance:
+        offsets = np_arange(0.0, dist - horizon, 0.1)
+        back = np_arange(0.1, 3.0, 0.1)
+        best = -1.0
+        best_gap = 0.0
+        for k in range(offsets.shape[0] + back.shape[0]):
+            if k < offsets.shape[0]:
+                c = horizon + offsets[k]
+            else:
+                c = horizon - back[k - offsets.shape[0]]
+            if not (c > 0.5 and c <= dist):
+                continue
+            p0 = start[0] + c * u0
+            p1 = start[1] + c * u1
+            p2 = start[2] + c * u2
+            if _dist(fld, p0, p1, p2) >= clearance:
+                gap = abs(c - horizon)
+                if best < 0.0 or gap < best_gap:  # the first of equal gaps, as np.argmin
+                    best = c
+                    best_gap = gap
+                    out[0] = p0
+                    out[1] = p1
+                    out[2] = p2
+    out[2] = into_band(out[2], z_lo, z_hi)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def segment_is_free(
+    fld: tuple, a: np.ndarray, b: np.ndarray, clearance: float, step: float = 0.05
+) -> bool:
+    """``astar.segment_is_free`` on the field tuple: distance >= clearance at samples every
+    <= step along a-b, both ends included."""
+    e0 = b[0] - a[0]
+    e1 = b[1] - a[1]
+    e2 = b[2] - a[2]
+    n = max(1, int(math.ceil(norm3(e0, e1, e2) / step)))
+    s = np_linspace(0.0, 1.0, n + 1)
+    for i in range(n + 1):
+        if not _dist(fld, a[0] + s[i] * e0, a[1] + s[i] * e1, a[2] + s[i] * e2) >= clearance:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def path_guess(
+    path: np.ndarray,
+    times: np.ndarray,
+    has_times: bool,
+    sv: np.ndarray,
+    v_max: float,
+    a_max: float,
+    piece_length: float,
+    max_pieces: int,
+    tau_scale: float,
+) -> np.ndarray:
+    """Solver start x0 = [q0.ravel(), tau(T0) / tau_scale] from an initial path (K, 3) whose
+    first point is the start: M = ceil(length / piece_length) pieces (1..max_pieces) of equal
+    arc length; durations from ``times`` (K,) along the path when ``has_times`` (at least
+    0.2 s), else from the speed limit (at least 0.3 s; the first one gets time to accelerate
+    from the start speed |sv|, the last one 1 s to brake)."""
+    K = path.shape[0]
+    s = np.empty(K)  # arc length at each path point
+    s[0] = 0.0
+    seg = np.empty(max(K - 1, 0))
+    for k in range(K - 1):
+        seg[k] = norm3(
+            path[k + 1, 0] - path[k, 0], path[k + 1, 1] - path[k, 1], path[k + 1, 2] - path[k, 2]
+        )
+        s[k + 1] = s[k] + seg[k]
+    length = np_sum(seg)
+    c = np.ceil(length / piece_length)
+    c = max(c, 1.0)
+    c = min(c, float(max_pieces))
+    M = int(c)
+    arc = np_linspace(0.0, s[K - 1], M + 1)
+    wps = np.empty((M + 1, 3))
+    if s[K - 1] <= 0.0:
+        for i in range(M + 1):
+            wps[i] = path[0]
+    else:
+        col = np.empty(K)
+        for d in range(3):
+            for k in range(K):
+                col[k] = path[k, d]
+            for i in range(M + 1):
+                wps[i, d] = interp_at(arc[i], s, col)
+    T0 = np.empty(M)
+    if has_times:
+        t_arc = np.empty(M + 1)
+        for i in range(M + 1):
+            t_arc[i] = interp_at(arc[i], s, times)
+        for i in range(M):
+            T0[i] = max(t_arc[i + 1] - t_arc[i], 0.2)
+    else:
+        for i in range(M):
+            T0[i] = max((arc[i + 1] - arc[i]) / v_max, 0.3)
+        speed = norm3(sv[0], sv[1], sv[2])
+        room = v_max - speed
+        T0[0] += 2.0 * (room if room > 0.0 else 0.0) / a_max
+        T0[M - 1] += 1.0
+    nq = 3 * (M - 1)
+    x0 = np.empty(nq + M)
+    for i in range(M - 1):
+        for d in range(3):
+            x0[3 * i + d] = wps[i + 1, d]
+    tau = tau_from_T(T0)
+    for i in range(M):
+        x0[nq + i] = tau[i] / tau_scale
+    return x0
+
+
+@njit(cache=True, nogil=True)
+def initial_guess(
+    t_start: float,
+    sp: np.ndarray,
+    sv: np.ndarray,
+    goal: np.ndarray,
+    horizon: float,
+    clearance: float,
+    z_lo: float,
+    z_hi: float,
+    fld: tuple,
+    prev_c: np.ndarray,
+    prev_T: np.ndarray,
+    prev_t0: float,
+    use_prev: bool,
+    try_line: bool,
+    check_obstacle: float,
+    v_max: float,
+    a_max: float,
+    piece_length: float,
+    max_pieces: int,
+    tau_scale: float,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """(code, local target, x0): the target is ``local_target(sp, goal, horizon, clearance,
+    z_lo, z_hi, fld)``; x0 the warm start along the previous trajectory (``use_prev`` and it
+    lasts more than 0.2 s after t_start; its timing kept, the target appended when it ends
+    elsewhere), else along the line start-target when ``try_line`` and it is clear by
+    ``check_obstacle``, else code ``GUESS_NEEDS_ASTAR`` and an empty x0."""
+    target = local_target(sp, goal, horizon, clearance, z_lo, z_hi, fld)
+    if use_prev and prev_t0 + np_sum(prev_T) > t_start + 0.2:
+        t_end = prev_t0 + np_sum(prev_T)
+        ts = np_linspace(t_start, t_end, GUESS_SAMPLES)
+        x, y, z = eval_position(prev_c, prev_T, ts[GUESS_SAMPLES - 1] - prev_t0)
+        extra = norm3(x - target[0], y - target[1], z - target[2])
+        K = GUESS_SAMPLES + 1 if extra > 1e-3 else GUESS_SAMPLES
+        path = np.empty((K, 3))
+        times = np.empty(K)
+        for k in range(GUESS_SAMPLES):
+            path[k, 0], path[k, 1], path[k, 2] = eval_position(prev_c, prev_T, ts[k] - prev_t0)
+            times[k] = ts[k] - t_start
+        if K > GUESS_SAMPLES:
+            path[K - 1] = target
+            times[K - 1] = times[K - 2] + extra / v_max + 0.5
+        path[0] = sp
+        x0 = path_guess(path, times, True, sv, v_max, a_max, piece_length, max_pieces, tau_scale)
+        return GUESS_OK, target, x0
+    if try_line and segment_is_free(fld, sp, target, check_obstacle):
+        path = np.empty((2, 3))
+        path[0] = sp
+        path[1] = target
+        x0 = path_guess(
+            path, np.empty(0), False, sv, v_max, a_max, piece_length, max_pieces, tau_scale
+        )
+        return GUESS_OK, target, x0
+    return GUESS_NEEDS_ASTAR, target, np.empty(0)
+
+
+@njit(cache=True, nogil=True)
+def trajectory_from_x(
+    x: np.ndarray, head: np.ndarray, tail: np.ndarray, tau_scale: float
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(coeffs (M, 6, 3), T (M,), finite) of the MINCO trajectory x = [q.ravel(), tau / scale]
+    describes (``finite``: every coefficient and duration is finite)."""
+    M = (x.shape[0] + 3) // 4
+    nq = 3 * (M - 1)
+    q = x[:nq].copy().reshape((M - 1, 3))
+    T = T_from_tau(x[nq:] * tau_scale)
+    band = np.zeros((6 * M, BAND_COLS))
+    c = np.zeros((6 * M, 3))
+    solve_coeffs(head, tail, q, T, band, c)
+    finite = True
+    for i in range(M):
+        if not (math.isfinite(T[i]) and T[i] > 0.0):
+            finite = False
+    for r in range(6 * M):
+        for d in range(3):
+            if not math.isfinite(c[r, d]):
+                finite = False
+    return c.reshape((M, 6, 3)), T, finite
+
+
+@njit(cache=True, nogil=True)
+def _band(d: np.ndarray, threshold: float) -> int:
+    """Distances d (K,) along a trajectory, d[0] at its start, against ``threshold``: clear of
+    it everywhere; or, starting inside it but not inside the obstacle itself (d[0] >= 0), never
+    closer than the start (1 mm tolerance) and outside it at some point (the trajectory backs
+    out). Inside an obstacle nothing is safe."""
+    d0 = d[0]
+    lo = d[0]
+    hi = d[0]
+    for k in range(1, d.shape[0]):
+        lo = min(lo, d[k])
+        hi = max(hi, d[k])
+    if d0 >= threshold or d0 < 0.0:
+        return BAND_OK if lo >= threshold else BAND_INSIDE
+    if lo < d0 - 1e-3:
+        return BAND_COMES_CLOSER
+    if hi < threshold:
+        return BAND_NO_BACK_OUT
+    return BAND_OK
+
+
+@njit(cache=True, nogil=True)
+def _argmin(d: np.ndarray) -> int:
+    k = 0
+    for i in range(1, d.shape[0]):
+        if d[i] < d[k]:
+            k = i
+    return k
+
+
+@njit(cache=True, nogil=True)
+def check_trajectory(
+    coeffs: np.ndarray,
+    T: np.ndarray,
+    t0: float,
+    t_from: float,
+    step: float,
+    z_lo: float,
+    z_hi: float,
+    fld: tuple,
+    check_obstacle: float,
+    peer_c: np.ndarray,
+    peer_T: np.ndarray,
+    peer_n: np.ndarray,
+    peer_t0: np.ndarray,
+    check_drone: float,
+    lookahead: float,
+) -> tuple[int, int, int, int, float, float, float, float, float, int]:
+    """The safety check of ``FormationPlanner.check`` before its unknown-space test, on the
+    samples ``ts`` = every ``step`` from t_from to the end (the end included) of the trajectory
+    (coeffs (M, 6, 3), T (M,), starting at global time t0).
+
+    Returns (code, band code, sample k, peer index, value at k, value at the start, t_k -
+    t_from, clearance, ahead, samples): the value is the altitude (CHECK_ALTITUDE), the obstacle
+    distance (CHECK_OBSTACLE) or the peer distance (CHECK_DRONE) at the worst sample k;
+    clearance is the closest approach to an obstacle over all samples and ahead from
+    ``lookahead`` after t_from on (inf without such samples; both NaN when the check stopped
+    before the obstacle distances); ``samples`` is how many of ``ts`` there are.
+    """
+    nan = math.nan
+    t_end = t0 + np_sum(T)
+    if not t_end > t_from:
+        t_end = t_from
+    head = np_arange(t_from, t_end, step)
+    n = head.shape[0] + 1
+    ts = np.empty(n)
+    ts[: n - 1] = head
+    ts[n - 1] = t_end
+    pos = np.empty((n, 3))
+    finite = True
+    for k in range(n):
+        x, y, z = eval_position(coeffs, T, ts[k] - t0)
+        pos[k, 0] = x
+        pos[k, 1] = y
+        pos[k, 2] = z
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            finite = False
+    if not finite:
+        return CHECK_NON_FINITE, BAND_OK, 0, -1, nan, nan, nan, nan, nan, n
+    # (0) altitude band: signed distance into it
+    s = np.empty(n)
+    for k in range(n):
+        s[k] = min(pos[k, 2] - z_lo, z_hi - pos[k, 2])
+    k = _argmin(s)
+    s0 = s[0]
+    if s0 >= 0.0:
+        ok = s[k] >= -1e-6
+    else:
+        hi = s[0]
+        for i in range(1, n):
+            hi = max(hi, s[i])
+        ok = s[k] >= s0 - 1e-3 and hi >= 0.0
+    if not ok:
+        return CHECK_ALTITUDE, BAND_OK, k, -1, pos[k, 2], pos[0, 2], ts[k] - t_from, nan, nan, n
+    # (1) obstacles
+    dist = np.empty(n)
+    for i in range(n):
+        dist[i] = _dist(fld, pos[i, 0], pos[i, 1], pos[i, 2])
+    clearance = dist[0]
+    ahead = math.inf
+    t_ahead = t_from + lookahead
+    for i in range(n):
+        clearance = min(clearance, dist[i])
+        if ts[i] >= t_ahead:
+            ahead = min(ahead, dist[i])
+    band = _band(dist, check_obstacle)
+    if band != BAND_OK:
+        k = _argmin(dist)
+        return CHECK_OBSTACLE, band, k, -1, dist[k], dist[0], ts[k] - t_from, clearance, ahead, n
+    # (1) peers
+    dd = np.empty(n)
+    for ph in range(peer_c.shape[0]):
+        m = peer_n[ph]
+        pc = peer_c[ph, :m]
+        pT = peer_T[ph, :m]
+        for i in range(n):
+            x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
+            dd[i] = norm3(pos[i, 0] - x, pos[i, 1] - y, pos[i, 2] - z)
+        band = _band(dd, check_drone)
+        if band != BAND_OK:
+            k = _argmin(dd)
+            return CHECK_DRONE, band, k, ph, dd[k], dd[0], ts[k] - t_from, clearance, ahead, n
+    return CHECK_OK, BAND_OK, 0, -1, nan, nan, nan, clearance, ahead, n
+
+
+@njit(cache=True, nogil=True)
+def finish_attempt(
+    x: np.ndarray,
+    head: np.ndarray,
+    tail: np.ndarray,
+    tau_scale: float,
+    t0: float,
+    step: float,
+    z_lo: float,
+    z_hi: float,
+    fld: tuple,
+    check_obstacle: float,
+    peer_c: np.ndarray,
+    peer_T: np.ndarray,
+    peer_n: np.ndarray,
+    peer_t0: np.ndarray,
+    check_drone: float,
+    lookahead: float,
+) -> tuple[
+    bool,
+    np.ndarray,
+    np.ndarray,
+    tuple[int, int, int, int, float, float, float, float, float, int],
+]:
+    """One attempt's solution x: (finite, coeffs (M, 6, 3), T (M,), ``check_trajectory`` of
+    the trajectory from t0 on). ``finite`` is False when x or the trajectory has a non-finite
+    value (then the check is not run)."""
+    nan = math.nan
+    not_checked = (CHECK_NON_FINITE, BAND_OK, 0, -1, nan, nan, nan, nan, nan, 0)
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return False, np.zeros((0, 6, 3)), np.zeros(0), not_checked
+    coeffs, T, finite = trajectory_from_x(x, head, tail, tau_scale)
+    if not finite:
+        return False, coeffs, T, not_checked
+    res = check_trajectory(
+        coeffs,
+        T,
+        t0,
+        t0,
+        step,
+        z_lo,
+        z_hi,
+        fld,
+        check_obstacle,
+        peer_c,
+        peer_T,
+        peer_n,
+        peer_t0,
+        check_drone,
+        lookahead,
+    )
+    return True, coeffs, T, res

@@ -1,0 +1,391 @@
+"""The planner's compiled set-up and safety check give exactly what its numpy code gave.
+
+``onboard.planner.npexact`` re-implements the numpy routines the set-up and the check used
+(sum, norm, linspace, arange, interp) and ``onboard.planner.kernels`` runs the set-up and the
+check on them in numba. Seeded flights stay bit-identical only if every rounding is the same,
+so the twins are compared with numpy bit for bit, and the kernels with the numpy version of the
+same code (kept below as the oracle) on random problems: initial guesses (warm start, straight
+line, A* fallback, a blocked horizon point) and checks (altitude, obstacles, peers, a start
+inside the band).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import cache
+from typing import Any
+
+import numpy as np
+import pytest
+
+from onboard.planner.astar import astar_path, segment_is_free
+from onboard.planner.field import AnalyticField, DistanceField, GridField
+from onboard.planner.minco import Minco
+from onboard.planner.npexact import norm3, np_arange, np_interp, np_linspace, np_sum
+from onboard.planner.objective import field_args
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
+from onboard.planner.timemap import tau_from_T
+from onboard.planner.trajectory import Trajectory, eval_position, eval_position_velocity
+from onboard.world import World
+
+HEX = np.array(
+    [[0.0, 0.0, 0.0]] + [[2 * math.cos(a), 2 * math.sin(a), 0.0] for a in np.arange(6) * 1.0472]
+)
+ZERO = np.zeros(3)
+
+
+def _spread(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Values of mixed signs and magnitudes 1e-3..1e3 (roundings differ between orders)."""
+    return rng.standard_normal(n) * 10.0 ** rng.uniform(-3, 3, n)
+
+
+# --- the numpy twins ---------------------------------------------------------------------------
+
+
+def test_np_sum_is_numpys_pairwise_sum() -> None:
+    rng = np.random.default_rng(1)
+    for n in list(range(0, 40)) + [127, 128, 129, 135, 255, 256, 257, 300, 1000, 1029]:
+        for _ in range(20):
+            a = _spread(rng, n)
+            assert np_sum(a) == float(np.sum(a)), n
+
+
+def test_norm3_is_numpys_norm() -> None:
+    rng = np.random.default_rng(2)
+    a = _spread(rng, 3 * 20000).reshape(-1, 3)
+    mine = np.array([norm3(*row) for row in a])
+    np.testing.assert_array_equal(mine, np.linalg.norm(a, axis=1))
+    # the 1-D norm is a BLAS dot product: equal here; a BLAS using FMA elsewhere may round
+    # the last bit differently
+    one = np.array([np.linalg.norm(row) for row in a[:2000]])
+    np.testing.assert_array_max_ulp(mine[:2000], one, maxulp=1)
+
+
+def test_np_linspace_is_numpys() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        start, stop = _spread(rng, 2)
+        if rng.uniform() < 0.1:
+            stop = start  # zero step
+        if rng.uniform() < 0.05:
+            stop = start + 1e-320  # subnormal step: numpy's special case
+        num = int(rng.integers(1, 40))
+        np.testing.assert_array_equal(np_linspace(start, stop, num), np.linspace(start, stop, num))
+
+
+def test_np_arange_is_numpys() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(3000):
+        start = float(rng.uniform(-100, 100))
+        step = float(rng.choice([0.05, 0.1, rng.uniform(1e-3, 2.0)]))
+        stop = start + float(rng.uniform(-1.0, 30.0))
+        np.testing.assert_array_equal(np_arange(start, stop, step), np.arange(start, stop, step))
+    assert np_arange(0.1, 3.0, 0.1).shape == np.arange(0.1, 3.0, 0.1).shape
+
+
+def test_np_interp_is_numpys() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        k = int(rng.integers(1, 30))
+        xp = np.cumsum(np.abs(_spread(rng, k)) * (rng.uniform(size=k) > 0.15))  # repeats
+        fp = _spread(rng, k)
+        x = np.concatenate([rng.uniform(xp[0] - 1.0, xp[-1] + 1.0, 20), xp, [xp[0], xp[-1]]])
+        np.testing.assert_array_equal(np_interp(x, xp, fp), np.interp(x, xp, fp))
+
+
+def test_position_kernels_are_eval_piecewise() -> None:
+    rng = np.random.default_rng(6)
+    m = Minco(4)
+    m.set_conditions(rng.normal(size=(3, 3)), rng.normal(size=(3, 3)))
+    m.set_parameters(rng.normal(size=(3, 3)), rng.uniform(0.2, 2.0, 4))
+    tr = Trajectory(1.0, m.coeffs, m.T)
+    ts = np.concatenate([rng.uniform(0.0, tr.t_end_s + 1.0, 300), [1.0, tr.t_end_s, 0.5]])
+    out = np.zeros((2, 3))
+    for t in ts:
+        p, v, _ = tr.state(t)
+        eval_position_velocity(tr.coeffs, tr.durations_s, t - tr.t0_s, out)
+        assert np.array_equal(out[0], p) and np.array_equal(out[1], v)
+        assert np.array_equal(np.array(eval_position(tr.coeffs, tr.durations_s, t - 1.0)), p)
+
+
+# --- the numpy oracle: the planner's set-up and check before they were compiled ------------
+
+
+def _oracle_local_target(p: PlannerParams, start: np.ndarray, goal: np.ndarray, field: Any) -> Any:
+    d = goal - start
+    dist = float(np.linalg.norm(d))
+    if dist <= p.horizon_m:
+        return goal.copy()
+    u = d / dist
+    first = start + p.horizon_m * u
+    if field.distance(first[None, :])[0][0] >= p.obstacle_clearance_m:
+        pt = first
+    else:
+        offsets = np.arange(0.0, dist - p.horizon_m, 0.1)
+        cand = np.concatenate([p.horizon_m + offsets, p.horizon_m - np.arange(0.1, 3.0, 0.1)])
+        cand = cand[(cand > 0.5) & (cand <= dist)]
+        pts = start + cand[:, None] * u
+        dd, _ = field.distance(pts)
+        ok = np.nonzero(dd >= p.obstacle_clearance_m)[0]
+        if ok.size == 0:
+            pt = start + p.horizon_m * u
+        else:
+            pt = pts[ok[np.argmin(np.abs(cand[ok] - p.horizon_m))]]
+    lo, hi = p.z_limits_m
+    pt[2] = min(max(pt[2], lo), hi)
+    return pt
+
+
+def _oracle_x0(
+    p: PlannerParams,
+    t_start: float,
+    sp: np.ndarray,
+    sv: np.ndarray,
+    goal: np.ndarray,
+    field: DistanceField,
+    previous: Trajectory | None,
+    force_astar: bool = False,
+) -> np.ndarray:
+    target = _oracle_local_target(p, sp, goal, field)
+    times = None
+    if not force_astar and previous is not None and previous.t_end_s > t_start + 0.2:
+        ts = np.linspace(t_start, previous.t_end_s, 24)
+        path = previous.sample(ts)
+        times = ts - t_start
+        extra = float(np.linalg.norm(path[-1] - target))
+        if extra > 1e-3:
+            path = np.vstack([path, target])
+            times = np.append(times, times[-1] + extra / p.v_max_m_s + 0.5)
+    elif not force_astar and segment_is_free(field, sp, target, p.check_obstacle_m):
+        path = np.vstack([sp, target])
+    else:
+        res, band = p.astar_resolution_m, p.altitude_band_inner_m
+        astar = astar_path(field, sp, target, p.obstacle_clearance_m, res, z_limits=band)
+        if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
+            astar = astar_path(field, sp, target, p.check_obstacle_m, res, z_limits=band)
+        path = np.vstack([sp, target]) if astar is None else astar
+    path[0] = sp
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+    M = int(np.clip(np.ceil(length / p.piece_length_m), 1, p.max_pieces))
+    arc = np.linspace(0.0, s[-1], M + 1)
+    if s[-1] <= 0.0:
+        wps = np.repeat(path[:1], M + 1, axis=0)
+    else:
+        wps = np.stack([np.interp(arc, s, path[:, d]) for d in range(3)], axis=1)
+    if times is not None:
+        T0 = np.maximum(np.diff(np.interp(arc, s, times)), 0.2)
+    else:
+        T0 = np.maximum(np.diff(arc) / p.v_max_m_s, 0.3)
+        T0[0] += 2.0 * max(0.0, p.v_max_m_s - float(np.linalg.norm(sv))) / p.a_max_m_s2
+        T0[-1] += 1.0
+    return np.concatenate([wps[1:-1].ravel(), tau_from_T(T0) / p.tau_scale])
+
+
+def _oracle_band(d: np.ndarray, thr: float) -> tuple[bool, str]:
+    d0 = float(d[0])
+    if d0 >= thr or d0 < 0.0:
+        return bool(np.min(d) >= thr), ""
+    if np.min(d) < d0 - 1e-3:
+        return False, f" (started inside at {d0:.2f} m and comes closer)"
+    if np.max(d) < thr:
+        return False, f" (started inside at {d0:.2f} m and does not back out)"
+    return True, ""
+
+
+def _oracle_check(
+    p: PlannerParams,
+    traj: Trajectory,
+    t_from: float,
+    field: DistanceField,
+    peers: Sequence[PeerTrajectory],
+) -> tuple[bool, str, float, float]:
+    t_end = max(traj.t_end_s, t_from)
+    ts = np.append(np.arange(t_from, t_end, p.check_step_s), t_end)
+    pos = traj.sample(ts)
+    nan = float("nan")
+    lo, hi = p.z_limits_m
+    s = np.minimum(pos[:, 2] - lo, hi - pos[:, 2])
+    k = int(np.argmin(s))
+    ok = bool(s[k] >= -1e-6) if s[0] >= 0.0 else bool(s[k] >= s[0] - 1e-3 and s.max() >= 0.0)
+    if not ok:
+        why = f"altitude {pos[k, 2]:.2f} m at t={ts[k] - t_from:.2f} s outside the band "
+        return False, why + f"[{lo:g}, {hi:g}] m", nan, nan
+    d, _ = field.distance(pos)
+    clearance = float(np.min(d))
+    later = ts >= t_from + 1.0
+    ahead = float(np.min(d[later])) if np.any(later) else float("inf")
+    ok, why = _oracle_band(d, p.check_obstacle_m)
+    if not ok:
+        k = int(np.argmin(d))
+        return (
+            False,
+            f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}",
+            (clearance),
+            ahead,
+        )
+    for pt in peers:
+        dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
+        ok, why = _oracle_band(dd, p.check_drone_m)
+        if not ok:
+            k = int(np.argmin(dd))
+            reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
+            return False, reason, clearance, ahead
+    return True, "", clearance, ahead
+
+
+# --- random problems ---------------------------------------------------------------------------
+
+
+def _forest(rng: np.random.Generator, n: int) -> World:
+    cyl = np.column_stack(
+        [
+            rng.uniform(0.0, 12.0, n),
+            rng.uniform(-4.0, 4.0, n),
+            rng.uniform(0.15, 0.5, n),
+            np.zeros(n),
+            rng.uniform(2.0, 4.0, n),
+        ]
+    )
+    return World(cyl, np.zeros((0, 7)), np.zeros((0, 6)), ground_z=0.0)
+
+
+def _random_trajectory(rng: np.random.Generator, t0: float, start: np.ndarray) -> Trajectory:
+    M = int(rng.integers(1, 9))
+    m = Minco(M)
+    head = np.stack([start, rng.normal(0, 0.3, 3), rng.normal(0, 0.3, 3)])
+    end = start + np.array([rng.uniform(1, 9), rng.uniform(-2, 2), rng.uniform(-0.5, 0.5)])
+    m.set_conditions(head, np.stack([end, ZERO, ZERO]))
+    q = start + np.linspace(0, 1, M + 1)[1:-1, None] * (end - start)
+    m.set_parameters(q + rng.normal(0, 0.4, (M - 1, 3)), rng.uniform(0.4, 2.5, M))
+    return Trajectory(t0, m.coeffs, m.T)
+
+
+@cache
+def _world_fields(seed: int) -> tuple[DistanceField, DistanceField]:
+    """A random forest's exact field and a 0.2 m grid sampled from it."""
+    rng = np.random.default_rng(100 + seed)
+    exact = AnalyticField(_forest(rng, int(rng.integers(0, 40))))
+    grid = GridField.from_function(exact.distance, (-3.0, -6.0, -0.5), (16.0, 6.0, 4.0), 0.2)
+    return exact, grid
+
+
+def _fields(rng: np.random.Generator) -> tuple[DistanceField, DistanceField]:
+    return _world_fields(int(rng.integers(0, 6)))
+
+
+def test_initial_guess_is_the_numpy_one() -> None:
+    rng = np.random.default_rng(7)
+    params = PlannerParams(v_max_m_s=0.5, horizon_m=6.0)
+    planner = FormationPlanner(params, HEX, slot=0)
+    kinds = {"warm": 0, "line": 0, "astar": 0, "blocked horizon": 0}
+    for trial in range(60):
+        for field in _fields(rng):
+            sp = np.array([rng.uniform(-2, 2), rng.uniform(-3, 3), rng.uniform(0.2, 2.5)])
+            sv = rng.normal(0, 0.3, 3)
+            goal = sp + np.array([rng.uniform(0.5, 15), rng.uniform(-3, 3), rng.uniform(-1, 1)])
+            goal[2] = min(max(goal[2], 0.3), 3.1)
+            t0 = float(rng.uniform(0, 100))
+            previous = None
+            if trial % 3 == 0:
+                previous = _random_trajectory(rng, t0 - rng.uniform(0.0, 1.5), sp)
+            for force in (False, True):
+                want = _oracle_x0(params, t0, sp, sv, goal, field, previous, force)
+                got = planner.prepare(t0, sp, sv, ZERO, goal, [], field, previous,
+                                      force_astar=force).x0  # fmt: skip
+                np.testing.assert_array_equal(got, want)
+            if previous is not None and previous.t_end_s > t0 + 0.2:
+                kinds["warm"] += 1
+            elif segment_is_free(
+                field, sp, _oracle_local_target(params, sp, goal, field), params.check_obstacle_m
+            ):
+                kinds["line"] += 1
+            else:
+                kinds["astar"] += 1
+            u = (goal - sp) / np.linalg.norm(goal - sp)
+            if (
+                np.linalg.norm(goal - sp) > 6.0
+                and field.distance((sp + 6.0 * u)[None, :])[0][0] < params.obstacle_clearance_m
+            ):
+                kinds["blocked horizon"] += 1
+    assert min(kinds.values()) >= 5, kinds  # every branch was compared
+
+
+def test_safety_check_is_the_numpy_one() -> None:
+    rng = np.random.default_rng(8)
+    params = PlannerParams(check_obstacle_m=0.3)
+    planner = FormationPlanner(params, HEX, slot=0)
+    seen: dict[str, int] = {}
+    for _ in range(150):
+        for field in _fields(rng):
+            t0 = float(rng.uniform(0, 50))
+            start = np.array([rng.uniform(-1, 3), rng.uniform(-3, 3), rng.uniform(0.0, 3.4)])
+            traj = _random_trajectory(rng, t0, start)
+            peers = []
+            for k in range(int(rng.integers(0, 7))):
+                near = traj.sample(t0 + rng.uniform(0, 3)) + rng.normal(0, 0.6, 3)
+                other = (
+                    Trajectory.hover(near, t0 - 1.0, float(rng.uniform(0.5, 60)))
+                    if k % 2
+                    else _random_trajectory(rng, t0 + rng.uniform(-2, 2), near)
+                )
+                peers.append(PeerTrajectory(10 + k, k + 1, other))
+            t_from = t0 + float(rng.choice([0.0, rng.uniform(-0.5, traj.duration_s + 1.0)]))
+            want = _oracle_check(params, traj, t_from, field, peers)
+            fld = field_args(field.kernel_data())
+            got = planner._check(traj, t_from, field, fld, peers, _pack_peers(peers))
+            assert got[:2] == want[:2]
+            np.testing.assert_array_equal(np.array(got[2:]), np.array(want[2:]))
+            assert planner.check(traj, t_from, field, peers) == want[:2]
+            key = want[1].split(" ")[0] if want[1] else "ok"
+            key += " inside" if "started inside" in want[1] else ""
+            seen[key] = seen.get(key, 0) + 1
+    for key in ("ok", "altitude", "obstacle", "obstacle inside", "drone"):
+        assert seen.get(key, 0) >= 3, seen  # every outcome was compared
+
+
+# --- what the planner hands out ----------------------------------------------------------------
+
+
+def test_plan_result_costs_are_the_cost_terms_at_the_solution() -> None:
+    field = AnalyticField(_forest(np.random.default_rng(9), 20))
+    planner = FormationPlanner(PlannerParams(), HEX, slot=0)
+    start = np.array([-2.0, 0.0, 1.0])
+    res = planner.plan(0.0, start, ZERO, ZERO, np.array([14.0, 0.0, 1.0]), [], field)
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    assert res.costs == res.costs  # computed once, then kept
+    assert set(res.costs) == {
+        "energy", "time", "obstacle", "formation", "swarm", "feasibility", "uniformity",
+        "altitude",
+    }  # fmt: skip
+    assert res.costs["energy"] > 0.0 and res.costs["time"] > 0.0
+    # the same numbers as the problem's own evaluation at the solution
+    problem = planner.prepare(0.0, start, ZERO, ZERO, np.array([14.0, 0.0, 1.0]), [], field)
+    x, _ = problem.solve()
+    assert res.status == PlanStatus.OK and res.iterations == problem.iterations  # 1st attempt
+    assert problem.cost_terms(x) == res.costs
+    np.testing.assert_array_equal(problem.trajectory(x).coeffs, res.trajectory.coeffs)
+    hover = planner.plan(0.0, start, ZERO, ZERO, start, [], field)
+    assert hover.message == "at goal" and hover.costs == {}
+
+
+def test_planned_trajectories_are_read_only_and_valid() -> None:
+    planner = FormationPlanner(PlannerParams(), HEX, slot=0)
+    res = planner.plan(
+        0.0,
+        np.array([0.0, 0, 1]),
+        ZERO,
+        ZERO,
+        np.array([6.0, 0, 1]),
+        [],
+        AnalyticField(World.empty(0.0)),
+    )
+    tr = res.trajectory
+    assert not tr.coeffs.flags.writeable and not tr.durations_s.flags.writeable
+    assert tr.coeffs.flags.c_contiguous and tr.coeffs.dtype == np.float64
+    again = Trajectory(tr.t0_s, tr.coeffs, tr.durations_s)  # passes the full validation
+    np.testing.assert_array_equal(again.coeffs, tr.coeffs)
+    with pytest.raises(ValueError):
+        tr.coeffs[0, 0, 0] = 1.0
