@@ -32,7 +32,8 @@ trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart 
 trajectory from where it was last heard to where it could have flown in ``ghost_window_s`` more
 (its messages in between lost), and at its last reported position. A peer heard alive whose
 last reported position is further than ``peer_deviation_m`` from its trajectory (stuck or
-lagging, its new trajectory late) is also avoided as a hover there. ``watch`` (called at the
+lagging, its new trajectory late) is also avoided as a hover there; with ``avoid_reported``,
+so is a peer heard through states without a trajectory considered. ``watch`` (called at the
 state rate) asks for a replan at once when a peer falls silent or leaves its trajectory;
 ``peer_view`` gives what a plan made now would avoid (for a safety monitor between replans).
 A peer whose newest trajectory started more than ``validity_s`` ago (a stuck drone
@@ -163,7 +164,8 @@ class PlanReport:
     silent_peers: tuple[int, ...] = ()
     """Peers judged silent: only avoided, along their last trajectory and at their ghosts."""
     deviating_peers: tuple[int, ...] = ()
-    """Peers heard alive but reported off their trajectory: also avoided where they reported."""
+    """Peers heard alive but reported off their trajectory: also avoided where they reported
+    (with ``avoid_reported``, also peers heard without a trajectory considered)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +185,7 @@ class PeerView:
     silent: tuple[int, ...]
     """Peers judged silent (out of the formation, avoided at their ghosts too)."""
     deviating: tuple[int, ...]
-    """Peers heard alive but reported off their trajectory."""
+    """Peers avoided where they reported themselves (``PlanReport.deviating_peers``)."""
 
 
 @dataclass(frozen=True)
@@ -275,7 +277,11 @@ class DroneAgent:
     with ``PEER_DEVIATION_M``); ghost_spacing_m:
     spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
-    them by that distance);
+    them by that distance); avoid_reported: a peer heard through ``heard`` with a position but
+    no trajectory considered (none received, or forgotten: one flown by hand, or stuck long
+    after its last trajectory) is avoided as a hover where it last reported itself, until
+    ``ghost_forget_s`` after it fell silent (the flight service; off in the simulator, whose
+    seeded results it could change);
     on_inputs: called with every plan call's inputs before the call (records, replays);
     on_plan: called with every ``PlanReport`` after the new trajectory is scheduled — the
     service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
@@ -306,6 +312,7 @@ class DroneAgent:
         ghost_window_s: float = GHOST_WINDOW_S,
         peer_deviation_m: float = math.inf,
         ghost_spacing_m: float = 0.25,
+        avoid_reported: bool = False,
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
         timer: Callable[[], float] = time.perf_counter,
@@ -343,6 +350,7 @@ class DroneAgent:
         self.ghost_forget_s = float(ghost_forget_s)
         self.ghost_window_s = float(ghost_window_s)
         self.peer_deviation_m = float(peer_deviation_m)
+        self.avoid_reported = bool(avoid_reported)
         self._deviant: set[int] = set()  # peers off their trajectory at the last ``watch``
         self.on_inputs = on_inputs
         self.on_plan = on_plan
@@ -675,7 +683,7 @@ class DroneAgent:
         msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         formed, avoided = self._split_peers(msgs, a, now, silent)
         ghosts = [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in self._ghosts(silent, now)]
-        deviating = self._deviating(msgs, silent)
+        deviating = self._deviating(msgs, silent, a, now)
         ghosts += [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in sorted(deviating.items())]
         n_form = a.formation.shape[0]
         n_av = len(avoided)
@@ -812,15 +820,28 @@ class DroneAgent:
                 out[pid] = m
         return out, silent
 
-    def _deviating(self, msgs: dict[int, TrajectoryMsg], silent: set[int]) -> dict[int, np.ndarray]:
+    def _deviating(
+        self, msgs: dict[int, TrajectoryMsg], silent: set[int], a: _Assignment, now: float
+    ) -> dict[int, np.ndarray]:
         """Where each peer of ``msgs`` that is not silent reported itself, if off its
-        trajectory (``_deviation``)."""
+        trajectory (``_deviation``); with ``avoid_reported``, also where each peer heard
+        through states without a trajectory in ``msgs`` (never received, or forgotten) and not
+        avoided at its ghosts reported itself last, until ``ghost_forget_s`` after it fell
+        silent."""
         with self._peer_lock:
-            return {
+            out = {
                 pid: p
                 for pid in msgs
                 if pid not in silent and (p := self._deviation(pid)) is not None
             }
+            if self.avoid_reported:
+                for pid in sorted(self._heard):
+                    st = self._heard[pid]
+                    if pid in msgs or pid in silent or pid in a.ignore or st.position is None:
+                        continue  # avoided along its trajectory or at its ghosts, or not at all
+                    if now - st.stamp_s <= self.peer_silence_s + self.ghost_forget_s:
+                        out[pid] = st.position
+            return out
 
     def peer_view(self, now_s: float) -> PeerView:
         """The peers as a plan made at ``now_s`` would see them: their trajectories still
@@ -831,7 +852,7 @@ class DroneAgent:
         a = self._assign
         msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         hovers = self._ghosts(silent, now)
-        deviating = self._deviating(msgs, silent)
+        deviating = self._deviating(msgs, silent, a, now)
         hovers += sorted(deviating.items())
         points = np.array([p for _, p in hovers], dtype=np.float64).reshape(-1, 3)
         points.setflags(write=False)
