@@ -66,8 +66,25 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
         ("autopilot:\n  local_origin_enu_m: [0, 2e4, 0]\n", "local_origin_enu_m", "10 km"),
         ("autopilot:\n  local_origins_enu_m: {x: [0, 0, 0]}\n", "local_origins_enu_m", "ids"),
         ("autopilot:\n  local_origins_enu_m: {7: [0, 0]}\n", "local_origins_enu_m.7", ""),
+        # the silent / stuck peer reaction (onboard.agent.DroneAgent's)
+        ("reactions:\n  peer_lost: {peer_silence_s: 0}\n", "reactions.peer_lost: peer_silence_s",
+         "[0.05, 60]"),
+        ("reactions:\n  peer_lost: {peer_silence_s: .inf}\n",
+         "reactions.peer_lost.peer_silence_s", "finite"),
+        ("reactions:\n  peer_lost: {peer_deviation_m: -0.3}\n",
+         "reactions.peer_lost: peer_deviation_m", "[0.05, 10]"),
+        ("reactions:\n  peer_lost: {peer_deviation_m: far}\n",
+         "reactions.peer_lost.peer_deviation_m", "expected a number"),
+        ("reactions:\n  peer_lost: {ghost_window_s: 11}\n", "reactions.peer_lost: ghost_window_s",
+         "[0, 10]"),
+        ("reactions:\n  peer_lost: {ghost_forget_s: -1}\n", "reactions.peer_lost: ghost_forget_s",
+         "[0, 3600]"),
+        ("reactions:\n  peer_lost: {ghost_forgt_s: 5}\n", "reactions.peer_lost.ghost_forgt_s",
+         "unknown key"),
+        ("reactions:\n  peer_lost: {peer_silence_s: 0.15}\n",
+         "reactions.peer_lost.peer_silence_s", "bus.state_rate_hz 10"),
     ],
-)
+)  # fmt: skip
 def test_bad_values_name_the_key_and_the_expected_range(
     tmp_path: Path, text: str, path: str, expected: str
 ) -> None:
@@ -76,6 +93,40 @@ def test_bad_values_name_the_key_and_the_expected_range(
     msg = str(e.value)
     assert path in msg
     assert expected in msg
+
+
+def test_the_peer_reaction_defaults_are_the_agents() -> None:
+    """One owner: the service flies the agent's silence reaction with the agent's values."""
+    import onboard.agent as ag
+
+    pl = load_onboard_config(default_config_path()).reactions.peer_lost
+    assert pl.peer_silence_s == ag.PEER_SILENCE_S
+    assert pl.peer_deviation_m == ag.PEER_DEVIATION_M
+    assert pl.ghost_window_s == ag.GHOST_WINDOW_S
+    assert pl.ghost_forget_s == ag.GHOST_FORGET_S
+
+
+def test_the_peer_reaction_keys_reach_the_agent(tmp_path: Path) -> None:
+    from onboard.service.fakes import FakeAutopilot, FakeBus
+    from onboard.service.sdnotify import Notifier
+    from onboard.service.service import FlightService
+
+    text = (
+        "reactions:\n  peer_lost: {peer_silence_s: 0.8, peer_deviation_m: 0.5, "
+        "ghost_window_s: 0.7, ghost_forget_s: 30, avoid_for_s: 4, validity_s: 2}\n"
+    )
+    cfg = load_onboard_config(_write(tmp_path, text))
+    svc = FlightService(cfg, FakeAutopilot(lambda: 0.0), FakeBus(), notifier=Notifier({}))
+    a = svc.agent
+    got = (
+        a.peer_silence_s,
+        a.peer_deviation_m,
+        a.ghost_window_s,
+        a.ghost_forget_s,
+        a.peer_forget_s,
+        a.validity_s,
+    )
+    assert got == (0.8, 0.5, 0.7, 30.0, 4.0, 2.0)
 
 
 def test_each_drone_gets_its_own_autopilot_origin(tmp_path: Path) -> None:

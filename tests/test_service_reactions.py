@@ -16,16 +16,23 @@ from onboard.config import merge_mappings
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.service.config import default_config_path, load_onboard_config
-from onboard.service.fakes import FakeAutopilot, FakeBus, FakeDepth, straight_trajectory
-from onboard.service.planning import PortPeerBus, inside_box, peer_roles
-from onboard.service.ports import PeerInfo
+from onboard.service.fakes import (
+    FakeAutopilot,
+    FakeBus,
+    FakeDepth,
+    SimulatedPeer,
+    straight_trajectory,
+)
+from onboard.service.planning import PortPeerBus, inside_box
+from onboard.service.ports import PeerInfo, PeerState
 from onboard.service.sdnotify import Notifier
 from onboard.service.service import FlightService
 from onboard.service.state import FlightState, Goal, Land, Resume, SetFormation, Takeoff
 
 S = FlightState
 T0 = 1_700_000_000.0
-POINTS = ((0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0))
+Points = tuple[tuple[float, float, float], ...]
+POINTS: Points = ((0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0))
 
 
 class Clock:
@@ -59,6 +66,7 @@ class Harness:
         self.gcs = True
         self.monitor_results: list[str] = []
         self.reports: list[PlanReport] = []
+        self.peers: dict[int, SimulatedPeer] = {}
 
     @property
     def state(self) -> FlightState:
@@ -70,6 +78,8 @@ class Harness:
             self.clock.t += dt
             if self.gcs:
                 self.bus.gcs_heard = self.clock.t
+            for peer in self.peers.values():
+                peer.tick(self.clock.t)
             self.ap.tick()
             if self.depth is not None:
                 svc.depth_step()
@@ -94,35 +104,52 @@ class Harness:
         self.step()
         return self.bus.ack_of(cid)
 
-    def formation(self, epoch: int = 1) -> None:
-        ok, why = self.command(SetFormation(epoch, self.clock.t, ((0, 0), (1, 1), (2, 2)), POINTS))
+    def formation(self, epoch: int = 1, points: Points = POINTS) -> None:
+        ok, why = self.command(SetFormation(epoch, self.clock.t, ((0, 0), (1, 1), (2, 2)), points))
         assert ok, why
 
-    def airborne(self) -> None:
-        self.formation()
+    def airborne(self, points: Points = POINTS) -> None:
+        self.formation(points=points)
         ok, why = self.command(Takeoff())
         assert ok, why
         self.until(lambda: self.state is S.HOVER, 10.0, "hover after take-off")
 
-    def fly_to(self, x: float, z: float = 1.0) -> np.ndarray:
+    def fly_to(self, x: float, z: float = 1.0, speed: float = 0.4) -> np.ndarray:
         """Peers flying their slots alongside (``peers_along``), then the goal ``(x, 0, z)``,
         which must be accepted; returns the goal."""
         goal = np.array([x, 0.0, z])
-        self.peers_along(goal)
+        self.peers_along(goal, speed)
         ok, why = self.command(Goal(tuple(goal)))
         assert ok, why
         return goal
 
-    def peers_along(self, goal_center: np.ndarray, valid_for_s: float = 60.0) -> None:
-        """Two peers flying their slots from the start formation to the goal formation."""
+    def peers_along(self, goal_center: np.ndarray, speed: float = 0.4) -> None:
+        """Two live peers (``SimulatedPeer``: trajectories every second, states at 10 Hz)
+        flying their slots from the start formation to the goal formation at about
+        ``speed``."""
         start_center = np.array([0.0, 0.0, 1.0])
         c = np.mean(POINTS, axis=0)
         for pid in (0, 2):
             off = np.array(POINTS[pid]) - c
-            traj = moving(start_center + off, goal_center + off, self.clock.t)
-            self.bus.peer_infos[pid] = PeerInfo(
-                pid, pid, 1, traj, self.clock.t + valid_for_s, self.clock.t
-            )
+            self.peer(pid, moving(start_center + off, goal_center + off, self.clock.t, speed))
+
+    def peer(self, pid: int, path: Trajectory, slot: int | None = None) -> SimulatedPeer:
+        """A live peer flying ``path`` (it replaces peer ``pid``'s path; its process goes on
+        numbering its trajectories); it sends at once."""
+        old = self.peers.get(pid)
+        peer = SimulatedPeer(
+            self.bus,
+            pid,
+            pid if slot is None else slot,
+            1,
+            path,
+            validity_s=self.cfg.reactions.peer_lost.validity_s,
+        )
+        if old is not None:
+            peer.traj_id = old.traj_id
+        self.peers[pid] = peer
+        peer.tick(self.clock.t)
+        return peer
 
 
 def test_nominal_flight_takeoff_formation_goal_land_with_a_record(tmp_path: Path) -> None:
@@ -188,7 +215,7 @@ def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
     h.step(10)
     assert np.linalg.norm(h.ap.position - x_stop) < 1e-6
     assert h.state is S.HOVER and h.ap.streaming
-    h.depth.on = True  # type: ignore[union-attr]
+    h.depth.on = True  # type: ignore[union-attr,unused-ignore]
     h.until(lambda: h.state is S.FORMATION_FLIGHT, 1.0, "flight resumed")
     h.until(lambda: h.state is S.HOVER, 40.0, "arrival after the depth came back")
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
@@ -206,7 +233,7 @@ def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
     assert h.state is S.FORMATION_FLIGHT
     states = []
     for _ in range(6):  # 0.1 s of frames, 0.6 s without: 6 gaps above the 0.5 s timeout
-        h.depth.on = True  # type: ignore[union-attr]
+        h.depth.on = True  # type: ignore[union-attr,unused-ignore]
         h.step(2)
         states.append(h.state)
         h.depth.on = False  # type: ignore[union-attr]
@@ -326,78 +353,6 @@ def test_a_clock_beyond_the_bound_stops_formation_flight_and_says_why(tmp_path: 
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
 
 
-def test_peer_silent_past_validity_leaves_the_formation_but_is_avoided_for_a_while() -> None:
-    """The service's roles for silent peers, applied by the agent's cycle (the one the
-    simulator runs): judged on the peers each plan was made against."""
-    from onboard.planner.field import AnalyticField
-    from onboard.world import World
-
-    traj = Trajectory.hover(np.array([0.0, 1.5, 1.0]), T0, 100.0)
-    bus = FakeBus()
-    bus.peer_infos = {
-        0: PeerInfo(0, 0, 1, traj, T0 + 2.0, T0),  # valid until T0 + 2
-        2: PeerInfo(2, 2, 1, traj, T0 + 50.0, T0),
-        3: PeerInfo(3, 1, 1, traj, T0 + 50.0, T0),  # claims our slot: avoided, not in formation
-    }
-    cfg = load_onboard_config(default_config_path(), 1)
-    agent = DroneAgent(
-        1,
-        cfg.planner,
-        POINTS,
-        1,
-        Trajectory.hover(np.array([0.0, 0.0, 1.0]), T0, 1.0),
-        PortPeerBus(bus),
-        lambda_map(AnalyticField(World.empty(0.0))),
-        goal=(3.0, 0.0, 1.0),
-        formation_epoch=1,
-        validity_s=3.0,
-        peer_forget_s=10.0,
-    )
-
-    def split(now: float) -> tuple[list[int], list[int], list[int]]:
-        roles = peer_roles(bus.peers(), now, 1, validity_s=3.0, avoid_for_s=10.0)
-        agent.set_peer_roles(roles.avoid_only, roles.ignore)
-        rep = agent.replan(now)
-        seen = {*rep.formation_peers, *rep.avoided_peers}
-        assert {p.drone_id for p in rep.peers} == seen  # the plan was made against exactly these
-        return (
-            list(rep.formation_peers),
-            list(rep.avoided_peers),
-            sorted(set(bus.peer_infos) - seen),
-        )
-
-    assert split(T0 + 1.0) == ([0, 2], [3], [])
-    assert split(T0 + 2.5) == ([2], [0, 3], [])  # 0 past its message's validity
-    assert split(T0 + 3.5) == ([], [0, 2, 3], [])  # 2 silent past validity_s
-    assert split(T0 + 13.5) == ([], [], [0, 2, 3])  # avoided no longer
-    # what the agent published went out through the service's bus port, with its validity
-    _, slot, epoch, _, valid_for = bus.trajectories[-1]
-    assert (slot, epoch) == (1, 1) and valid_for == pytest.approx(3.0)
-
-
-def lambda_map(field: Any) -> Any:
-    from onboard.agent import StaticMap
-
-    return StaticMap(field)
-
-
-def test_silent_peer_drops_out_of_the_plans_formation(tmp_path: Path) -> None:
-    h = Harness(tmp_path, depth=False, reactions={"peer_lost": {"validity_s": 1.0}})
-    h.airborne()
-    goal = np.array([4.0, 0.0, 1.0])
-    h.peers_along(goal, valid_for_s=1.0)
-    assert h.command(Goal(tuple(goal)))[0]
-    h.step(5)
-    rec = h.svc.recorder
-    assert rec is not None
-    rec.flush()
-    h.step(40)  # the peers said nothing more: after 1 s they leave the formation
-    h.svc._close_record()
-    plans = read_record(next(tmp_path.glob("*.mcap"))).messages("/plan")
-    assert plans[0]["n_peers"] == 2
-    assert plans[-1]["n_peers"] == 0
-
-
 def test_monitor_brakes_when_a_peer_will_cross_the_path(tmp_path: Path) -> None:
     h = Harness(tmp_path, depth=False)
     h.airborne()
@@ -492,7 +447,7 @@ def test_a_plan_made_while_the_service_overrides_never_replaces_the_override(
                 braked.append(svc.agent.current)
             return inner.snapshot(now_s, position)
 
-    svc.agent.map_source = Interrupting()  # type: ignore[assignment]
+    svc.agent.map_source = Interrupting()  # type: ignore[assignment,unused-ignore]
     svc.agent.request_replan()
     rep = svc.plan_step()
     assert rep is not None and braked
@@ -562,3 +517,332 @@ def test_link_age_is_never_negative() -> None:
     assert ap.link_age_s() == 0.25
     state.connected = False
     assert ap.link_age_s() == math.inf
+
+
+# ---- silent, stuck and lagging peers (reactions.peer_lost: the agent's reaction) -------------
+
+COLUMN: Points = ((0.0, 1.5, 0.0), (0.0, 0.0, 0.0), (1.5, 0.0, 0.0))
+"""Drone 0 alongside, this drone (1) in the middle, drone 2 1.5 m ahead of it in its lane."""
+OWN_GOAL = np.array([8.0, 0.0, 1.0])
+
+
+def column_flight(h: Harness, fault: str, after_s: float = 5.0) -> tuple[SimulatedPeer, float]:
+    """This drone flies from (0, 0, 1) to (8, 0, 1) in the ``COLUMN`` formation behind peer 2,
+    both peers live (trajectories every second, states at 10 Hz) and a little faster; ``after_s``
+    after the goal, peer 2 suffers ``fault`` (``SimulatedPeer.kill``, ``stick`` or ``snag``):
+    its vehicle holds on this drone's way while what it announced (if anything) flies on.
+    Returns the peer and the fault's time."""
+    h.airborne(COLUMN)
+    c = np.mean(COLUMN, axis=0)
+    own = np.array(COLUMN[1]) - c
+    start_c = h.ap.position - own
+    goal_c = OWN_GOAL - own
+    for pid in (0, 2):
+        off = np.array(COLUMN[pid]) - c
+        h.peer(pid, moving(start_c + off, goal_c + off, h.clock.t, speed=1.2))
+    ok, why = h.command(Goal(tuple(goal_c)))
+    assert ok, why
+    h.step(int(round(after_s / 0.05)))
+    assert h.state is S.FORMATION_FLIGHT
+    peer = h.peers[2]
+    getattr(peer, fault)(h.clock.t)
+    assert peer.held is not None
+    assert abs(peer.held[1]) < 0.1 and peer.held[0] > h.ap.position[0] + 1.0  # on the way, ahead
+    return peer, h.clock.t
+
+
+def setpoints_clear(h: Harness, point: np.ndarray, since_s: float) -> float:
+    """The smallest distance from ``point`` of the setpoints sent since ``since_s``."""
+    pos = np.array([p for t, p in h.ap.setpoints if t >= since_s])
+    assert len(pos) > 0
+    return float(np.linalg.norm(pos - point, axis=1).min())
+
+
+def plan_clearance(rep: PlanReport, point: np.ndarray) -> float:
+    """The smallest distance from ``point`` along a plan, from its start to its end."""
+    tr = rep.trajectory
+    ts = np.arange(rep.t_start_s, tr.t_end_s + 0.01, 0.01)
+    return float(np.linalg.norm(tr.sample(ts) - point, axis=1).min())
+
+
+def test_a_peer_that_goes_silent_leaves_the_formation_and_is_avoided_where_it_stopped(
+    tmp_path: Path,
+) -> None:
+    """Peer 2 dies 1.5 m ahead in this drone's lane (its vehicle holds there; its last
+    trajectory flies on): after ``peer_silence_s`` it is out of the formation, and every plan
+    and setpoint keeps the drone-drone check distance from where it was last heard, for
+    ``ghost_forget_s``; the status and the flight record say so."""
+    h = Harness(tmp_path, depth=False, reactions={"peer_lost": {"ghost_forget_s": 20.0}})
+    rc = h.cfg.reactions.peer_lost
+    keep = h.cfg.planner.check_drone_m
+    peer, t_kill = column_flight(h, "kill")
+    stop = peer.held
+    assert stop is not None
+    heard = h.svc.agent.heard_s(2)
+    assert t_kill - 0.1 - 1e-6 <= heard <= t_kill  # its last state
+    # where its last trajectory says it is when this drone gets there: far from where it holds
+    last = h.bus.peer_infos[2].trajectory
+    assert np.linalg.norm(last.sample(t_kill + 3.0) - stop) > 1.5
+    n = len(h.reports)
+    h.until(lambda: h.state is not S.FORMATION_FLIGHT, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - OWN_GOAL) < h.cfg.planning.goal_tolerance_m
+    after = h.reports[n:]
+    # in the formation until it fell silent, then out of it and avoided at once
+    silent_s = heard + rc.peer_silence_s
+    before = [r for r in after if r.planned_at_s < silent_s - 0.05]
+    assert before and all(2 in r.formation_peers and not r.silent_peers for r in before)
+    later = [r for r in after if r.planned_at_s > silent_s]
+    assert later[0].planned_at_s < silent_s + 0.1  # the replan it asked for, at once
+    for r in later:
+        assert 2 not in r.formation_peers and r.silent_peers == (2,) and 0 in r.formation_peers
+        assert plan_clearance(r, stop) >= keep, f"plan at {r.planned_at_s - t_kill:.2f} s"
+        assert any(p.drone_id == 2 and p.trajectory.duration_s > 100.0 for p in r.peers)  # ghosts
+    assert setpoints_clear(h, stop, t_kill) >= keep
+    # the status (what the ground station shows) and the flight record
+    h.step(21)
+    status = h.bus.statuses[-1]
+    c = status["counters"]
+    assert c["service.peers_silent"] == 1 and c["service.peers_fell_silent"] == 1
+    assert c["service.peer_ghosts"] >= 1 and c["service.peers_deviating"] == 0
+    links = {name: (up, age) for name, up, age in status["links"]}
+    assert links["peer/0"][0] and links["peer/0"][1] < 0.2
+    assert not links["peer/2"][0] and links["peer/2"][1] > rc.peer_silence_s
+    # its ghosts stay until ghost_forget_s after it fell silent, then it is forgotten
+    h.until(lambda: h.clock.t > silent_s + rc.ghost_forget_s - 0.2, 30.0, "almost forgotten")
+    view = h.svc.peers_now(h.clock.t)
+    assert view.silent == (2,) and 2 in view.hover_ids
+    reported = h.bus.peer_states_in[2].position_m  # where it was last heard: the first ghost
+    assert reported is not None and np.allclose(view.hover_points[0], reported)
+    assert np.linalg.norm(view.hover_points - stop, axis=1).min() <= 0.125  # ghost spacing / 2
+    h.step(10)
+    view = h.svc.peers_now(h.clock.t)
+    assert view.silent == () and not view.hover_ids
+    assert h.svc.counters["peers_silent"] == 0 and h.svc.counters["peer_ghosts"] == 0
+    h.svc._close_record()
+    rec = read_record(next(tmp_path.glob("*.mcap")))
+    plans = rec.messages("/plan")
+    assert plans[-1]["silent_peers"] == [2] and 2 not in plans[-1]["formation_peers"]
+    events = [m for _, _, m in rec.events()]
+    assert any(m.startswith("drone 2 silent") for m in events)
+    assert "drone 2 forgotten (silent)" in events
+
+
+def test_a_stuck_peer_is_avoided_where_it_reports_itself(tmp_path: Path) -> None:
+    """Peer 2's vehicle holds on this drone's way; it keeps sending states (where it holds) but
+    no new trajectory, whose last one flies on and goes stale. It leaves the formation once its
+    trajectory is older than ``validity_s``, and is avoided where it reports itself, also after
+    its trajectory is forgotten (``avoid_for_s`` 0 here)."""
+    h = Harness(tmp_path, depth=False, reactions={"peer_lost": {"avoid_for_s": 0.0}})
+    rc = h.cfg.reactions.peer_lost
+    keep = h.cfg.planner.check_drone_m
+    peer, t_stuck = column_flight(h, "stick")
+    held = peer.held
+    assert held is not None
+    last = h.bus.peer_infos[2]
+    n = len(h.reports)
+    h.until(lambda: h.state is not S.FORMATION_FLIGHT, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - OWN_GOAL) < h.cfg.planning.goal_tolerance_m
+    after = h.reports[n:]
+    # off its trajectory by peer_deviation_m: from then on avoided where it reports itself
+    t_off = next(
+        t
+        for t in np.arange(t_stuck, t_stuck + 5.0, 0.01)
+        if np.linalg.norm(last.trajectory.sample(t) - held) > rc.peer_deviation_m
+    )
+    k = next(i for i, r in enumerate(after) if 2 in r.deviating_peers)
+    assert t_off <= after[k].planned_at_s < t_off + 0.15  # its next state, a replan at once
+    seen = after[k:]
+    for r in seen:
+        assert 2 in r.deviating_peers and not r.silent_peers
+        assert plan_clearance(r, held) >= keep, f"plan at {r.planned_at_s - t_stuck:.2f} s"
+        stale = r.planned_at_s - last.trajectory.t0_s > rc.validity_s
+        assert (2 not in r.formation_peers) if stale else (2 in r.formation_peers)
+    forgotten = [r for r in seen if r.planned_at_s > last.valid_until_s + rc.avoid_for_s]
+    assert forgotten, "the flight ended before its trajectory was forgotten"
+    for r in forgotten:  # no trajectory of it any more: still avoided where it reports itself
+        assert 2 not in r.formation_peers and 2 not in r.avoided_peers and 2 in r.deviating_peers
+    assert setpoints_clear(h, held, t_stuck) >= keep
+    assert h.svc.counters["peers_deviating"] == 1 and h.svc.counters["peers_silent"] == 0
+
+
+def test_a_peer_reported_off_its_trajectory_is_avoided_where_it_reported_itself(
+    tmp_path: Path,
+) -> None:
+    """Peer 2's vehicle snags and holds on this drone's way while its process goes on
+    announcing fresh trajectories along its path: it stays in the formation (fresh, alive) and
+    is avoided where it reports itself."""
+    h = Harness(tmp_path, depth=False)
+    keep = h.cfg.planner.check_drone_m
+    peer, t_snag = column_flight(h, "snag")
+    held = peer.held
+    assert held is not None
+    n = len(h.reports)
+    h.until(lambda: h.state is not S.FORMATION_FLIGHT, 30.0, "arrival")
+    assert np.linalg.norm(h.ap.position - OWN_GOAL) < h.cfg.planning.goal_tolerance_m
+    # it went on announcing trajectories far from where its vehicle holds
+    fresh = h.bus.peer_infos[2]
+    assert fresh.traj_id >= 10 and fresh.received_s > h.clock.t - 1.1
+    assert np.linalg.norm(fresh.trajectory.sample(fresh.received_s) - held) > 3.0
+    later = [r for r in h.reports[n:] if r.planned_at_s > t_snag + 1.0]
+    assert later
+    for r in later:
+        assert 2 in r.formation_peers and not r.silent_peers
+        assert plan_clearance(r, held) >= keep, f"plan at {r.planned_at_s - t_snag:.2f} s"
+    assert sum(2 in r.deviating_peers for r in later) >= len(later) - 2
+    assert setpoints_clear(h, held, t_snag) >= keep
+    assert h.svc.counters["peers_left_trajectory"] >= 1
+
+
+def test_the_monitor_checks_the_trajectory_in_control_against_a_silent_peers_ghosts(
+    tmp_path: Path,
+) -> None:
+    """A peer last heard 0.6 s ago right on this drone's way, 1.6 s ahead, whose last
+    trajectory crosses it at speed: its trajectory is clear of the drone's, its ghosts are not;
+    the 100 Hz monitor reacts before the next replan, and the drone keeps clear of them."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(8.0, speed=1.2)
+    h.step(80)
+    assert h.state is S.FORMATION_FLIGHT
+    now = h.clock.t
+    flying = h.svc.flying(now)
+    assert flying is not None
+    ahead = flying.sample(now + 1.6)
+    t_heard = now - 0.6
+    # its last trajectory crosses this drone's way at 2 m/s there when it was last heard
+    span = np.array([0.0, 3.0, 0.0])
+    away = moving(ahead - span, ahead + span, t_heard - 6.0 * 1.875 / 2.0 / 2.0, speed=2.0)
+    assert np.allclose(away.sample(t_heard), ahead)
+    ts = np.arange(now, now + h.cfg.planning.monitor_horizon_s, 0.05)
+    keep = h.cfg.planner.check_drone_m
+    assert np.linalg.norm(flying.sample(ts) - away.sample(ts), axis=1).min() > keep
+    h.bus.peer_infos[7] = PeerInfo(7, 0, 9, away, t_heard + 3.0, t_heard + 0.05, 4, 1)
+    h.bus.peer_states_in[7] = PeerState(7, t_heard, ahead, np.zeros(3), "hover", t_heard + 0.05)
+    n_plans = len(h.reports)
+    h.step()
+    assert h.monitor_results, "the monitor saw nothing"
+    assert "ghost of silent drone 7" in h.monitor_results[-1]
+    assert len(h.reports) == n_plans + 1  # it asked for a replan at once
+    h.step(80)
+    assert setpoints_clear(h, ahead, now) >= keep
+
+
+def test_the_port_gives_the_agent_the_senders_trajectory_ids_across_a_restart() -> None:
+    """``PortPeerBus`` hands the agent each sender's own sequence numbers; a restarted sender
+    (new incarnation, numbering from 0 again) is continued above them, so its new
+    trajectories are taken, while a late copy within a run is refused by the agent."""
+    bus = FakeBus()
+    port = PortPeerBus(bus)
+    hover = [Trajectory.hover(np.array([float(k), 0.0, 1.0]), T0, 10.0) for k in range(4)]
+
+    def send(traj_id: int, incarnation: int, k: int) -> int:
+        info = PeerInfo(3, 0, 1, hover[k], T0 + 3.0, T0, traj_id, incarnation)
+        bus.peer_infos[3] = info
+        return port.receive(1, T0)[3].traj_id
+
+    assert [send(i, 100, 0) for i in (0, 1, 5)] == [0, 1, 5]  # the sender's own ids
+    assert send(0, 200, 1) == 6  # restarted: after everything of the first run
+    assert send(2, 200, 2) == 8
+    cfg = load_onboard_config(default_config_path(), 1)
+    from onboard.agent import StaticMap
+    from onboard.planner.field import AnalyticField
+    from onboard.world import World
+
+    agent = DroneAgent(
+        1,
+        cfg.planner,
+        POINTS,
+        1,
+        Trajectory.hover(np.zeros(3), T0, 1.0),
+        port,
+        StaticMap(AnalyticField(World.empty(0.0))),
+        validity_s=3.0,
+    )
+    assert agent.peer_view(T0).trajectories[0].trajectory is hover[2]
+    send(1, 200, 3)  # a late copy of the new run's trajectory 1: refused
+    assert agent.peer_view(T0).trajectories[0].trajectory is hover[2]
+    assert agent.refused_older == 1
+
+
+def test_peer_states_reach_the_agent_as_signs_of_life(tmp_path: Path) -> None:
+    """A peer that only sends states (on the ground, or flown by hand: no trajectory) is heard
+    at its states' stamps and avoided where it reports itself."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    p = np.array([3.0, 0.0, 1.0])
+
+    def state() -> None:  # sent at 10 Hz by the peer's service
+        if h.clock.t - h.bus.peer_states_in[5].stamp_s >= 0.1 - 1e-9:
+            h.bus.peer_states_in[5] = PeerState(5, h.clock.t, p, np.zeros(3), "pilot", h.clock.t)
+
+    h.bus.peer_states_in[5] = PeerState(5, h.clock.t, p, np.zeros(3), "pilot", h.clock.t)
+    h.step()
+    assert h.svc.agent.heard_s(5) == pytest.approx(h.clock.t - 0.05)
+    view = h.svc.peers_now(h.clock.t)
+    assert view.deviating == (5,) and np.allclose(view.hover_points, [p])
+    ok, why = h.command(Goal((6.0, 0.0, 1.0)))
+    assert ok, why
+    for _ in range(600):
+        state()
+        h.step()
+        if h.state is not S.FORMATION_FLIGHT:
+            break
+    assert np.linalg.norm(h.ap.position - [6.0, 0.0, 1.0]) < h.cfg.planning.goal_tolerance_m
+    assert h.svc.counters["peers_silent"] == 0 and h.svc.counters["peers_deviating"] == 1
+    assert setpoints_clear(h, p, 0.0) >= h.cfg.planner.check_drone_m
+
+
+def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() -> None:
+    """Two services' bus adapters on loopback Zenoh (``open_bus``, which subscribes to the
+    peers' states): drone 1 gets drone 0's newest state (its autopilot sample's stamp, never
+    later than the message's) and its trajectories with their own ids and incarnation."""
+    import time
+
+    from onboard.comm.zenoh_session import peer_mesh
+    from onboard.service.adapters import open_bus
+
+    eps = peer_mesh(2)
+    buses = []
+    try:
+        for i in (0, 1):
+            zen = {"listen": list(eps[i].listen), "connect": list(eps[i].connect)}
+            cfg = load_onboard_config(default_config_path(), i, overrides={"zenoh": zen})
+            buses.append(open_bus(cfg))
+        b0, b1 = buses
+        traj = Trajectory.hover(np.array([1.0, 2.0, 1.0]), time.time(), 5.0)
+
+        def state(measured_s: float, x: float) -> dict[str, Any]:
+            return {
+                "flight_state": "formation-flight",
+                "measured_s": measured_s,
+                "position_m": (x, 2.0, 1.0),
+                "velocity_m_s": (0.5, 0.0, 0.0),
+                "attitude_wxyz": (1.0, 0.0, 0.0, 0.0),
+                "armed": True,
+                "autopilot_mode": "OFFBOARD",
+                "slot": 0,
+                "formation_epoch": 1,
+            }
+
+        deadline = time.monotonic() + 10.0
+        while not (0 in b1.peer_states() and 0 in b1.peers()):
+            assert time.monotonic() < deadline, "nothing from drone 0 over Zenoh"
+            b0.publish_state(state(time.time() - 0.02, 1.0))
+            b0.publish_trajectory(7, 0, 1, traj, 3.0)
+            time.sleep(0.05)
+        st = b1.peer_states()[0]
+        assert st.drone_id == 0 and st.flight_state == "formation-flight"
+        assert st.position_m is not None and st.position_m[1] == 2.0
+        assert st.stamp_s <= st.received_s + 0.5
+        info = b1.peers()[0]
+        assert info.traj_id == 7 and info.incarnation == b0.node.incarnation
+        # an older state arriving later changes nothing: the newest stamp is kept
+        newest = b1.peer_states()[0].stamp_s
+        b0.publish_state(state(newest - 5.0, 9.0))
+        time.sleep(0.3)
+        assert b1.peer_states()[0].stamp_s == newest
+        assert b1.peer_states()[0].position_m[0] == 1.0  # type: ignore[index]
+        assert 1 not in b1.peer_states()  # not its own
+    finally:
+        for b in buses:
+            b.close()

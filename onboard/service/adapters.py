@@ -16,6 +16,7 @@ from onboard.service.ports import (
     CommandFailed,
     IncomingCommand,
     PeerInfo,
+    PeerState,
     Setpoint,
     SetpointSampler,
     VehicleSnapshot,
@@ -48,6 +49,14 @@ def quaternion_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float,
         cr * sp * cy + sr * cp * sy,
         cr * cp * sy - sr * sp * cy,
     )
+
+
+def _finite3(v: Any) -> np.ndarray | None:
+    """A finite ENU 3-vector as an array, else None."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        return None
+    return a
 
 
 def link_config(cfg: OnboardConfig) -> Any:
@@ -235,10 +244,12 @@ class SwarmBusAdapter:
         self.clock = clock
         self._lock = threading.Lock()
         self._peers: dict[int, PeerInfo] = {}
+        self._states: dict[int, PeerState] = {}
         self._commands: list[IncomingCommand] = []
         self._last_cmd_s: float | None = None
         self._bad_commands = 0
         node.on_trajectory(self._on_traj)
+        node.on_state(self._on_state)
         node.on_command(self._on_command)
 
     def _on_traj(self, env: Any, receive_s: float) -> None:
@@ -246,10 +257,38 @@ class SwarmBusAdapter:
 
         m = TrajectoryMsg.from_envelope(env)
         info = PeerInfo(
-            m.drone_id, m.slot, m.formation_epoch, m.trajectory, m.valid_until_s, receive_s
+            m.drone_id,
+            m.slot,
+            m.formation_epoch,
+            m.trajectory,
+            m.valid_until_s,
+            receive_s,
+            traj_id=m.traj_id,
+            incarnation=int(env.incarnation),
         )
         with self._lock:
             self._peers[m.drone_id] = info
+
+    def _on_state(self, env: Any, receive_s: float) -> None:
+        """A peer's 10 Hz state (the node subscribes to them: ``open_bus``): its newest by
+        stamp is kept (the autopilot sample's time, at most the message's own stamp)."""
+        body = env.body
+        pid = int(env.sender)
+        if pid == self.node.drone_id:
+            return
+        stamp = min(float(body.measured_s), float(env.stamp_s))
+        st = PeerState(
+            pid,
+            stamp,
+            _finite3(body.position_m),
+            _finite3(body.velocity_m_s),
+            str(body.flight_state),
+            receive_s,
+        )
+        with self._lock:
+            old = self._states.get(pid)
+            if old is None or stamp > old.stamp_s:
+                self._states[pid] = st
 
     def _on_command(self, env: Any, receive_s: float) -> None:
         body = env.body
@@ -316,6 +355,10 @@ class SwarmBusAdapter:
         with self._lock:
             return dict(self._peers)
 
+    def peer_states(self) -> dict[int, PeerState]:
+        with self._lock:
+            return dict(self._states)
+
     def poll_commands(self) -> list[IncomingCommand]:
         with self._lock:
             out, self._commands = self._commands, []
@@ -349,6 +392,7 @@ def open_bus(cfg: OnboardConfig, clock: Callable[[], float] = time.time) -> Swar
         config=BusConfig(
             traj_valid_for_s=cfg.reactions.peer_lost.validity_s,
             clock_offset_bound_s=cfg.bus.clock_offset_bound_s,
+            subscribe_states=True,  # the peers' states are their signs of life (peer_lost)
         ),
         clock=clock,
     )
@@ -385,6 +429,7 @@ __all__ = [
     "open_depth",
     "IncomingCommand",
     "PeerInfo",
+    "PeerState",
     "link_config",
     "open_autopilot",
     "quaternion_from_euler",

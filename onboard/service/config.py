@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from onboard.agent import GHOST_FORGET_S, GHOST_WINDOW_S, PEER_DEVIATION_M, PEER_SILENCE_S
 from onboard.config import (
     ConfigError,
     config_dir,
@@ -353,17 +354,42 @@ class DepthLostReaction:
 
 @dataclass(frozen=True)
 class PeerLostReaction:
-    """A peer silent past its trajectory's validity (its end, at most ``validity_s`` after it
-    was sent): dropped from the formation; still avoided through its last trajectory for
-    ``avoid_for_s`` more."""
+    """Silent, stuck and lagging peers: the reaction of ``onboard.agent.DroneAgent``, the one
+    the fast-time simulator flies (its defaults are the agent's ``PEER_SILENCE_S``,
+    ``PEER_DEVIATION_M``, ``GHOST_WINDOW_S``, ``GHOST_FORGET_S``).
+
+    A peer's last sign of life is its newest message of any kind (10 Hz states, trajectories).
+    Heard of nothing newer for ``peer_silence_s``, it leaves the formation and is avoided along
+    its last trajectory (``avoid_for_s`` more) and as hovering ghosts where it may have stopped:
+    along that trajectory from where it was last heard to ``ghost_window_s`` later, and at its
+    last reported position (``ghost_forget_s``). A peer reported further than
+    ``peer_deviation_m`` from its trajectory is also avoided where it reported itself. A peer
+    whose newest trajectory is older than ``validity_s`` (a stuck drone) or past its message's
+    own validity leaves the formation and is still avoided for ``avoid_for_s``.
+    """
 
     validity_s: float = 3.0
+    """Our trajectories are valid this long (a peer's, at most this long after it was sent)."""
     action: Literal["drop-from-formation"] = "drop-from-formation"
     avoid_for_s: float = 10.0
+    """A silent or expired peer's last trajectory is still avoided this long."""
+    peer_silence_s: float = PEER_SILENCE_S
+    """Nothing heard from a peer for this long: it is silent (more than 2 state periods)."""
+    peer_deviation_m: float = PEER_DEVIATION_M
+    """A peer reported further than this from its trajectory is avoided where it reported
+    itself (more than the vehicles' tracking error)."""
+    ghost_window_s: float = GHOST_WINDOW_S
+    """A silent peer may have flown on this long after it was last heard before it stopped."""
+    ghost_forget_s: float = GHOST_FORGET_S
+    """A silent peer's ghosts are avoided this long after it fell silent."""
 
     def __post_init__(self) -> None:
         _in_range("validity_s", self.validity_s, 0.1, 60.0)
         _in_range("avoid_for_s", self.avoid_for_s, 0.0, 600.0)
+        _in_range("peer_silence_s", self.peer_silence_s, 0.05, 60.0)
+        _in_range("peer_deviation_m", self.peer_deviation_m, 0.05, 10.0)
+        _in_range("ghost_window_s", self.ghost_window_s, 0.0, 10.0)
+        _in_range("ghost_forget_s", self.ghost_forget_s, 0.0, 3600.0)
 
 
 @dataclass(frozen=True)
@@ -476,6 +502,13 @@ class OnboardConfig:
                     f"too narrow ({e})"
                 ) from None
             object.__setattr__(self, "planner", planner)
+        silence = self.reactions.peer_lost.peer_silence_s
+        if not silence >= 2.0 / self.bus.state_rate_hz:
+            raise ValueError(
+                f"reactions.peer_lost.peer_silence_s: {silence:g} s is less than two state "
+                f"periods (bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers would be "
+                "taken for silent between their states"
+            )
         if not g.min_enu_m[2] + self.flight.takeoff_altitude_m <= g.max_enu_m[2]:
             raise ValueError(
                 "flight.takeoff_altitude_m: the take-off altitude must lie inside the geofence "

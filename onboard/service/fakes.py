@@ -1,5 +1,6 @@
-"""In-memory edges for the service: an autopilot that tracks setpoints perfectly, a bus, a depth
-source. Driven by a clock passed in (tests, benchmarks of the service's own logic)."""
+"""In-memory edges for the service: an autopilot that tracks setpoints perfectly, a bus, peers on
+it (live, killed, stuck or lagging), a depth source. Driven by a clock passed in (tests,
+benchmarks of the service's own logic)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from onboard.service.ports import (
     CommandFailed,
     IncomingCommand,
     PeerInfo,
+    PeerState,
     SetpointSampler,
     VehicleSnapshot,
 )
@@ -123,7 +125,8 @@ class FakeAutopilot:
 
 class FakeBus:
     """The swarm bus in memory: what the service publishes is kept in lists; tests set
-    ``peer_infos``, queue ``commands`` and set ``gcs_heard``."""
+    ``peer_infos`` (trajectories) and ``peer_states_in`` (states; or fly ``SimulatedPeer``s),
+    queue ``commands`` and set ``gcs_heard``."""
 
     def __init__(self) -> None:
         self.trajectories: list[tuple[int, int, int, Trajectory, float]] = []
@@ -131,6 +134,7 @@ class FakeBus:
         self.statuses: list[dict[str, Any]] = []
         self.acks: list[tuple[int, bool, str]] = []
         self.peer_infos: dict[int, PeerInfo] = {}
+        self.peer_states_in: dict[int, PeerState] = {}
         self.commands: list[IncomingCommand] = []
         self.gcs_heard: float | None = None
         self.clock_offsets_exceeded: dict[int, float] = {}
@@ -167,6 +171,9 @@ class FakeBus:
 
     def peers(self) -> dict[int, PeerInfo]:
         return dict(self.peer_infos)
+
+    def peer_states(self) -> dict[int, PeerState]:
+        return dict(self.peer_states_in)
 
     def poll_commands(self) -> list[IncomingCommand]:
         out, self.commands = self.commands, []
@@ -228,3 +235,108 @@ def straight_trajectory(
     m.set_conditions(np.stack([a, z, z]), np.stack([b, z, z]))
     m.set_parameters(np.zeros((0, 3)), np.array([T]))
     return Trajectory(t0_s, m.coeffs, np.array([T]))
+
+
+class SimulatedPeer:
+    """A peer drone on a ``FakeBus``, driven by ``tick(now)`` on the test's clock: its vehicle
+    flies ``path`` (a trajectory in global time; it hovers at its end after it) and its service
+    re-announces the rest of the path every ``replan_period_s`` (new ``traj_id``, valid
+    ``validity_s``) and sends its state every ``state_period_s``.
+
+    Faults, each from time ``t`` on, the vehicle holding where it was then: ``kill(t)``: the
+    process sends nothing more (PX4's offboard-loss failsafe holds the vehicle); ``stick(t)``:
+    the process keeps sending states (where the vehicle holds) but no new trajectory (its last
+    one goes stale); ``snag(t)``: the process keeps sending both, its trajectories flying on
+    along the path while the vehicle stays behind (reported off its trajectory)."""
+
+    def __init__(
+        self,
+        bus: FakeBus,
+        drone_id: int,
+        slot: int,
+        epoch: int,
+        path: Trajectory,
+        *,
+        validity_s: float = 3.0,
+        replan_period_s: float = 1.0,
+        state_period_s: float = 0.1,
+        incarnation: int = 1,
+    ) -> None:
+        self.bus = bus
+        self.drone_id = drone_id
+        self.slot = slot
+        self.epoch = epoch
+        self.path = path
+        self.validity_s = validity_s
+        self.replan_period_s = replan_period_s
+        self.state_period_s = state_period_s
+        self.incarnation = incarnation
+        self.traj_id = -1
+        self.killed_s = math.inf
+        self.stuck_s = math.inf
+        self.held: np.ndarray | None = None
+        self._next_traj_s = -math.inf
+        self._next_state_s = -math.inf
+
+    def kill(self, t_s: float) -> None:
+        self.killed_s = t_s
+        self.held = self.position(t_s)
+
+    def stick(self, t_s: float) -> None:
+        self.stuck_s = t_s
+        self.held = self.position(t_s)
+
+    def snag(self, t_s: float) -> None:
+        self.held = self.position(t_s)
+
+    def position(self, t_s: float) -> np.ndarray:
+        """Where the vehicle is at ``t_s``."""
+        if self.held is not None:
+            return self.held.copy()
+        return self.path.sample(min(t_s, self.path.t_end_s))
+
+    def announced(self, t_s: float) -> Trajectory:
+        """The rest of the path from ``t_s`` (the same quintic pieces; a hover at its end)."""
+        from onboard.planner.minco import Minco
+
+        tr = self.path
+        if t_s >= tr.t_end_s:
+            return Trajectory.hover(tr.end_position, t_s, 1.0)
+        p, v, a = tr.state(t_s)
+        pe, ve, ae = tr.state(tr.t_end_s)
+        m = Minco(1)  # one quintic from (p, v, a) to the end state: the path itself
+        m.set_conditions(np.stack([p, v, a]), np.stack([pe, ve, ae]))
+        m.set_parameters(np.zeros((0, 3)), np.array([tr.t_end_s - t_s]))
+        return Trajectory(t_s, m.coeffs, np.array([tr.t_end_s - t_s]))
+
+    def tick(self, now_s: float) -> None:
+        """Send what is due at ``now_s``."""
+        if now_s >= self.killed_s:
+            return
+        if now_s < self.stuck_s and now_s >= self._next_traj_s:
+            self._next_traj_s = now_s + self.replan_period_s
+            self.traj_id += 1
+            self.bus.peer_infos[self.drone_id] = PeerInfo(
+                self.drone_id,
+                self.slot,
+                self.epoch,
+                self.announced(now_s),
+                now_s + self.validity_s,
+                now_s,
+                traj_id=self.traj_id,
+                incarnation=self.incarnation,
+            )
+        if now_s >= self._next_state_s:
+            self._next_state_s = now_s + self.state_period_s
+            self.bus.peer_states_in[self.drone_id] = PeerState(
+                self.drone_id,
+                now_s,
+                self.position(now_s),
+                (
+                    np.zeros(3)
+                    if self.held is not None
+                    else self.path.sample(min(now_s, self.path.t_end_s), order=1)
+                ),
+                "formation-flight",
+                now_s,
+            )

@@ -1,13 +1,15 @@
 """What the service adds around the per-drone cycle (``onboard.agent.DroneAgent``, the class the
-fast-time simulator runs too): the agent's bus over the service's bus port, the roles of peers
-that went silent, the map source, the geofence check, and the warm-up before READY."""
+fast-time simulator runs too): the agent's bus over the service's bus port, the peers' states
+handed to it as signs of life, the map source, the geofence check, and the warm-up before
+READY."""
 
 from __future__ import annotations
 
+import math
+import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,15 +20,28 @@ from onboard.planner.trajectory import Trajectory
 from onboard.service.config import GeofenceSection
 from onboard.service.ports import PeerInfo, SwarmBusPort
 
+if TYPE_CHECKING:
+    from onboard.agent import DroneAgent
+
 
 class PortPeerBus:
     """The agent's ``PeerBus`` over the service's ``SwarmBusPort``: ``publish`` sends the
     agent's trajectory message (its validity as ``valid_until_s - now``), ``receive`` gives the
     latest trajectory of every peer heard, expired ones included (the agent avoids a peer past
-    its message's validity and forgets it ``peer_forget_s`` later)."""
+    its message's validity and forgets it ``peer_forget_s`` later).
+
+    The ``traj_id`` handed to the agent is the sender's own sequence number (the agent never
+    lets a trajectory replace one with a higher id: a late or duplicated copy). A restarted
+    peer numbers its trajectories from 0 again under a new incarnation: the ids of each run
+    (incarnation) seen are continued above every id seen from that peer before, so that the
+    agent takes the new run's trajectories. (The bus's gate, ``onboard.comm.gate``, lets an
+    older incarnation's message through again only after that sender was silent for a while,
+    so a late copy of an old run does not come back as a new run.) Any thread."""
 
     def __init__(self, port: SwarmBusPort) -> None:
         self.port = port
+        self._lock = threading.Lock()
+        self._runs: dict[int, tuple[int, int, int]] = {}  # peer -> (incarnation, base, top id)
 
     def publish(self, msg: TrajectoryMsg, now_s: float) -> None:
         self.port.publish_trajectory(
@@ -43,38 +58,55 @@ class PortPeerBus:
             if pid == drone_id:
                 continue
             out[pid] = TrajectoryMsg(
-                pid, 0, info.slot, info.trajectory, info.formation_epoch, info.valid_until_s
+                pid,
+                self.order(info),
+                info.slot,
+                info.trajectory,
+                info.formation_epoch,
+                info.valid_until_s,
             )
         return out
 
+    def order(self, info: PeerInfo) -> int:
+        """The id the agent orders ``info`` by: its ``traj_id`` within the sender's run (its
+        incarnation), runs one after the other in the order they were seen."""
+        pid = info.drone_id
+        with self._lock:
+            run = self._runs.get(pid)
+            if run is None:
+                base, top = 0, -1
+            elif run[0] == info.incarnation:
+                base, top = run[1], run[2]
+            else:  # a new run of the sender: after everything of the previous ones
+                base = run[2] + 1
+                top = base - 1
+            key = base + int(info.traj_id)
+            self._runs[pid] = (info.incarnation, base, max(top, key))
+        return key
 
-@dataclass(frozen=True)
-class PeerRoles:
-    """The service's decision about peers that went silent (``reactions.peer_lost``):
-    ``avoid_only`` were last heard more than ``validity_s`` ago, or their message's own validity
-    has passed (out of the formation, still avoided through their last trajectory); ``ignore``
-    have been silent for ``avoid_for_s`` more (no longer considered)."""
 
-    avoid_only: frozenset[int]
-    ignore: frozenset[int]
+class StateRelay:
+    """Hands the peers' newest states from the bus port to the agent as signs of life
+    (``DroneAgent.heard``: the sender's stamp and where its vehicle reported itself), each one
+    once. Any thread (the agent keeps the newest stamp)."""
 
+    def __init__(self, port: SwarmBusPort, agent: DroneAgent) -> None:
+        self.port = port
+        self.agent = agent
+        self._lock = threading.Lock()
+        self._handed: dict[int, float] = {}
 
-def peer_roles(
-    peers: dict[int, PeerInfo], now_s: float, own_id: int, validity_s: float, avoid_for_s: float
-) -> PeerRoles:
-    """Classify silent peers (see ``PeerRoles``); a peer's validity ends at the earlier of its
-    message's ``valid_until_s`` and ``validity_s`` after it was received."""
-    avoid: set[int] = set()
-    ignore: set[int] = set()
-    for pid, info in peers.items():
-        if pid == own_id:
-            continue
-        until = min(info.valid_until_s, info.received_s + validity_s)
-        if now_s > until + avoid_for_s:
-            ignore.add(pid)
-        elif now_s > until:
-            avoid.add(pid)
-    return PeerRoles(frozenset(avoid), frozenset(ignore))
+    def __call__(self) -> int:
+        """Hand over what is new; the number of states handed."""
+        n = 0
+        for pid, st in sorted(self.port.peer_states().items()):
+            with self._lock:
+                if st.stamp_s <= self._handed.get(pid, -math.inf):
+                    continue
+                self._handed[pid] = st.stamp_s
+            self.agent.heard(pid, st.stamp_s, st.position_m)
+            n += 1
+        return n
 
 
 class FieldSource:

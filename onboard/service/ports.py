@@ -95,6 +95,28 @@ class PeerInfo:
     trajectory: Trajectory
     valid_until_s: float
     received_s: float
+    traj_id: int = 0
+    """The sender's sequence number of this trajectory (increases with every one it sends)."""
+    incarnation: int = 0
+    """The sender process's incarnation (``onboard.comm.wire``): a restarted process numbers
+    its trajectories from 0 again under a new one."""
+
+
+@dataclass(frozen=True, eq=False)
+class PeerState:
+    """A peer's newest state message (10 Hz, ``<swarm>/drone/<id>/state``): its sign of life.
+
+    stamp_s: the sender's global time of the state (its autopilot sample, never later than
+    the message's own stamp); position_m / velocity_m_s: ENU, where its vehicle reported itself
+    (None if not finite); flight_state: its service's state name; received_s: our clock when
+    it arrived."""
+
+    drone_id: int
+    stamp_s: float
+    position_m: np.ndarray | None
+    velocity_m_s: np.ndarray | None
+    flight_state: str
+    received_s: float
 
 
 @dataclass(frozen=True)
@@ -116,6 +138,10 @@ class SwarmBusPort(Protocol):
 
     def peers(self) -> dict[int, PeerInfo]:
         """The latest accepted trajectory of every peer heard."""
+        ...
+
+    def peer_states(self) -> dict[int, PeerState]:
+        """The newest state (by its stamp) of every peer heard."""
         ...
 
     def poll_commands(self) -> list[IncomingCommand]:

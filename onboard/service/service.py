@@ -16,12 +16,16 @@ Threads (each loop is a ``*_step`` method the tests call directly with an inject
   airborne without a goal, the trajectory in control is re-announced every period so that
   peers keep avoiding it;
 - ``monitor``: at ``planning.monitor_rate_hz`` the trajectory in control is checked against the
-  map, the peers' latest trajectories and the geofence over ``monitor_horizon_s``; a predicted
-  conflict asks for a replan at once, and if the conflict is still there after it, brakes;
+  map, the peers as the agent avoids them (``DroneAgent.peer_view``: their latest trajectories,
+  the silent peers' ghosts, where deviating peers reported themselves) and the geofence over
+  ``monitor_horizon_s``; a predicted conflict asks for a replan at once, and if the conflict is
+  still there after it, brakes;
 - ``actions``: autopilot commands that wait for acknowledgements (offboard, arm, land), so the
   main loop never blocks;
-- the main loop (``main_step``): ground-station commands, the reactions, the state machine's
-  timers, state (10 Hz) and status (1 Hz) publishing, the flight record, the watchdog.
+- the main loop (``main_step``): ground-station commands, the reactions, the peers' states
+  handed to the agent as signs of life (``reactions.peer_lost``: a peer that falls silent or
+  leaves its trajectory asks for a replan at once), the state machine's timers, state (10 Hz)
+  and status (1 Hz) publishing, the flight record, the watchdog.
 
 Only the main loop touches the state machine; the other threads read an immutable ``Intent``
 that it publishes, and post their results back through a queue. The trajectory in control is
@@ -46,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from onboard.agent import DroneAgent, PlanReport
+from onboard.agent import DroneAgent, PeerView, PlanReport
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
@@ -56,9 +60,9 @@ from onboard.service.logs import event
 from onboard.service.planning import (
     FieldSource,
     PortPeerBus,
+    StateRelay,
     WarmUp,
     inside_box,
-    peer_roles,
     warm_up,
 )
 from onboard.service.ports import (
@@ -174,8 +178,18 @@ class FlightService:
             plan_ahead_s=pc.plan_ahead_s,
             validity_s=rc.validity_s,
             peer_forget_s=rc.avoid_for_s,
+            peer_silence_s=rc.peer_silence_s,
+            ghost_window_s=rc.ghost_window_s,
+            ghost_forget_s=rc.ghost_forget_s,
+            peer_deviation_m=rc.peer_deviation_m,
+            avoid_reported=True,  # a peer with states but no trajectory (stuck long, by hand)
             on_plan=self._on_plan,
         )
+        self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
+        self.peer_view: PeerView | None = None
+        """The peers as the agent avoids them, at the last look (``peers_now``)."""
+        self._logged_view: PeerView | None = None
+        self._view_age_s = 0.5 / config.bus.state_rate_hz
         self._agent_assignment: Assignment | None = None
         self._transitions: list[Transition] = []
         self._intent = Intent(S.IDLE)
@@ -228,7 +242,13 @@ class FlightService:
             "commands": 0,
             "commands_rejected": 0,
             "setpoints_sampled": 0,
-            "peers_dropped": 0,
+            # peers now (gauges): silent, reported off their trajectory, ghost hovers avoided
+            "peers_silent": 0,
+            "peers_deviating": 0,
+            "peer_ghosts": 0,
+            # peers that fell silent / left their trajectory so far
+            "peers_fell_silent": 0,
+            "peers_left_trajectory": 0,
             "plans_superseded": 0,
             "announcements": 0,
             "map_occupied_cells": 0,
@@ -539,10 +559,7 @@ class FlightService:
             and self._in_control
             and self.field() is not None
         ):
-            rc = self.cfg.reactions.peer_lost
-            roles = peer_roles(self.bus.peers(), now, self.id, rc.validity_s, rc.avoid_for_s)
-            self.agent.set_peer_roles(roles.avoid_only, roles.ignore)
-            self.counters["peers_dropped"] = len(roles.ignore)
+            self._relay()  # the states that have arrived by now
             with self._ctl_lock:
                 self._cycle_gen = self._gen
             try:
@@ -597,6 +614,8 @@ class FlightService:
                 n_peers=len(rep.formation_peers),
                 formation_peers=list(rep.formation_peers),
                 avoided_peers=list(rep.avoided_peers),
+                silent_peers=list(rep.silent_peers),
+                deviating_peers=list(rep.deviating_peers),
                 slot=rep.slot,
                 formation_epoch=rep.formation_epoch,
                 t0_s=traj.t0_s,
@@ -627,17 +646,7 @@ class FlightService:
             if d[k] < p.check_obstacle_m:
                 problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
         if not problem:
-            rc = self.cfg.reactions.peer_lost
-            peers = self.bus.peers()
-            gone = peer_roles(peers, now, self.id, rc.validity_s, rc.avoid_for_s).ignore
-            for pid, info in sorted(peers.items()):
-                if pid == self.id or pid in gone:
-                    continue
-                dd = np.linalg.norm(pos - info.trajectory.sample(ts), axis=1)
-                k = int(np.argmin(dd))
-                if dd[k] < p.check_drone_m:
-                    problem = f"drone {pid} {dd[k]:.2f} m in {ts[k] - now:.1f} s"
-                    break
+            problem = self._peer_conflict(now, ts, pos, p.check_drone_m)
         if not problem:
             lo = np.asarray(self.cfg.geofence.min_enu_m)
             hi = np.asarray(self.cfg.geofence.max_enu_m)
@@ -657,6 +666,104 @@ class FlightService:
         self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2))
         self._results.put(("monitor_brake", problem))
         return f"brake: {problem}"
+
+    def _peer_conflict(self, now: float, ts: np.ndarray, pos: np.ndarray, limit_m: float) -> str:
+        """The first peer closer than ``limit_m`` to ``pos`` (the trajectory in control at
+        ``ts``), as the agent avoids them: their trajectories (same times), the silent peers'
+        ghosts and where deviating peers reported themselves (hovers); '' when none."""
+        view = self.peers_now(now)
+        for pt in view.trajectories:
+            dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
+            k = int(np.argmin(dd))
+            if dd[k] < limit_m:
+                return f"drone {pt.drone_id} {dd[k]:.2f} m in {ts[k] - now:.1f} s"
+        if view.hover_ids:
+            d = np.linalg.norm(pos[:, None, :] - view.hover_points[None, :, :], axis=2)
+            flat = int(np.argmin(d))
+            k, j = divmod(flat, d.shape[1])
+            if d[k, j] < limit_m:
+                pid = view.hover_ids[j]
+                what = "a ghost of silent" if pid in view.silent else "where it reported itself:"
+                return f"{what} drone {pid} {d[k, j]:.2f} m in {ts[k] - now:.1f} s"
+        return ""
+
+    # ---- peers (the main loop; the monitor) --------------------------------------------------
+    def peers_now(self, now: float, fresh: bool = False) -> PeerView:
+        """The peers as the agent avoids them at ``now`` (``DroneAgent.peer_view``, after the
+        states that have arrived are handed over); unless ``fresh``, a view less than half a
+        state period old is reused (the monitor looks at 100 Hz, peers speak at 10 Hz)."""
+        view = self.peer_view
+        if fresh or view is None or not 0.0 <= now - view.t_s < self._view_age_s:
+            self._relay()
+            view = self.agent.peer_view(now)
+            self.peer_view = view
+        return view
+
+    def _watch_peers(self, now: float) -> None:
+        """The peers' new states to the agent (signs of life), its watch (a peer that fell
+        silent or left its trajectory asks for a replan at once), then what changed logged and
+        counted (``reactions.peer_lost``)."""
+        self._relay()
+        if self.agent.watch(now):
+            self._wake.set()  # the planner thread: the agent asked for a replan
+        view = self.peers_now(now, fresh=True)
+        old = self._logged_view
+        self._logged_view = view
+        was_silent = set() if old is None else set(old.silent)
+        was_off = set() if old is None else set(old.deviating)
+        for pid in view.silent:
+            if pid not in was_silent:
+                self.counters["peers_fell_silent"] += 1
+                ago = now - self.agent.heard_s(pid)
+                self._peer_event(
+                    now,
+                    "peer_silent",
+                    pid,
+                    f"drone {pid} silent for {ago:.2f} s: out of the formation, avoided at "
+                    "its last trajectory and where it may have stopped",
+                    heard_s_ago=round(ago, 3),
+                )
+        for pid in sorted(was_silent - set(view.silent)):
+            back = now - self.agent.heard_s(pid) <= self.cfg.reactions.peer_lost.peer_silence_s
+            self._peer_event(
+                now,
+                "peer_heard_again" if back else "peer_forgotten",
+                pid,
+                f"drone {pid} heard again" if back else f"drone {pid} forgotten (silent)",
+            )
+        for pid in view.deviating:
+            if pid not in was_off:
+                self.counters["peers_left_trajectory"] += 1
+                self._peer_event(
+                    now,
+                    "peer_off_trajectory",
+                    pid,
+                    f"drone {pid} reported off its trajectory: avoided where it reported itself",
+                )
+        self.counters["peers_silent"] = len(view.silent)
+        self.counters["peers_deviating"] = len(view.deviating)
+        self.counters["peer_ghosts"] = len(view.hover_ids) - len(view.deviating)
+
+    def _peer_event(self, now: float, name: str, pid: int, text: str, **fields: Any) -> None:
+        level = logging.INFO if name in ("peer_heard_again", "peer_forgotten") else logging.WARNING
+        event(log, name, level, peer=pid, **fields)
+        if self.recorder is not None:
+            self.recorder.event(now, text, "info" if level == logging.INFO else "warning")
+
+    def _peer_links(self, now: float) -> list[tuple[str, bool, float | None]]:
+        """``peer/<id>`` links for the status: up unless silent, the age of its newest sign of
+        life."""
+        view = self.peer_view
+        if view is None:
+            return []
+        ids = sorted(
+            {pt.drone_id for pt in view.trajectories} | set(view.silent) | set(view.deviating)
+        )
+        out: list[tuple[str, bool, float | None]] = []
+        for pid in ids[:60]:  # the status carries at most 64 links
+            age = now - self.agent.heard_s(pid)
+            out.append((f"peer/{pid}", pid not in view.silent, max(age, 0.0)))
+        return out
 
     # ---- the main loop -----------------------------------------------------------------------
     def _handle_command(self, inc: IncomingCommand) -> CommandResult:
@@ -824,6 +931,7 @@ class FlightService:
         self._apply_transitions(veh)
         self._react(now, veh)
         self._apply_transitions(veh)
+        self._watch_peers(now)
         self.machine.tick()
         self._apply_transitions(veh)
         self._publish(now, veh)
@@ -879,6 +987,7 @@ class FlightService:
                         ("autopilot", self._link_ok, self.ap.link_age_s()),
                         ("gcs", self._gcs_ok, None),
                         ("depth", not self._depth_lost, None),
+                        *self._peer_links(now),
                     ],
                     "battery_v": None if veh is None else veh.battery_v,
                     "counters": counters,
