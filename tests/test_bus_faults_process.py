@@ -59,7 +59,7 @@ N = 3
 POINTS = [(0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0)]
 SLOTS = {0: 2, 1: 1, 2: 0}
 SPAWNS = [(0.0, -2.0, 0.0), (-1.5, 0.0, 0.0), (0.0, 2.0, 0.0)]
-GOAL_CENTRE = np.array([9.5, 0.0, 1.0])
+GOAL_CENTRE = np.array([11.0, 0.0, 1.0])
 VALIDITY_S = 3.0  # reactions.peer_lost.validity_s: a trajectory's validity
 HOLD_S = 6.0  # drone 2's uplink outage: > VALIDITY_S, so that what it buffered arrives stale
 # per proxy and direction: two hops make 1 - (1 - 0.106)^2 = 20 % loss and up to 300 ms
@@ -402,7 +402,7 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
             lambda: set(_states(gs).values()) == {"formation-flight"}, 10.0, "flying", all_alive
         )
         poll_until(
-            lambda: min(t.position_m[0] for t in mock.latest_truth().values()) > 1.5,
+            lambda: min(t.position_m[0] for t in mock.latest_truth().values()) > 1.0,
             20.0,
             "the swarm under way",
             all_alive,
@@ -461,7 +461,9 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
     print("mock:", {k: sitl.get(k) for k in ("collisions", "min_vehicle_distance_m")})
     print("distance to the slot goals at the arrival, m:", slot_error)
     assert sitl.get("collisions") == [], sitl.get("collisions")
-    assert sitl["min_vehicle_distance_m"] > 2 * BODY_RADIUS_M + 0.1, sitl
+    # contact is 2 body radii between centres; the planner accepts no plan closer than
+    # check_drone_m (0.45 m) to a peer's trajectory
+    assert sitl["min_vehicle_distance_m"] > 2 * BODY_RADIUS_M + 0.05, sitl
 
     # --- stale trajectories: refused at the gate, never in the formation term ---------------
     stale_logged = [
@@ -475,7 +477,7 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
     for d in (0, 1):
         plans = _plans(tmp_path / f"d{d}" / "records")
         during = [p for t, p in plans if t_hold + VALIDITY_S + 0.3 < t < t_hold + HOLD_S - 0.1]
-        after = [p for t, p in plans if t > t_hold + HOLD_S + 1.0]
+        after = [p for t, p in plans if t > t_hold + HOLD_S + 0.2]  # released, heard again
         assert during, f"drone {d} made no plan while drone 2's trajectory was past its validity"
         for p in during:
             assert 2 not in p["formation_peers"], (d, p["formation_peers"])
