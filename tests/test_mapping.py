@@ -6,6 +6,7 @@ import dataclasses
 import math
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from onboard.mapping import (
     SimCameraParams,
     SimulatedDepthCamera,
     backproject,
+    check_frame,
     look_rotation,
 )
 from onboard.mapping.evaluate import esdf_errors
@@ -325,14 +327,15 @@ def test_invalid_pixels_mark_nothing(value: float) -> None:
 
 
 def test_masked_pixels_leave_their_space_unknown() -> None:
-    """Half a frame of garbage: only the valid half's rays are cast, nothing else turns free."""
+    """Half a frame of garbage: only the valid half's rays are cast, nothing else turns free
+    (the zeros among the garbage cast nothing either: invalid values around them stop them)."""
     world = _scene()
     p, r = np.array([0.0, 0.0, 1.0]), look_rotation(0.0)
     good = SimulatedDepthCamera(world).render(p, r)
     half = good.copy()
     half[:, 320:] = np.array([np.nan, np.inf, 0.0, -2.0], dtype=np.float32)[np.arange(320) % 4]
     left_only = good.copy()
-    left_only[:, 320:] = 0.0
+    left_only[:, 320:] = np.nan
     a = LocalMapper(SMALL, center=p)
     b = LocalMapper(SMALL, center=p)
     a.ingest(_frame(half))
@@ -342,6 +345,173 @@ def test_masked_pixels_leave_their_space_unknown() -> None:
     probe = np.array([[3.0, -1.2, 1.0], [2.0, -0.9, 0.8], [4.0, -2.0, 1.2]])
     assert np.all(a.map.state_at(probe) == -1)
     assert np.all(a.map.state_at(np.array([[2.0, 0.6, 1.8], [1.5, 0.4, 1.0]])) >= 0)
+
+
+# --- pixels without a return ------------------------------------------------------------------
+
+
+def _trunk_world() -> World:
+    """One trunk 2.5 m in front of a camera at the origin (1 m up, looking along +x)."""
+    return World(
+        cylinders=np.array([[2.5, 0.0, 0.3, 0.0, 2.5]]),
+        rings=np.zeros((0, 7)),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+
+
+_TRUNK_POSES = [
+    (np.array([0.0, y, 1.0]), look_rotation(a)) for y, a in ((0, 0), (0.3, -0.1), (-0.3, 0.1))
+]
+
+
+def _cells_inside_trunk(om: OccupancyMap, world: World, depth_m: float) -> np.ndarray:
+    """Window-order bool grid: cell centres deeper than depth_m inside the world's trunks."""
+    trunks = World(world.cylinders, world.rings, world.boxes, None)
+    d, _ = trunks.distance(om.cell_centres().reshape(-1, 3))
+    return (d < -depth_m).reshape(om.shape)
+
+
+def _free(om: OccupancyMap) -> np.ndarray:
+    lw = om.window_logodds()
+    return (lw > -50.0) & (lw < 0.0)
+
+
+def test_no_return_pixels_clear_free_space_up_to_their_range() -> None:
+    """Sky and far space (0 in a D435 frame) turn free along the ray up to no_return_m, as in
+    the reference's grid map; with no_return_m 0 they stay unknown, as before."""
+    world = World.empty(0.0)  # the ground only: everything above the horizon is "no return"
+    p, r = np.array([0.0, 0.0, 1.0]), look_rotation(0.0)
+    depth = SimulatedDepthCamera(world).render(p, r)
+    assert 0.3 < np.mean(depth == 0.0) < 0.7
+    on = LocalMapper(SMALL, center=p)
+    off = LocalMapper(dataclasses.replace(SMALL, no_return_m=0.0), center=p)
+    res = on.ingest(_frame(depth, pos=p, rot=r))
+    assert res.clear_rays > 100
+    assert off.ingest(_frame(depth, pos=p, rot=r)).clear_rays == 0
+    ahead = np.array([[1.0, 0.0, 1.0], [2.5, 0.5, 1.3], [2.9, -0.5, 1.8]])  # in the view, in air
+    assert np.all(on.map.state_at(ahead) == 0)
+    assert np.all(off.map.state_at(ahead) == -1)
+    short = LocalMapper(dataclasses.replace(SMALL, no_return_m=2.0), center=p)
+    short.ingest(_frame(depth, pos=p, rot=r))
+    assert short.map.state_at(np.array([[1.5, 0.0, 1.2]]))[0] == 0
+    assert short.map.state_at(np.array([[2.5, 0.0, 1.5]]))[0] == -1  # beyond 2 m
+    # the ground the frame measured stays what its hits made it
+    np.testing.assert_array_equal(on.map.occupied(), off.map.occupied())
+
+
+def test_a_hole_in_a_trunk_does_not_carve_free_space_through_it() -> None:
+    """A hole (0) in the middle of a trunk's image: its rays stop no_return_margin_m in front of
+    the depths measured around it, so the trunk's inside stays unknown on a map that never saw
+    the trunk before. Without the image rule (no neighbourhood) the same frame carves it."""
+    world = _trunk_world()
+    p, r = _TRUNK_POSES[0]
+    depth = SimulatedDepthCamera(world).render(p, r)
+    depth[200:240, 300:340] = 0.0  # a 40 px hole on the trunk (it spans about 60 px)
+    assert np.all(depth[195, 300:340] > 0) and np.all(depth[245, 300:340] > 0)
+    safe = LocalMapper(SMALL, center=p)
+    blind = LocalMapper(dataclasses.replace(SMALL, no_return_radius_px=0), center=p)
+    assert safe.ingest(_frame(depth, pos=p, rot=r)).clear_rays > 0
+    blind.ingest(_frame(depth, pos=p, rot=r))
+    inside = _cells_inside_trunk(safe.map, world, 0.05)
+    assert not np.any(_free(safe.map) & inside)
+    assert np.any(_free(blind.map) & inside)  # the frame would carve it: the rule matters
+
+
+def test_no_return_frames_never_erase_a_mapped_trunk() -> None:
+    """A trunk mapped from frames with D435 holes and dropout, then frames in which the trunk
+    and 170 px around it give no return at all (a texture-less or too-close surface reads 0
+    like the sky): every cell of the trunk stays occupied and none inside it turns free. The
+    same frames on a map that never saw the trunk do carve into it: the map is what stops them
+    (an obstacle never seen and never returning is the rule's known limit)."""
+    world = _trunk_world()
+    prm = SimCameraParams(noise_std_1m_m=0.004, dropout=0.05, hole_count=6, hole_size_px=40)
+    cam = SimulatedDepthCamera(world, params=prm, seed=5)
+    mapper = LocalMapper(SMALL, center=np.array([1.5, 0.0, 1.0]))
+    t = 0.0
+    for k in range(12):
+        p, r = _TRUNK_POSES[k % 3]
+        assert mapper.ingest(cam.capture(p, r, t), recenter=False).accepted
+        t += 0.1
+    om = mapper.map
+    trunks = World(world.cylinders, world.rings, world.boxes, None)
+    d, _ = trunks.distance(om.cell_centres().reshape(-1, 3))
+    trunk_cells = om.occupied() & (np.abs(d) < 0.1).reshape(om.shape)
+    assert trunk_cells.sum() > 100
+    inside = _cells_inside_trunk(om, world, 0.05)
+    assert not np.any(_free(om) & inside)
+    fresh = LocalMapper(SMALL, center=np.array([1.5, 0.0, 1.0]))
+    for k in range(9):
+        p, r = _TRUNK_POSES[k % 3]
+        f = cam.capture(p, r, t)
+        blank = f.depth_m.copy()
+        blank[:, 150:490] = 0.0
+        bf = DepthFrame(blank, t, f.position, f.rotation, f.intrinsics)
+        assert mapper.ingest(bf, recenter=False).clear_rays > 0
+        fresh.ingest(bf, recenter=False)
+        t += 0.1
+    assert np.all(om.occupied()[trunk_cells])
+    assert not np.any(_free(om) & inside)
+    assert np.any(_free(fresh.map) & inside)
+
+
+def test_no_return_rays_need_a_frame_that_measured_something() -> None:
+    """A frame with too few measured pixels (a covered lens, an obstacle too close to see
+    filling the view) casts no no-return ray; a frame of invalid values (NaN) casts nothing."""
+    p, r = np.array([0.0, 0.0, 1.0]), look_rotation(0.0)
+    ground = SimulatedDepthCamera(World.empty(0.0)).render(p, r)
+    few = np.zeros_like(ground)
+    few[-20:, :] = ground[-20:, :]  # the bottom 20 rows: 4 % of the pixels
+    mapper = LocalMapper(SMALL, center=p)
+    res = mapper.ingest(_frame(few, pos=p, rot=r))
+    assert res.rays > 0 and res.clear_rays == 0
+    assert mapper.map.state_at(np.array([[2.0, 0.0, 1.2]]))[0] == -1
+    nan = LocalMapper(SMALL, center=p)
+    res = nan.ingest(_frame(np.where(ground > 0, ground, np.nan).astype(np.float32)))
+    assert res.clear_rays == 0
+
+
+def test_no_return_rays_are_cast_at_most_every_period() -> None:
+    """At 30 frames/s and no_return_period_s 0.1 every 3rd frame casts them (a fixed phase);
+    with period 0 every frame does."""
+    p, r = np.array([0.0, 0.0, 1.0]), look_rotation(0.0)
+    depth = SimulatedDepthCamera(World.empty(0.0)).render(p, r)
+    every = {}
+    for period in (0.1, 0.0):
+        mapper = LocalMapper(dataclasses.replace(SMALL, no_return_period_s=period), center=p)
+        cast = [
+            mapper.ingest(_frame(depth, stamp=k / 30.0, pos=p, rot=r)).clear_rays > 0
+            for k in range(12)
+        ]
+        every[period] = [k for k, c in enumerate(cast) if c]
+    assert every[0.1] == [0, 3, 6, 9]
+    assert every[0.0] == list(range(12))
+
+
+def test_check_frame_keeps_no_return_and_marks_invalid_values() -> None:
+    depth = np.array([[0.0, np.nan, np.inf, -1.0, 0.1, 2.0, 7.0]], dtype=np.float32)
+    intr = CameraIntrinsics(width=7, height=1, cx=3.0, cy=0.0)
+    out = check_frame(DepthFrame(depth, 0.0, np.zeros(3), np.eye(3), intr))
+    assert out[0, 0] == 0.0 and np.all(np.isnan(out[0, 1:5]))
+    np.testing.assert_array_equal(out[0, 5:], [2.0, 7.0])
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("no_return_m", -1.0),
+        ("no_return_m", 6.0),
+        ("no_return_step", 0),
+        ("no_return_radius_px", -1),
+        ("no_return_margin_m", -0.1),
+        ("no_return_min_valid", 1.5),
+        ("no_return_period_s", -1.0),
+    ],
+)
+def test_no_return_parameters_are_checked(field: str, value: float) -> None:
+    bad: dict[str, Any] = {field: value}
+    with pytest.raises(ValueError, match=field):
+        OccupancyParams(**bad)
 
 
 # --- unknown space and the collision check ----------------------------------------------------

@@ -6,7 +6,10 @@ Frames (ENU world, SI units):
 - a pose is the camera centre ``position`` (3,) and ``rotation`` (3, 3) = world_from_camera,
   whose columns are the camera's x, y, z axes in world coordinates;
 - a depth image holds, per pixel, the z coordinate (metres along the optical axis) of the
-  surface seen there; 0, NaN, inf or a negative value means "no measurement".
+  surface seen there; 0 means "no return" (what the D435 and the simulated camera report for
+  nothing within range, but also for holes and for surfaces too close to see; the mapper clears
+  free space along such pixels only where the depths around them and its map agree); NaN, inf,
+  a negative value or one below the minimum depth means "no measurement" (nothing is marked).
 
 The default intrinsics are those of the Intel RealSense D435 depth stream at 640 x 480.
 """
@@ -78,8 +81,9 @@ def look_rotation(yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
 class DepthFrame:
     """One depth image with its time and the camera pose it was taken from.
 
-    depth_m (height, width): metres along the optical axis, float32 or float64; invalid pixels
-    may hold 0, NaN, inf or negative values (they are masked on ingest). stamp_s: seconds on the
+    depth_m (height, width): metres along the optical axis, float32 or float64; 0 is "no
+    return", NaN, inf, negative or below-minimum values are "no measurement" (see the module
+    docstring). stamp_s: seconds on the
     clock the poses come from. position (3,), rotation (3, 3): world_from_camera (ENU).
     """
 
@@ -95,21 +99,23 @@ class FrameRejected(ValueError):
 
 
 def check_frame(frame: DepthFrame) -> np.ndarray:
-    """A clean float32 depth image of ``frame``: invalid pixels (non-finite, <= 0, outside
-    [min_depth_m, inf)) set to 0. Depths beyond ``max_depth_m`` are kept (free space up to the
-    mapper's ray length is still seen). Raises FrameRejected for frames that cannot be used:
-    wrong shape or dtype, non-finite time, non-finite position, non-orthonormal rotation."""
+    """A clean float32 depth image of ``frame``: 0 ("no return") stays 0, every other value
+    that is not a measurement (non-finite, negative, outside [min_depth_m, inf)) becomes NaN
+    ("no measurement"): the mapper reads both as ``validate_frame``'s raw image. Depths beyond
+    ``max_depth_m`` are kept (free space up to the mapper's ray length is still seen). Raises
+    FrameRejected for frames that cannot be used: wrong shape or dtype, non-finite time,
+    non-finite position, non-orthonormal rotation."""
     out = np.array(validate_frame(frame), dtype=np.float32, copy=True)
     bad = ~np.isfinite(out) | (out < frame.intrinsics.min_depth_m)
-    out[bad] = 0.0
+    out[bad & (out != 0.0)] = np.nan
     return out
 
 
 def validate_frame(frame: DepthFrame) -> np.ndarray:
     """``check_frame`` without the cleaning: the frame's depth image as a C-contiguous float32
     array (the frame's own array when it is one: no copy), invalid pixels as they came. For
-    consumers that skip invalid pixels themselves (the mapper's ray casting skips exactly the
-    pixels ``check_frame`` would set to 0, on the skip grid only). Raises FrameRejected as
+    consumers that sort the pixels themselves (the mapper's ray casting reads exactly the same
+    from both, on its skip grid only). Raises FrameRejected as
     ``check_frame`` does."""
     intr = frame.intrinsics
     d = frame.depth_m

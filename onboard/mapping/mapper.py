@@ -1,10 +1,11 @@
 """The on-board mapping pipeline of one drone: depth frames in, a signed distance field out.
 
 ``LocalMapper`` validates each frame (bad frames are refused or masked, never crash the map,
-never mark unseen space free), moves the rolling occupancy window with the camera, ray casts the
-frame, and on request refreshes the ESDF (``EsdfField``, a ``GridField``): ``field()`` the
-distance to the mapped surfaces, ``planning_field()`` the same with the obstacles inflated by
-the drone's radius, which is what a planner should read.
+never mark unseen space free; pixels without a return clear free space only as far as the depths
+around them and the map allow, see ``onboard.mapping.occupancy``), moves the rolling occupancy
+window with the camera, ray casts the frame, and on request refreshes the ESDF (``EsdfField``,
+a ``GridField``): ``field()`` the distance to the mapped surfaces, ``planning_field()`` the same
+with the obstacles inflated by the drone's radius, which is what a planner should read.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ class LocalMapper:
         self._dirty = True
         self.last_stamp_s = -math.inf
         self.rejected = 0
+        self._next_no_return_s = -math.inf
 
     def recenter(self, center: np.ndarray) -> None:
         """Move the window to ``center`` (usually the drone's position)."""
@@ -52,8 +54,9 @@ class LocalMapper:
         (default ``params.skip_pixel``).
 
         Refused (``accepted`` False, map unchanged): wrong shape or dtype, non-finite time or
-        pose, a time older than the last accepted frame. Masked (pixels ignored): 0, NaN, inf,
-        negative or below-minimum depths."""
+        pose, a time older than the last accepted frame. Masked (pixels ignored): NaN, inf,
+        negative or below-minimum depths. 0 ("no return") clears free space along its ray as
+        ``OccupancyParams.no_return_m`` says."""
         try:
             # not cleaned: the ray casting skips the invalid pixels itself (on its skip grid)
             depth = validate_frame(frame)
@@ -65,10 +68,20 @@ class LocalMapper:
             return IngestResult(False, "frame older than the last accepted one")
         if recenter:
             self.recenter(frame.position)
-        res = self.map.ingest_depth(depth, frame.intrinsics, frame.position, frame.rotation, step)
+        # no-return rays at most every no_return_period_s (a fixed phase, as the ESDF refresh;
+        # a frame a tenth of the period early counts, for stamps with jitter or rounding)
+        t = float(frame.stamp_s)
+        period = self.params.no_return_period_s
+        no_return = t >= self._next_no_return_s - 0.1 * period
+        res = self.map.ingest_depth(
+            depth, frame.intrinsics, frame.position, frame.rotation, step, no_return
+        )
         if res.accepted:
-            self.last_stamp_s = float(frame.stamp_s)
+            self.last_stamp_s = t
             self._dirty = True
+            if no_return:
+                nxt = self._next_no_return_s + period
+                self._next_no_return_s = nxt if t < nxt else t + period
         else:
             self.rejected += 1
         return res
