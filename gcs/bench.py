@@ -1,5 +1,10 @@
 """Planner benchmark: replay the replans of a recorded flight and time them.
 
+The problems are replayed on the field the drones planned on: the exact distance to the
+obstacles each drone had sensed (perception 'ground-truth'), or the ESDF of the drone's own
+map at that replan (perception 'mapped': the flight keeps an evenly spread subset of its
+replans' fields, ``FieldKeeper``, since each is about 5 MB).
+
 Timings use ``time.perf_counter``; on a shared machine they are noisy, so each problem's time
 is the median of its repeats (after one untimed warm-up run) and one objective evaluation is the
 fastest of several batches.
@@ -7,6 +12,7 @@ fastest of several batches.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import platform
@@ -134,6 +140,39 @@ def select_calls(
     return chosen
 
 
+MAPPED_MAX_PROBLEMS = 100
+"""Replans a mapped replay keeps when ``max_problems`` is 0 (all): each holds its ESDF."""
+
+
+class FieldKeeper:
+    """A flight recorder (``run_sim(recorder=...)``) for a mapped flight: every call is kept
+    without its field, and the replans ``select_calls`` would choose (from ``skip_s`` on, every
+    peer known) with it, evenly spread, at most ``cap``: every ``stride``-th such replan is kept,
+    and when more than ``cap`` are, every other one is dropped and the stride doubles."""
+
+    def __init__(self, n_drones: int, skip_s: float, cap: int) -> None:
+        if cap < 1:
+            raise ValueError(f"cap must be >= 1, got {cap}")
+        self.n_drones = n_drones
+        self.skip_s = skip_s
+        self.cap = cap
+        self.calls: list[PlanCall] = []
+        self.kept: list[PlanCall] = []
+        self.stride = 1
+        self._eligible = 0
+
+    def __call__(self, call: PlanCall) -> None:
+        self.calls.append(dataclasses.replace(call, mapped_field=None))
+        if call.t_start_s < self.skip_s or len(call.peers) != self.n_drones - 1:
+            return
+        if self._eligible % self.stride == 0:
+            self.kept.append(call)
+            if len(self.kept) > self.cap:
+                self.kept = self.kept[::2]
+                self.stride *= 2
+        self._eligible += 1
+
+
 def _pick(values: Sequence[float], keys: Sequence[str] = ("median", "p90", "max")) -> dict:
     s = summary(values)
     return {k: s[k] for k in keys}
@@ -174,14 +213,31 @@ def bench_planner(
     (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
     count, and one objective evaluation at x0 (``eval_us``). Breakdown per problem:
     cost = evaluations x eval_us, solver and set-up overhead = replan - cost (medians reported).
+
+    ``cfg.perception`` 'mapped': the replans are replayed on the ESDF each drone planned on
+    (at most ``max_problems``, or ``MAPPED_MAX_PROBLEMS`` when it is 0), only replans from
+    ``skip_s`` on with every peer known (RuntimeError when there is none).
     """
     from onboard.planner.planner import FormationPlanner
 
     if repeats < 1:
         raise ValueError("repeats must be >= 1")
+    mapped = cfg.perception == "mapped"
     calls: list[PlanCall] = []
-    flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
-    chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
+    if mapped:
+        keeper = FieldKeeper(
+            cfg.formation.n, skip_s, max_problems if max_problems > 0 else MAPPED_MAX_PROBLEMS
+        )
+        flight = run_sim(cfg, recorder=keeper, progress=sim_progress)
+        calls = keeper.calls
+        chosen = select_calls(keeper.kept, cfg.formation.n, skip_s, max_problems)
+        if not chosen:
+            raise RuntimeError(
+                f"no replan after --skip-s {skip_s} s with every peer known to replay on its map"
+            )
+    else:
+        flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
+        chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
     params = cfg.params
     planners = [FormationPlanner(params, cfg.formation.points, i) for i in range(cfg.formation.n)]
 
@@ -250,6 +306,8 @@ def bench_planner(
             "world": cfg.world.name,
             "seed": cfg.seed,
             "v_max_m_s": params.v_max_m_s,
+            "perception": cfg.perception,
+            "field": "esdf" if mapped else "exact",
             "flight_success": flight.success,
             "flight_replans": len(calls),
             "skip_s": skip_s,
@@ -289,7 +347,10 @@ def bench_planner(
         "startup_s": None,
     }
     if startup and chosen:
-        st = measure_startup(params, cfg.formation.points, chosen[0])
+        # (on the exact field of the first problem's obstacles: the probe times the import and
+        # the first plan, whatever the field)
+        probe = dataclasses.replace(chosen[0], mapped_field=None)
+        st = measure_startup(params, cfg.formation.points, probe)
         report["startup_s"] = st["startup_s"]
         report["startup"] = st
     return report

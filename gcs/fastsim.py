@@ -217,6 +217,10 @@ class PlanCall:
     peers: tuple[PeerTrajectory, ...]
     world: World
     previous: Trajectory | None
+    mapped_field: DistanceField | None = None
+    """The field the drone planned on when it was its own map (perception 'mapped': the
+    ESDF, an immutable object of about 5 MB, so a recorder that keeps every call of a mapped
+    flight keeps them all); None: the exact field of ``world``."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -566,6 +570,7 @@ def run_sim(
                 inputs.peers,
                 sensed[i].seen,
                 inputs.previous,
+                inputs.field if eyes is not None else None,
             )
         )
 
@@ -808,7 +813,8 @@ def _mapped_perception(
 
 
 def replay_inputs(call: PlanCall) -> tuple[Any, ...]:
-    """The positional arguments of ``FormationPlanner.plan`` / ``prepare`` for a recorded call."""
+    """The positional arguments of ``FormationPlanner.plan`` / ``prepare`` for a recorded call
+    (on the field the drone planned on: its map's ESDF when it had one, else the exact one)."""
     return (
         call.t_start_s,
         call.start_p,
@@ -816,6 +822,6 @@ def replay_inputs(call: PlanCall) -> tuple[Any, ...]:
         call.start_a,
         call.goal,
         list(call.peers),
-        AnalyticField(call.world),
+        call.mapped_field if call.mapped_field is not None else AnalyticField(call.world),
         call.previous,
     )

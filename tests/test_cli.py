@@ -120,6 +120,23 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     assert {"platform", "cpu", "python", "numpy", "numba"} <= set(data["machine"])
 
 
+def test_bench_planner_replays_on_the_drones_maps(tmp_path: Path) -> None:
+    """--perception mapped: a short mapped flight, its replans replayed on each drone's ESDF."""
+    js = tmp_path / "bench.json"
+    args = [
+        "bench", "planner", *SMALL, "--perception", "mapped", "--camera-rate", "10",
+        "--time-limit", "3", "--skip-s", "1.5", "--max-problems", "2", "--repeats", "1",
+        "--eval-calls", "10", "--no-startup", "--json", str(js),
+    ]  # fmt: skip
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 0, out.output
+    assert "on the ESDF" in out.output
+    data = json.loads(js.read_text())
+    assert data["scenario"]["perception"] == "mapped" and data["scenario"]["field"] == "esdf"
+    assert data["problems"] == 2 and data["replan_ms"]["median"] > 0
+    assert sum(data["plan_status_counts"].values()) == 2
+
+
 def test_bench_flights_over_seeds(tmp_path: Path) -> None:
     js = tmp_path / "flights.json"
     args = ["bench", "flights", "--formation", "triangle-3", "--world", "forest-small"]
