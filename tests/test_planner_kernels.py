@@ -6,7 +6,7 @@ check on them in numba. Seeded flights stay bit-identical only if every rounding
 so the twins are compared with numpy bit for bit, and the kernels with the numpy version of the
 same code (kept below as the oracle) on random problems: initial guesses (warm start, straight
 line, A* fallback, a blocked horizon point) and checks (altitude, obstacles, peers, a start
-inside the band).
+inside the band, unobserved space).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from onboard.planner.astar import astar_path, segment_is_free
 from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.minco import Minco
 from onboard.planner.npexact import norm3, np_arange, np_interp, np_linspace, np_sum
-from onboard.planner.objective import field_args
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
 from onboard.planner.timemap import tau_from_T
@@ -233,6 +232,20 @@ def _oracle_check(
             k = int(np.argmin(dd))
             reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
             return False, reason, clearance, ahead
+    if p.check_known_s > 0.0:
+        n = int(np.searchsorted(ts, t_from + p.check_known_s, side="right"))
+        known = field.is_known(pos[:n])
+        if not np.all(known):
+            first_known = int(np.argmax(known)) if np.any(known) else n
+            entered = np.nonzero(~known[first_known:])[0]
+            if entered.size:
+                k = first_known + int(entered[0])
+                return (
+                    False,
+                    f"enters unobserved space at t={ts[k] - t_from:.2f} s",
+                    (clearance),
+                    ahead,
+                )
     return True, "", clearance, ahead
 
 
@@ -263,16 +276,30 @@ def _random_trajectory(rng: np.random.Generator, t0: float, start: np.ndarray) -
     return Trajectory(t0, m.coeffs, m.T)
 
 
+class _SlabKnown(AnalyticField):
+    """An exact field whose own ``is_known`` (observed only below x = 4 m) the kernel cannot
+    compile: the check asks it in Python."""
+
+    def is_known(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points)[:, 0] < 4.0
+
+
 @cache
-def _world_fields(seed: int) -> tuple[DistanceField, DistanceField]:
-    """A random forest's exact field and a 0.2 m grid sampled from it."""
+def _world_fields(seed: int) -> tuple[DistanceField, ...]:
+    """A random forest's exact field, 0.2 m grids sampled from it (without a mask of observed
+    cells, with a random one), and an exact field with its own ``is_known``."""
     rng = np.random.default_rng(100 + seed)
-    exact = AnalyticField(_forest(rng, int(rng.integers(0, 40))))
+    world = _forest(rng, int(rng.integers(0, 40)))
+    exact = AnalyticField(world)
     grid = GridField.from_function(exact.distance, (-3.0, -6.0, -0.5), (16.0, 6.0, 4.0), 0.2)
-    return exact, grid
+    # observed: a band of x around the start, with holes
+    centres = grid.cell_centres()
+    known = (centres[..., 0] < rng.uniform(1.0, 5.0)) & (rng.uniform(size=grid.shape) > 0.02)
+    masked = GridField(grid.values, grid.origin, grid.res, known)
+    return exact, grid, masked, _SlabKnown(world)
 
 
-def _fields(rng: np.random.Generator) -> tuple[DistanceField, DistanceField]:
+def _fields(rng: np.random.Generator) -> tuple[DistanceField, ...]:
     return _world_fields(int(rng.integers(0, 6)))
 
 
@@ -315,13 +342,14 @@ def test_initial_guess_is_the_numpy_one() -> None:
 
 def test_safety_check_is_the_numpy_one() -> None:
     rng = np.random.default_rng(8)
-    params = PlannerParams(check_obstacle_m=0.3)
-    planner = FormationPlanner(params, HEX, slot=0)
     seen: dict[str, int] = {}
-    for _ in range(150):
+    for trial in range(120):
+        params = PlannerParams(check_obstacle_m=0.3, check_known_s=(0.0, 1.0, 3.0)[trial % 3])
+        planner = FormationPlanner(params, HEX, slot=0)
         for field in _fields(rng):
             t0 = float(rng.uniform(0, 50))
-            start = np.array([rng.uniform(-1, 3), rng.uniform(-3, 3), rng.uniform(0.0, 3.4)])
+            z = rng.uniform(0.0, 3.4) if trial % 4 == 0 else rng.uniform(0.6, 2.6)
+            start = np.array([rng.uniform(-1, 3), rng.uniform(-3, 3), z])
             traj = _random_trajectory(rng, t0, start)
             peers = []
             for k in range(int(rng.integers(0, 7))):
@@ -334,15 +362,18 @@ def test_safety_check_is_the_numpy_one() -> None:
                 peers.append(PeerTrajectory(10 + k, k + 1, other))
             t_from = t0 + float(rng.choice([0.0, rng.uniform(-0.5, traj.duration_s + 1.0)]))
             want = _oracle_check(params, traj, t_from, field, peers)
-            fld = field_args(field.kernel_data())
-            got = planner._check(traj, t_from, field, fld, peers, _pack_peers(peers))
+            view = planner._field_view(field)
+            got = planner._check(traj, t_from, field, view, peers, _pack_peers(peers))
             assert got[:2] == want[:2]
             np.testing.assert_array_equal(np.array(got[2:]), np.array(want[2:]))
             assert planner.check(traj, t_from, field, peers) == want[:2]
             key = want[1].split(" ")[0] if want[1] else "ok"
             key += " inside" if "started inside" in want[1] else ""
+            if key == "enters":  # which way the unknown space was tested
+                key += " mask" if getattr(field, "known", None) is not None else " python"
             seen[key] = seen.get(key, 0) + 1
-    for key in ("ok", "altitude", "obstacle", "obstacle inside", "drone"):
+    outcomes = ("ok", "altitude", "obstacle", "obstacle inside", "drone")
+    for key in (*outcomes, "enters mask", "enters python"):
         assert seen.get(key, 0) >= 3, seen  # every outcome was compared
 
 

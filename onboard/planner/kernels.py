@@ -10,8 +10,8 @@ save the interpreter's time (about 40 numpy calls of the set-up and 30 of the ch
   straight line if it is clear) resampled into MINCO pieces, as the solver's start vector x0;
 - ``path_guess``: x0 from a given path (the A* fallback's);
 - ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
-- ``check_trajectory``: the safety check of ``FormationPlanner.check`` up to the unknown-space
-  test, answering with a code and the numbers of its reason;
+- ``check_trajectory``: the safety check of ``FormationPlanner.check`` (its unknown-space test
+  for grid fields), answering with a code and the numbers of its reason;
 - ``finish_attempt``: trajectory and check of a solution in one call.
 
 ``fld`` is the objective's field tuple (``objective.field_args``); peers are packed as
@@ -44,6 +44,14 @@ CHECK_NON_FINITE = 1
 CHECK_ALTITUDE = 2
 CHECK_OBSTACLE = 3
 CHECK_DRONE = 4
+CHECK_UNKNOWN = 5
+# what the unknown-space test (2) of the check looks at
+KNOWN_SKIP = 0
+"""No test: ``check_known_s`` is 0 or the field is known everywhere."""
+KNOWN_BOX = 1
+"""A grid field without a mask: known inside its box (``GridField.is_known``)."""
+KNOWN_MASK = 2
+"""A grid field with a mask of observed cells (``GridField.is_known``)."""
 # how a band check failed (``_band``)
 BAND_OK = 0
 BAND_INSIDE = 1
@@ -322,6 +330,29 @@ def _argmin(d: np.ndarray) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _is_known(fld: tuple, mode: int, known: np.ndarray, x: float, y: float, z: float) -> bool:
+    """``GridField.is_known`` at one point: inside the grid box of ``fld`` and, with a mask
+    (KNOWN_MASK), in an observed cell."""
+    grid = fld[1]
+    origin = fld[2]
+    res = fld[3]
+    nx = grid.shape[0]
+    ny = grid.shape[1]
+    nz = grid.shape[2]
+    fx = (x - origin[0]) / res
+    fy = (y - origin[1]) / res
+    fz = (z - origin[2]) / res
+    if not (fx >= 0.0 and fx <= nx and fy >= 0.0 and fy <= ny and fz >= 0.0 and fz <= nz):
+        return False
+    if mode != KNOWN_MASK:
+        return True
+    i = min(max(int(math.floor(fx)), 0), nx - 1)
+    j = min(max(int(math.floor(fy)), 0), ny - 1)
+    k = min(max(int(math.floor(fz)), 0), nz - 1)
+    return bool(known[i, j, k])
+
+
+@njit(cache=True, nogil=True)
 def check_trajectory(
     coeffs: np.ndarray,
     T: np.ndarray,
@@ -338,14 +369,20 @@ def check_trajectory(
     peer_t0: np.ndarray,
     check_drone: float,
     lookahead: float,
+    known_mode: int,
+    known_s: float,
+    known: np.ndarray,
 ) -> tuple[int, int, int, int, float, float, float, float, float, int]:
-    """The safety check of ``FormationPlanner.check`` before its unknown-space test, on the
-    samples ``ts`` = every ``step`` from t_from to the end (the end included) of the trajectory
-    (coeffs (M, 6, 3), T (M,), starting at global time t0).
+    """The safety check of ``FormationPlanner.check`` on the samples ``ts`` = every ``step``
+    from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
+    starting at global time t0); the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
+    the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
+    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX).
 
     Returns (code, band code, sample k, peer index, value at k, value at the start, t_k -
     t_from, clearance, ahead, samples): the value is the altitude (CHECK_ALTITUDE), the obstacle
-    distance (CHECK_OBSTACLE) or the peer distance (CHECK_DRONE) at the worst sample k;
+    distance (CHECK_OBSTACLE) or the peer distance (CHECK_DRONE) at the worst sample k, and k
+    the first sample in unobserved space after one in observed space (CHECK_UNKNOWN);
     clearance is the closest approach to an obstacle over all samples and ahead from
     ``lookahead`` after t_from on (inf without such samples; both NaN when the check stopped
     before the obstacle distances); ``samples`` is how many of ``ts`` there are.
@@ -413,6 +450,23 @@ def check_trajectory(
         if band != BAND_OK:
             k = _argmin(dd)
             return CHECK_DRONE, band, k, ph, dd[k], dd[0], ts[k] - t_from, clearance, ahead, n
+    # (2) unknown space in the samples up to t_from + known_s
+    if known_mode != KNOWN_SKIP:
+        key = t_from + known_s
+        lo = 0
+        hi = n
+        while lo < hi:  # np.searchsorted(ts, key, side="right")
+            mid = lo + ((hi - lo) >> 1)
+            if key < ts[mid]:
+                hi = mid
+            else:
+                lo = mid + 1
+        seen = False  # a known sample came before
+        for i in range(lo):
+            if _is_known(fld, known_mode, known, pos[i, 0], pos[i, 1], pos[i, 2]):
+                seen = True
+            elif seen:
+                return CHECK_UNKNOWN, BAND_OK, i, -1, nan, nan, ts[i] - t_from, clearance, ahead, n
     return CHECK_OK, BAND_OK, 0, -1, nan, nan, nan, clearance, ahead, n
 
 
@@ -434,6 +488,9 @@ def finish_attempt(
     peer_t0: np.ndarray,
     check_drone: float,
     lookahead: float,
+    known_mode: int,
+    known_s: float,
+    known: np.ndarray,
 ) -> tuple[
     bool,
     np.ndarray,
@@ -467,5 +524,8 @@ def finish_attempt(
         peer_t0,
         check_drone,
         lookahead,
+        known_mode,
+        known_s,
+        known,
     )
     return True, coeffs, T, res

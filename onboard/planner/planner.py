@@ -27,7 +27,7 @@ import numpy as np
 from onboard.planner import kernels as kn
 from onboard.planner import objective as obj
 from onboard.planner.astar import astar_path
-from onboard.planner.field import DistanceField
+from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
 from onboard.planner.minco import BAND_COLS, Minco
@@ -44,8 +44,9 @@ fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes.""
 
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
-for _a in (_NO_COEFFS, _NO_DURATIONS):
-    _a.setflags(write=False)  # read-only like a Trajectory's arrays (one compiled signature)
+_NO_KNOWN = np.ones((1, 1, 1), dtype=bool)
+for _a in (_NO_COEFFS, _NO_DURATIONS, _NO_KNOWN):
+    _a.setflags(write=False)  # read-only like a Trajectory's arrays and a field's mask
 
 
 class PlanStatus(str, enum.Enum):
@@ -176,6 +177,18 @@ class _PeerPack:
     T: np.ndarray
     n: np.ndarray
     t0: np.ndarray
+
+
+@dataclass(frozen=True)
+class _FieldView:
+    """A distance field as the compiled code reads it: the objective's tuple ``fld`` and how
+    the check's unknown-space test runs (``kernels.KNOWN_*`` with the grid's mask, or in
+    Python through ``field.is_known`` for other field types: ``python_known``)."""
+
+    fld: tuple
+    known_mode: int
+    known: np.ndarray
+    python_known: bool
 
 
 def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
@@ -510,16 +523,29 @@ class FormationPlanner:
         ``t_from_s`` to the end; obstacle distances are those of ``field.kernel_data()`` (the
         field the optimiser sees).
         """
-        fld = obj.field_args(field.kernel_data())
-        ok, why, _, _ = self._check(traj, t_from_s, field, fld, peers, _pack_peers(peers))
+        view = self._field_view(field)
+        ok, why, _, _ = self._check(traj, t_from_s, field, view, peers, _pack_peers(peers))
         return ok, why
+
+    def _field_view(self, field: DistanceField) -> _FieldView:
+        fld = obj.field_args(field.kernel_data())
+        if self.params.check_known_s <= 0.0:
+            return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, False)
+        is_known = getattr(type(field), "is_known", None)
+        if isinstance(field, AnalyticField) and is_known is AnalyticField.is_known:
+            return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, False)  # known everywhere
+        if isinstance(field, GridField) and is_known is GridField.is_known:
+            if field.known is None:
+                return _FieldView(fld, kn.KNOWN_BOX, _NO_KNOWN, False)
+            return _FieldView(fld, kn.KNOWN_MASK, field.known, False)
+        return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, True)
 
     def _check(
         self,
         traj: Trajectory,
         t_from_s: float,
         field: DistanceField,
-        fld: tuple,
+        view: _FieldView,
         peers: Sequence[PeerTrajectory],
         pack: _PeerPack,
     ) -> tuple[bool, str, float, float]:
@@ -534,7 +560,7 @@ class FormationPlanner:
             p.check_step_s,
             p.z_limits_m[0],
             p.z_limits_m[1],
-            fld,
+            view.fld,
             p.check_obstacle_m,
             pack.c,
             pack.T,
@@ -542,8 +568,11 @@ class FormationPlanner:
             pack.t0,
             p.check_drone_m,
             COMFORT_LOOKAHEAD_S,
+            view.known_mode,
+            p.check_known_s,
+            view.known,
         )
-        return self._verdict(res, traj, t_from_s, field, peers)
+        return self._verdict(res, traj, t_from_s, field, view, peers)
 
     def _verdict(
         self,
@@ -551,14 +580,17 @@ class FormationPlanner:
         traj: Trajectory,
         t_from_s: float,
         field: DistanceField,
+        view: _FieldView,
         peers: Sequence[PeerTrajectory],
     ) -> tuple[bool, str, float, float]:
-        """(ok, reason, clearance, ahead) from ``kernels.check_trajectory``'s answer, with the
-        unknown-space test (2) on top."""
+        """(ok, reason, clearance, ahead) from ``kernels.check_trajectory``'s answer (the
+        unknown-space test (2) in Python when the kernel could not run it)."""
         code, band, k, ph, value, start, t_k, clearance, ahead, n = res
         if code == kn.CHECK_OK:
-            why = self._unknown_space(traj, t_from_s, field)
+            why = self._unknown_space(traj, t_from_s, field) if view.python_known else ""
             return not why, why, clearance, ahead
+        if code == kn.CHECK_UNKNOWN:
+            return False, f"enters unobserved space at t={t_k:.2f} s", clearance, ahead
         if code == kn.CHECK_NON_FINITE:
             return False, "non-finite trajectory", clearance, ahead
         if code == kn.CHECK_ALTITUDE:
@@ -582,8 +614,9 @@ class FormationPlanner:
         return False, reason, clearance, ahead
 
     def _unknown_space(self, traj: Trajectory, t_from_s: float, field: DistanceField) -> str:
-        """Test (2) of ``check``: the reason when ``traj`` enters unobserved space during its
-        first ``check_known_s`` from t_from_s, else ""."""
+        """Test (2) of ``check`` through ``field.is_known`` (fields the kernel does not know):
+        the reason when ``traj`` enters unobserved space during its first ``check_known_s``
+        from t_from_s, else ""."""
         p = self.params
         if p.check_known_s <= 0.0:
             return ""
@@ -604,6 +637,7 @@ class FormationPlanner:
         problem: Problem,
         x: np.ndarray,
         field: DistanceField,
+        view: _FieldView,
         peers: Sequence[PeerTrajectory],
         pack: _PeerPack,
     ) -> tuple[Trajectory | None, bool, str, float, float]:
@@ -619,7 +653,7 @@ class FormationPlanner:
             p.check_step_s,
             p.z_limits_m[0],
             p.z_limits_m[1],
-            problem.fld,
+            view.fld,
             p.check_obstacle_m,
             pack.c,
             pack.T,
@@ -627,11 +661,16 @@ class FormationPlanner:
             pack.t0,
             p.check_drone_m,
             COMFORT_LOOKAHEAD_S,
+            view.known_mode,
+            p.check_known_s,
+            view.known,
         )
         if not finite:
             return None, False, "non-finite solution", math.nan, math.nan
         traj = Trajectory.trusted(problem.t_start_s, coeffs, T)
-        safe, why, clearance, ahead = self._verdict(res, traj, problem.t_start_s, field, peers)
+        safe, why, clearance, ahead = self._verdict(
+            res, traj, problem.t_start_s, field, view, peers
+        )
         return traj, safe, why, clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
@@ -666,7 +705,7 @@ class FormationPlanner:
             return PlanResult(PlanStatus.OK, hover, message="at goal")
         self._check_time_and_peers(t_start_s, peers)
         pack = _pack_peers(peers)
-        fld = obj.field_args(field.kernel_data())
+        view = self._field_view(field)
         iters = evals = 0
 
         def solve(
@@ -683,7 +722,7 @@ class FormationPlanner:
                 peers,
                 pack,
                 field,
-                fld,
+                view.fld,
                 previous,
                 use_formation,
                 force_astar,
@@ -707,14 +746,14 @@ class FormationPlanner:
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
                 break
-            traj, safe, why, clearance, ahead = self._finish(problem, x, field, peers, pack)
+            traj, safe, why, clearance, ahead = self._finish(problem, x, field, view, peers, pack)
             if traj is None:
                 messages.append(why)
                 continue
             if not safe:
                 x2, st2 = problem.solve(x, self._lb_prm_refine)
                 if st2 != LbfgsStatus.CANCELED:
-                    refined = self._finish(problem, x2, field, peers, pack)
+                    refined = self._finish(problem, x2, field, view, peers, pack)
                     if refined[0] is not None:
                         x, last_status = x2, st2
                         traj, safe, why, clearance, ahead = refined
@@ -730,7 +769,7 @@ class FormationPlanner:
                     )
                     if st_alt != LbfgsStatus.CANCELED:
                         traj_alt, ok_alt, _, clr_alt, _ = self._finish(
-                            alt, x_alt, field, peers, pack
+                            alt, x_alt, field, view, peers, pack
                         )
                         if traj_alt is not None and ok_alt and clr_alt > clearance:
                             problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
@@ -749,7 +788,7 @@ class FormationPlanner:
             what = "a* retry" if force_astar else "formation"
             messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
         if previous is not None:
-            safe, why, _, _ = self._check(previous, t_start_s, field, fld, peers, pack)
+            safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
             if safe:
                 return PlanResult(
                     PlanStatus.KEPT_PREVIOUS,
