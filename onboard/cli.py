@@ -95,6 +95,7 @@ def run(
     SIGTERM or SIGINT."""
     import logging
     import os
+    import queue
     import signal
     import threading
 
@@ -149,13 +150,25 @@ def run(
         event(log, "stop_timeout", logging.ERROR, after_s=stop_deadline_s)
         os._exit(1)
 
-    def on_signal(signum: int, _frame: object) -> None:
-        if svc.stop_requested():
-            os._exit(1)  # a second signal: stop now
+    # The handler only hands the signal to a thread started beforehand: it runs in the main
+    # thread between two bytecodes, possibly while that thread holds the lock of the very
+    # Event the stop sets (inside Event.wait), and taking it there would deadlock (seen: a
+    # service silent for 20 s after SIGTERM). SimpleQueue.put is safe in a signal handler.
+    signals: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+    def stopper() -> None:
+        signals.get()
         svc.request_stop()
-        t = threading.Timer(stop_deadline_s, give_up)
-        t.daemon = True
-        t.start()
+        try:
+            signals.get(timeout=stop_deadline_s)
+        except queue.Empty:
+            give_up()
+        os._exit(1)  # a second signal: stop now
+
+    threading.Thread(target=stopper, name="svc-stopper", daemon=True).start()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        signals.put(signum)
 
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     rc = 1
