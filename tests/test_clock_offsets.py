@@ -57,3 +57,20 @@ def test_warning_once_per_excursion(caplog: pytest.LogCaptureFixture) -> None:
 def test_bad_settings() -> None:
     with pytest.raises(ValueError, match="bound_s"):
         ClockOffsets(bound_s=0.0)
+
+
+def test_a_rare_sender_over_a_slow_bus_is_not_taken_for_a_lagging_clock() -> None:
+    """One or two messages late by bus delay (a ground station's commands) give a positive
+    estimate that may be all latency: not flagged until the window holds min_samples messages
+    or the excess is more than any latency explains; a peer ahead of us needs no evidence."""
+    clocks = ClockOffsets(bound_s=0.05, window_s=10.0, min_samples=3, latency_allowance_s=0.5)
+    clocks.add(9, 100.0, 100.0 - 0.146)  # in sync, 146 ms of bus delay
+    clocks.add(9, 104.0, 104.0 - 0.120)
+    assert clocks.offset(9) == pytest.approx(0.120) and clocks.exceeded() == set()
+    clocks.add(9, 105.0, 105.0 - 0.130)  # a third late one: a lag is now believed
+    assert clocks.exceeded() == {9}
+    clocks.add(5, 100.0, 100.0 - 0.9)  # one message, 0.9 s: no latency explains it
+    clocks.add(6, 100.0, 100.0 + 0.2)  # one message stamped 0.2 s in our future
+    assert clocks.exceeded() == {9, 5, 6}
+    with pytest.raises(ValueError, match="min_samples"):
+        ClockOffsets(min_samples=0)

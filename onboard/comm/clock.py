@@ -7,6 +7,13 @@ window)``: an upper bound of the offset that is tight on a LAN (latency of a few
 stamps cannot separate offset from latency, so the estimate includes the smallest latency: a
 peer whose clock runs ahead of ours gives a negative estimate, one that lags a positive one.
 
+A positive estimate above the bound is therefore only believed with enough evidence: at least
+``min_samples`` messages in the window (the minimum of a few is rarely all latency), or an
+excess no latency explains (above ``bound + latency_allowance_s``). A sender that speaks rarely
+(a ground station's commands) and a slow or lossy bus would otherwise pass for a clock that
+lags: 0-150 ms of bus delay once made a drone refuse a goal over a "+0.146 s offset". A
+negative estimate below -bound needs no such evidence: latency only raises the estimate.
+
 Not thread-safe: the owner (``MessageGate``) serialises calls.
 """
 
@@ -36,15 +43,28 @@ class ClockOffsets:
     """Sliding-window minimum of ``receive - stamp`` per peer, with a warning bound.
 
     bound_s: |offset| above it sets the peer's ``exceeded`` flag, counts a warning and logs it
-    (once per excursion; a log line again when the peer comes back within the bound);
-    window_s: how far back (in receive time) samples count.
+    (once per excursion; a log line again when the peer comes back within the bound), a
+    positive offset only with ``min_samples`` in the window or above ``bound_s +
+    latency_allowance_s`` (see the module docstring); window_s: how far back (in receive time)
+    samples count.
     """
 
-    def __init__(self, bound_s: float = 0.05, window_s: float = 10.0, name: str = "") -> None:
+    def __init__(
+        self,
+        bound_s: float = 0.05,
+        window_s: float = 10.0,
+        name: str = "",
+        min_samples: int = 3,
+        latency_allowance_s: float = 0.5,
+    ) -> None:
         if not bound_s > 0.0 or not window_s > 0.0:
             raise ValueError("clock offset bound_s and window_s must be > 0")
+        if min_samples < 1 or not latency_allowance_s >= 0.0:
+            raise ValueError("clock offset min_samples must be >= 1, latency_allowance_s >= 0")
         self.bound_s = float(bound_s)
         self.window_s = float(window_s)
+        self.min_samples = int(min_samples)
+        self.latency_allowance_s = float(latency_allowance_s)
         self.name = name
         self.warnings = 0
         # per peer: deque of (receive_s, receive - stamp), values increasing front to back
@@ -67,7 +87,14 @@ class ClockOffsets:
         while c and c[0] < cut:
             c.popleft()
         offset = q[0][1]
-        exceeded = abs(offset) > self.bound_s
+        if offset < -self.bound_s:
+            exceeded = True
+        elif offset > self.bound_s:
+            exceeded = (
+                len(c) >= self.min_samples or offset > self.bound_s + self.latency_allowance_s
+            )
+        else:
+            exceeded = False
         was = self._exceeded.get(peer, False)
         if exceeded and not was:
             self.warnings += 1
