@@ -9,6 +9,7 @@ save the interpreter's time (about 40 numpy calls of the set-up and 30 of the ch
 - ``initial_guess``: the local target and the initial path (the previous trajectory, else the
   straight line if it is clear) resampled into MINCO pieces, as the solver's start vector x0;
 - ``path_guess``: x0 from a given path (the A* fallback's);
+- ``pad_peers``: the peers' trajectories padded to one piece count;
 - ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
 - ``check_trajectory``: the safety check of ``FormationPlanner.check`` (its unknown-space test
   for grid fields), answering with a code and the numbers of its reason;
@@ -273,6 +274,27 @@ def initial_guess(
         )
         return GUESS_OK, target, x0
     return GUESS_NEEDS_ASTAR, target, np.empty(0)
+
+
+@njit(cache=True, nogil=True)
+def pad_peers(
+    flat_c: np.ndarray, flat_T: np.ndarray, n: np.ndarray, ends: np.ndarray, K: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The peers' pieces, concatenated (flat_c (sum n, 6, 3), flat_T (sum n,), n (P,) pieces
+    each), padded to K pieces: (c (P, K, 6, 3), T (P, K)); a padding piece is a hover at the
+    peer's end point ``ends[k]`` lasting 1 s."""
+    P = n.shape[0]
+    c = np.zeros((P, K, 6, 3))
+    T = np.ones((P, K))
+    r = 0
+    for k in range(P):
+        for i in range(n[k]):
+            c[k, i] = flat_c[r + i]
+            T[k, i] = flat_T[r + i]
+        for i in range(n[k], K):
+            c[k, i, 0] = ends[k]
+        r += n[k]
+    return c, T
 
 
 @njit(cache=True, nogil=True)

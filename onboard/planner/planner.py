@@ -19,6 +19,7 @@ import dataclasses
 import enum
 import functools
 import math
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -45,7 +46,10 @@ fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes.""
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
 _NO_KNOWN = np.ones((1, 1, 1), dtype=bool)
-for _a in (_NO_COEFFS, _NO_DURATIONS, _NO_KNOWN):
+_NO_PIECES = np.zeros(0, dtype=np.int64)
+_NO_TIMES = np.zeros(0)
+_ZERO3 = np.zeros(3)
+for _a in (_NO_COEFFS, _NO_DURATIONS, _NO_KNOWN, _NO_PIECES, _NO_TIMES, _ZERO3):
     _a.setflags(write=False)  # read-only like a Trajectory's arrays and a field's mask
 
 
@@ -192,25 +196,42 @@ class _FieldView:
 
 
 def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
+    if not peers:
+        return _PeerPack(np.zeros((0, 1, 6, 3)), np.ones((0, 1)), _NO_PIECES, _NO_TIMES)
     trs = [pt.trajectory for pt in peers]
-    P = len(trs)
     ns = [tr.durations_s.shape[0] for tr in trs]
-    K = max(ns, default=1)
+    P = len(trs)
+    K = max(ns)
     t0 = np.array([tr.t0_s for tr in trs], dtype=np.float64)
-    if P and min(ns) == K:
-        pc = np.concatenate([tr.coeffs for tr in trs]).reshape(P, K, 6, 3)
-        pT = np.concatenate([tr.durations_s for tr in trs]).reshape(P, K)
-    else:
-        pc = np.zeros((P, K, 6, 3))
-        pT = np.ones((P, K))
-        for k, tr in enumerate(trs):
-            n = ns[k]
-            pc[k, :n] = tr.coeffs
-            pT[k, :n] = tr.durations_s
-            if n < K:
-                # unused pieces continue as a hover at the end point (zero velocity)
-                pc[k, n:, 0] = tr.end_position
-    return _PeerPack(pc, pT, np.array(ns, dtype=np.int64), t0)
+    n = np.array(ns, dtype=np.int64)
+    flat_c = np.concatenate([tr.coeffs for tr in trs])
+    flat_T = np.concatenate([tr.durations_s for tr in trs])
+    if min(ns) == K:
+        return _PeerPack(flat_c.reshape(P, K, 6, 3), flat_T.reshape(P, K), n, t0)
+    # unused pieces continue as a hover at the end point (zero velocity)
+    ends = np.array([tr.end_position if k < K else _ZERO3 for tr, k in zip(trs, ns, strict=True)])
+    pc, pT = kn.pad_peers(flat_c, flat_T, n, ends, K)
+    return _PeerPack(pc, pT, n, t0)
+
+
+def _vectors(
+    start_p: np.ndarray, start_v: np.ndarray, start_a: np.ndarray, goal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The four input vectors as float64 3-vectors (rows of one new array), checked finite;
+    ValueError naming the first bad one."""
+    try:
+        a = np.array((start_p, start_v, start_a, goal), dtype=np.float64)
+        ok = a.shape == (4, 3) and all(map(math.isfinite, a.ravel().tolist()))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:  # the per-vector checks say which one
+        return (
+            _vec3("start_p", start_p),
+            _vec3("start_v", start_v),
+            _vec3("start_a", start_a),
+            _vec3("goal", goal),
+        )
+    return a[0], a[1], a[2], a[3]
 
 
 def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
@@ -251,6 +272,7 @@ class FormationPlanner:
             params.lbfgs, delta=min(params.lbfgs.delta, 1e-6), g_epsilon=1e-7
         ).to_array()
         self._desired_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._view: tuple[weakref.ref[DistanceField], _FieldView] | None = None
 
     def _param_vector(self, use_formation: bool) -> np.ndarray:
         """The packed weights and limits the compiled objective reads."""
@@ -295,7 +317,7 @@ class FormationPlanner:
         """``point`` with its z moved into the altitude band ``z_limits_m`` (a goal outside
         the band is approached as close as the band allows)."""
         lo, hi = self.params.z_limits_m
-        point[2] = min(max(point[2], lo), hi)
+        point[2] = min(max(float(point[2]), lo), hi)
         return point
 
     def cancel(self) -> None:
@@ -420,6 +442,14 @@ class FormationPlanner:
         if not math.isfinite(t_start_s):
             raise ValueError("t_start_s must be finite")
         n = self.formation.shape[0]
+        slots = [pt.slot for pt in peers]
+        if not slots or (
+            min(slots) >= 0
+            and max(slots) < n
+            and self.slot not in slots
+            and len(set(slots)) == len(slots)
+        ):
+            return
         seen: set[int] = {self.slot}
         for pt in peers:
             if not 0 <= pt.slot < n:
@@ -427,6 +457,12 @@ class FormationPlanner:
             if pt.slot in seen:
                 raise ValueError(f"peer {pt.drone_id} has slot {pt.slot}, already taken")
             seen.add(pt.slot)
+
+    def _vectors_in_band(
+        self, start_p: np.ndarray, start_v: np.ndarray, start_a: np.ndarray, goal: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        sp, sv, sa, gl = _vectors(start_p, start_v, start_a, goal)
+        return sp, sv, sa, self._into_band(gl)
 
     def prepare(
         self,
@@ -446,10 +482,7 @@ class FormationPlanner:
         self._check_time_and_peers(t_start_s, peers)
         return self._prepare(
             t_start_s,
-            _vec3("start_p", start_p),
-            _vec3("start_v", start_v),
-            _vec3("start_a", start_a),
-            self._into_band(_vec3("goal", goal)),
+            *self._vectors_in_band(start_p, start_v, start_a, goal),
             peers,
             _pack_peers(peers),
             field,
@@ -481,7 +514,7 @@ class FormationPlanner:
         target, x0 = self._initial_x(
             t_start_s, sp, sv, gl, field, fld, previous, force_astar, astar_margin_m
         )
-        head = np.stack([sp, sv, sa])
+        head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
         tail[0] = target
         if use_formation and p.w_formation > 0 and len(peers) > 0:
@@ -528,6 +561,19 @@ class FormationPlanner:
         return ok, why
 
     def _field_view(self, field: DistanceField) -> _FieldView:
+        """The field's view for the compiled code; the last one is kept for a field of the
+        immutable kinds (an exact field, a grid or ESDF), whose maps are new objects when
+        they change."""
+        cached = self._view
+        if cached is not None and cached[0]() is field:
+            return cached[1]
+        view = self._make_field_view(field)
+        kernel_data = getattr(type(field), "kernel_data", None)
+        if kernel_data is AnalyticField.kernel_data or kernel_data is GridField.kernel_data:
+            self._view = (weakref.ref(field), view)
+        return view
+
+    def _make_field_view(self, field: DistanceField) -> _FieldView:
         fld = obj.field_args(field.kernel_data())
         if self.params.check_known_s <= 0.0:
             return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, False)
@@ -696,11 +742,13 @@ class FormationPlanner:
         previous: Trajectory | None = None,
     ) -> PlanResult:
         """One replan; see the module docstring for the sequence of attempts."""
-        sp = _vec3("start_p", start_p)
-        sv = _vec3("start_v", start_v)
-        sa = _vec3("start_a", start_a)
-        gl = self._into_band(_vec3("goal", goal))
-        if np.linalg.norm(gl - sp) < 0.02 and np.linalg.norm(sv) < 0.05:
+        sp, sv, sa, gl = self._vectors_in_band(start_p, start_v, start_a, goal)
+        gx, gy, gz = (gl - sp).tolist()
+        vx, vy, vz = sv.tolist()
+        # np.linalg.norm's arithmetic on Python floats
+        if math.sqrt((gx * gx + gy * gy) + gz * gz) < 0.02 and (
+            math.sqrt((vx * vx + vy * vy) + vz * vz) < 0.05
+        ):
             hover = Trajectory.hover(gl, t_start_s, duration_s=1.0)
             return PlanResult(PlanStatus.OK, hover, message="at goal")
         self._check_time_and_peers(t_start_s, peers)
