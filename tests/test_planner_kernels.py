@@ -420,3 +420,44 @@ def test_planned_trajectories_are_read_only_and_valid() -> None:
     np.testing.assert_array_equal(again.coeffs, tr.coeffs)
     with pytest.raises(ValueError):
         tr.coeffs[0, 0, 0] = 1.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"start_p": np.array([np.nan, 0, 1])}, "start_p must be a finite 3-vector"),
+        ({"start_v": [0.0, 0.0, 0.0, 0.0]}, "start_v must be a finite 3-vector"),
+        ({"start_a": np.array([0.0, np.inf, 0.0])}, "start_a must be a finite 3-vector"),
+        ({"goal": np.array([1.0, 2.0])}, "goal must be a finite 3-vector"),
+        ({"goal": "far"}, "goal must be a finite 3-vector"),
+        ({"t_start_s": float("nan")}, "t_start_s must be finite"),
+        ({"peers": [PeerTrajectory(5, 7, Trajectory.hover(ZERO, 0.0))]}, "slot 7 outside"),
+        ({"peers": [PeerTrajectory(5, -1, Trajectory.hover(ZERO, 0.0))]}, "slot -1 outside"),
+        ({"peers": [PeerTrajectory(5, 0, Trajectory.hover(ZERO, 0.0))]}, "peer 5 has slot 0, alr"),
+        (
+            {
+                "peers": [
+                    PeerTrajectory(5, 2, Trajectory.hover(ZERO, 0.0)),
+                    PeerTrajectory(6, 2, Trajectory.hover(ZERO, 0.0)),
+                ]
+            },
+            "peer 6 has slot 2, already taken",
+        ),
+    ],
+)
+def test_bad_inputs_are_named(kwargs: dict[str, Any], match: str) -> None:
+    planner = FormationPlanner(PlannerParams(), HEX, slot=0)
+    args: dict[str, Any] = {
+        "t_start_s": 0.0,
+        "start_p": np.array([0.0, 0, 1]),
+        "start_v": ZERO,
+        "start_a": ZERO,
+        "goal": np.array([5.0, 0, 1]),
+        "peers": [],
+        "field": AnalyticField(World.empty(0.0)),
+    }
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        planner.plan(**args)
+    with pytest.raises(ValueError, match=match):
+        planner.prepare(**args)

@@ -235,7 +235,10 @@ def _vectors(
 
 
 def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
-    a = np.array(v, dtype=np.float64)
+    try:
+        a = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
     if a.shape != (3,) or not all(map(math.isfinite, a.tolist())):
         raise ValueError(f"{name} must be a finite 3-vector, got {v!r}")
     return a
