@@ -6,6 +6,9 @@ yaw along the path), feeds every frame to a ``LocalMapper`` and measures:
 
 - ``render_ms``: one 640 x 480 simulated frame (all pixels), noise and holes included;
 - ``ingest_ms``: validating and ray casting one frame into the occupancy window (skip 2);
+  ``ingest_cpu_ms`` the same call's CPU time in its thread (``time.thread_time``: on a shared
+  machine it leaves out the time other processes held the core, so before/after comparisons
+  of the mapper agree run to run better than the wall time);
 - ``esdf_ms``: one ESDF refresh of the whole window (every ``--esdf-every`` frames);
 - ``esdf_error_m``: ESDF value minus exact distance at the cell centres of observed space (see
   ``onboard.mapping.evaluate``), at snapshots every ``--error-every-s`` seconds.
@@ -99,6 +102,9 @@ class MappingBenchConfig:
     dropout: float = D435_TYPICAL.dropout
     holes: int = D435_TYPICAL.hole_count
     esdf_every: int = 3
+    no_return_m: float | None = None
+    """``OccupancyParams.no_return_m`` (None: its default; 0: pixels without a return clear
+    nothing, the mapper before issue #11)."""
     error_every_s: float = 2.0
     error_band_m: float = 2.0
     max_frames: int = 0
@@ -184,6 +190,8 @@ def run_mapping_bench(
         seed=cfg.seed,
     )
     occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
+    if cfg.no_return_m is not None:
+        occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
     mapper = LocalMapper(occ)
     # warm-up: compile / load the kernels outside the timings
     LocalMapper(occ).ingest(cam.capture(pos[0], look_rotation(yaw[0]), -1.0))
@@ -191,6 +199,8 @@ def run_mapping_bench(
 
     render_ms: list[float] = []
     ingest_ms: list[float] = []
+    ingest_cpu_ms: list[float] = []
+    clear_rays: list[float] = []
     esdf_ms: list[float] = []
     rejected = 0
     errors_free: list[np.ndarray] = []
@@ -203,11 +213,15 @@ def run_mapping_bench(
         t_s = k / cfg.rate_hz
         t0 = time.perf_counter()
         frame = cam.capture(pos[k], look_rotation(float(yaw[k])), t_s)
+        c1 = time.thread_time()
         t1 = time.perf_counter()
         res = mapper.ingest(frame)
         t2 = time.perf_counter()
+        c2 = time.thread_time()
         render_ms.append((t1 - t0) * 1e3)
         ingest_ms.append((t2 - t1) * 1e3)
+        ingest_cpu_ms.append((c2 - c1) * 1e3)
+        clear_rays.append(float(res.clear_rays))
         rejected += 0 if res.accepted else 1
         recent.append(frame)
         if len(recent) > keep:
@@ -241,9 +255,13 @@ def run_mapping_bench(
             "frames": int(n),
             "window_cells": list(occ.shape),
             "resolution_m": occ.resolution_m,
+            "no_return_m": occ.no_return_m,
         },
         "render_ms": _stats(render_ms),
         "ingest_ms": _stats(ingest_ms),
+        "ingest_cpu_ms": _stats(ingest_cpu_ms),
+        "no_return_rays": _stats(clear_rays),
+        "known_cells_final": int(np.count_nonzero(mapper.map.known())),
         "esdf_ms": _stats(esdf_ms),
         "esdf_error_m": _error_stats(np.concatenate([err_f, err_o])),
         "esdf_error_free_m": _error_stats(err_f),
@@ -319,6 +337,14 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     help="Refresh the ESDF every n-th frame (3: 10 Hz at 30 frames/s).",
 )
 @click.option(
+    "--no-return-m",
+    "no_return_m",
+    default=None,
+    type=click.FloatRange(min=0.0),
+    help="Pixels without a return clear free space up to this length [m] (0: none, the "
+    "mapper before issue #11) [default: the mapper's, 5].",
+)
+@click.option(
     "--max-frames",
     default=0,
     show_default=True,
@@ -343,6 +369,7 @@ def bench_mapping(
     dropout: float,
     holes: int,
     esdf_every: int,
+    no_return_m: float | None,
     max_frames: int,
     ply_path: Path | None,
     json_path: Path | None,
@@ -363,6 +390,7 @@ def bench_mapping(
         dropout=dropout,
         holes=holes,
         esdf_every=esdf_every,
+        no_return_m=no_return_m,
         max_frames=max_frames,
     )
     with Progress(
@@ -395,6 +423,7 @@ def bench_mapping(
     for name, key in (
         ("render one 640x480 frame [ms]", "render_ms"),
         (f"ingest one frame, skip {skip_pixel} [ms]", "ingest_ms"),
+        ("  CPU time of it [ms]", "ingest_cpu_ms"),
         ("ESDF refresh of the window [ms]", "esdf_ms"),
     ):
         s = report[key]
@@ -432,6 +461,12 @@ def bench_mapping(
     console.print(
         f"ESDF error p95 {_fmt(tg['value'], '.3f')} m (target <= {tg['target']} m: "
         f"{'met' if tg['met'] else 'NOT met'}); rejected frames {report['rejected_frames']}"
+    )
+    ic, nr = report["ingest_cpu_ms"], report["no_return_rays"]
+    console.print(
+        f"ingest CPU mean {_fmt(ic['mean'])} ms; no-return rays (up to "
+        f"{sc['no_return_m']:g} m) per frame mean {_fmt(nr['mean'], '.0f')}; known cells at the "
+        f"end {report['known_cells_final']}"
     )
     m = report["machine"]
     console.print(f"{m['cpu']} x{m['cpu_count']}, Python {m['python']}, numba {m['numba']}")
