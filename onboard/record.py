@@ -119,6 +119,16 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                     "items": {"type": "integer"},
                     "description": "peers only avoided (silent, other epoch, slot conflict)",
                 },
+                "silent_peers": {
+                    "type": "array",
+                    "items": {"type": "integer"},
+                    "description": "peers silent past peer_silence_s (avoided, also as ghosts)",
+                },
+                "deviating_peers": {
+                    "type": "array",
+                    "items": {"type": "integer"},
+                    "description": "peers reported off their trajectory (avoided where they are)",
+                },
                 "slot": {"type": "integer"},
                 "formation_epoch": {"type": "integer"},
                 "t0_s": _NUM,
