@@ -11,6 +11,10 @@ its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m
 swarm waits for a drone left behind rather than stretching the shape for the rest of the
 flight. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
 does no I/O; failure is a status, never an exception (bad *inputs* raise ValueError).
+
+The set-up (local target, initial guess), the solve and the safety check run in compiled code
+(``kernels``, ``objective``; the GIL is released there); this module validates the inputs,
+packs the peers once per replan and chooses between the attempts.
 """
 
 from __future__ import annotations
