@@ -4,9 +4,8 @@ Each follows, operation for operation, the numpy code the planner ran before (ke
 oracle in ``tests/test_planner_kernels.py``), with the numpy routines replaced by their
 rounding-exact twins of ``npexact``: plans are bit-identical, without the ~70 interpreted
 numpy calls that took 0.5 ms of a 1.2 ms median replan on a quiet machine (issue #11).
-Distances come
-from the field's kernel data (``field_eval``), which is what ``distance()`` evaluates for the
-library's fields.
+Distances come from the field's kernel data (``field_eval``), which is what ``distance()``
+evaluates for the library's fields.
 
 - ``local_target``: the point ``horizon`` along the line to the goal, moved along the line to
   the nearest point clear of obstacles by ``clearance``, then into the altitude band;
