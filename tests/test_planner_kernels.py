@@ -461,3 +461,80 @@ def test_bad_inputs_are_named(kwargs: dict[str, Any], match: str) -> None:
         planner.plan(**args)
     with pytest.raises(ValueError, match=match):
         planner.prepare(**args)
+
+
+def test_peers_are_padded_with_a_hover_at_their_end() -> None:
+    rng = np.random.default_rng(10)
+    for _ in range(20):
+        trs = [
+            _random_trajectory(rng, float(rng.uniform(-2, 2)), rng.normal(0, 2, 3))
+            for _ in range(int(rng.integers(1, 8)))
+        ]
+        pack = _pack_peers([PeerTrajectory(k, k + 1, tr) for k, tr in enumerate(trs)])
+        K = max(tr.n_pieces for tr in trs)
+        assert pack.c.shape == (len(trs), K, 6, 3) and pack.T.shape == (len(trs), K)
+        for k, tr in enumerate(trs):
+            n = tr.n_pieces
+            assert pack.n[k] == n and pack.t0[k] == tr.t0_s
+            np.testing.assert_array_equal(pack.c[k, :n], tr.coeffs)
+            np.testing.assert_array_equal(pack.T[k, :n], tr.durations_s)
+            np.testing.assert_array_equal(pack.T[k, n:], 1.0)
+            np.testing.assert_array_equal(
+                pack.c[k, n:, 0], np.broadcast_to(tr.end_position, (K - n, 3))
+            )
+            np.testing.assert_array_equal(pack.c[k, n:, 1:], 0.0)
+    empty = _pack_peers([])
+    assert empty.c.shape[0] == empty.T.shape[0] == empty.n.shape[0] == empty.t0.shape[0] == 0
+
+
+_WARM_PROBE = """
+import json
+import numpy as np
+from onboard.planner import kernels as kn, objective as obj
+from onboard.planner.field import GridField
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory
+from onboard.planner.trajectory import Trajectory
+from onboard.service.planning import warm_up
+from onboard.world import World
+
+params = PlannerParams(check_known_s=1.0)
+warm_up(params)
+fns = {n: getattr(kn, n) for n in
+       ("initial_guess", "path_guess", "pad_peers", "trajectory_from_x", "check_trajectory")}
+fns["solve_counted"] = obj.solve_counted
+before = {k: len(f.signatures) for k, f in fns.items()}
+# a replan as in a mapped flight: a masked grid, peers of unequal piece counts, a previous plan
+world = World(np.array([[3.0, 0.4, 0.3, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+grid = GridField.from_function(world.distance, (-2.0, -4.0, -0.4), (9.0, 4.0, 3.4), 0.2)
+field = GridField(grid.values, grid.origin, grid.res, np.ones(grid.shape, dtype=bool))
+hexagon = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, -2.0, 0.0]])
+z = np.zeros(3)
+first = FormationPlanner(params, hexagon, 1).plan(
+    0.0, np.array([0.0, 2.0, 1.0]), z, z, np.array([7.0, 2.0, 1.0]), [], field)
+peers = [PeerTrajectory(1, 1, first.trajectory),
+         PeerTrajectory(2, 2, Trajectory.hover(np.array([0.0, -2.0, 1.0]), 0.0, 30.0))]
+planner = FormationPlanner(params, hexagon, 0)
+start = np.array([0.0, 0.0, 1.0])
+r1 = planner.plan(0.0, start, z, z, np.array([7.0, 0.0, 1.0]), peers, field)
+r2 = planner.plan(1.0, r1.trajectory.sample(1.0), *r1.trajectory.state(1.0)[1:],
+                  np.array([7.0, 0.0, 1.0]), peers, field, r1.trajectory)
+after = {k: len(f.signatures) for k, f in fns.items()}
+print(json.dumps({"before": before, "after": after, "status": [r1.status, r2.status]}))
+"""
+
+
+def test_the_service_warm_up_loads_the_kernels_a_flight_uses() -> None:
+    # a fresh interpreter: in this one other tests have already compiled everything
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", _WARM_PROBE], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert all(n >= 1 for n in got["before"].values()), got  # loaded by the warm-up
+    assert got["after"] == got["before"], got  # a flight's replans need nothing new
+    assert got["status"] == ["ok", "ok"], got

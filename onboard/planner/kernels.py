@@ -15,8 +15,12 @@ evaluates for the library's fields.
 - ``pad_peers``: the peers' trajectories padded to one piece count;
 - ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
 - ``check_trajectory``: the safety check of ``FormationPlanner.check`` (its unknown-space test
-  for grid fields), answering with a code and the numbers of its reason;
-- ``finish_attempt``: trajectory and check of a solution in one call.
+  for grid fields), answering with a code and the numbers of its reason.
+
+The planner calls ``initial_guess``, ``trajectory_from_x`` and ``check_trajectory`` in every
+replan, ``pad_peers`` in every replan with peers and ``path_guess`` after an A* search, so the
+service's warm-up (``onboard.service.planning.warm_up``: an A* guess, peers) loads them all
+before flight.
 
 ``fld`` is the objective's field tuple (``objective.field_args``); peers are packed as
 ``peer_c (P, K, 6, 3)``, ``peer_T (P, K)`` (the first ``peer_n[k]`` pieces are the peer's own)
@@ -305,7 +309,7 @@ def trajectory_from_x(
     x: np.ndarray, head: np.ndarray, tail: np.ndarray, tau_scale: float
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """(coeffs (M, 6, 3), T (M,), finite) of the MINCO trajectory x = [q.ravel(), tau / scale]
-    describes (``finite``: every coefficient and duration is finite)."""
+    describes (``finite``: every coefficient and duration is finite, so is x)."""
     M = (x.shape[0] + 3) // 4
     nq = 3 * (M - 1)
     q = x[:nq].copy().reshape((M - 1, 3))
@@ -493,64 +497,3 @@ def check_trajectory(
             elif seen:
                 return CHECK_UNKNOWN, BAND_OK, i, -1, nan, nan, ts[i] - t_from, clearance, ahead, n
     return CHECK_OK, BAND_OK, 0, -1, nan, nan, nan, clearance, ahead, n
-
-
-@njit(cache=True, nogil=True)
-def finish_attempt(
-    x: np.ndarray,
-    head: np.ndarray,
-    tail: np.ndarray,
-    tau_scale: float,
-    t0: float,
-    step: float,
-    z_lo: float,
-    z_hi: float,
-    fld: tuple,
-    check_obstacle: float,
-    peer_c: np.ndarray,
-    peer_T: np.ndarray,
-    peer_n: np.ndarray,
-    peer_t0: np.ndarray,
-    check_drone: float,
-    lookahead: float,
-    known_mode: int,
-    known_s: float,
-    known: np.ndarray,
-) -> tuple[
-    bool,
-    np.ndarray,
-    np.ndarray,
-    tuple[int, int, int, int, float, float, float, float, float, int],
-]:
-    """One attempt's solution x: (finite, coeffs (M, 6, 3), T (M,), ``check_trajectory`` of
-    the trajectory from t0 on). ``finite`` is False when x or the trajectory has a non-finite
-    value (then the check is not run)."""
-    nan = math.nan
-    not_checked = (CHECK_NON_FINITE, BAND_OK, 0, -1, nan, nan, nan, nan, nan, 0)
-    for i in range(x.shape[0]):
-        if not math.isfinite(x[i]):
-            return False, np.zeros((0, 6, 3)), np.zeros(0), not_checked
-    coeffs, T, finite = trajectory_from_x(x, head, tail, tau_scale)
-    if not finite:
-        return False, coeffs, T, not_checked
-    res = check_trajectory(
-        coeffs,
-        T,
-        t0,
-        t0,
-        step,
-        z_lo,
-        z_hi,
-        fld,
-        check_obstacle,
-        peer_c,
-        peer_T,
-        peer_n,
-        peer_t0,
-        check_drone,
-        lookahead,
-        known_mode,
-        known_s,
-        known,
-    )
-    return True, coeffs, T, res

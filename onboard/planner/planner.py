@@ -50,10 +50,8 @@ fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes.""
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
 _NO_KNOWN = np.ones((1, 1, 1), dtype=bool)
-_NO_PIECES = np.zeros(0, dtype=np.int64)
-_NO_TIMES = np.zeros(0)
 _ZERO3 = np.zeros(3)
-for _a in (_NO_COEFFS, _NO_DURATIONS, _NO_KNOWN, _NO_PIECES, _NO_TIMES, _ZERO3):
+for _a in (_NO_COEFFS, _NO_DURATIONS, _NO_KNOWN, _ZERO3):
     _a.setflags(write=False)  # read-only like a Trajectory's arrays and a field's mask
 
 
@@ -200,8 +198,10 @@ class _FieldView:
 
 
 def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
-    if not peers:
-        return _PeerPack(np.zeros((0, 1, 6, 3)), np.ones((0, 1)), _NO_PIECES, _NO_TIMES)
+    if not peers:  # writable arrays like a full pack's (one compiled signature)
+        return _PeerPack(
+            np.zeros((0, 1, 6, 3)), np.ones((0, 1)), np.zeros(0, dtype=np.int64), np.zeros(0)
+        )
     trs = [pt.trajectory for pt in peers]
     ns = [tr.durations_s.shape[0] for tr in trs]
     P = len(trs)
@@ -211,9 +211,12 @@ def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
     flat_c = np.concatenate([tr.coeffs for tr in trs])
     flat_T = np.concatenate([tr.durations_s for tr in trs])
     if min(ns) == K:
-        return _PeerPack(flat_c.reshape(P, K, 6, 3), flat_T.reshape(P, K), n, t0)
-    # unused pieces continue as a hover at the end point (zero velocity)
-    ends = np.array([tr.end_position if k < K else _ZERO3 for tr, k in zip(trs, ns, strict=True)])
+        ends = np.zeros((P, 3))  # no padding
+    else:  # unused pieces continue as a hover at the end point (zero velocity)
+        ends = np.array(
+            [tr.end_position if k < K else _ZERO3 for tr, k in zip(trs, ns, strict=True)]
+        )
+    # compiled also when no padding is needed, so that every replan with peers loads it
     pc, pT = kn.pad_peers(flat_c, flat_T, n, ends, K)
     return _PeerPack(pc, pT, n, t0)
 
@@ -696,34 +699,11 @@ class FormationPlanner:
     ) -> tuple[Trajectory | None, bool, str, float, float]:
         """(trajectory, safe, reason, clearance, ahead) of an attempt's solution x (trajectory
         None and not safe when x or its trajectory is not finite)."""
-        p = self.params
-        finite, coeffs, T, res = kn.finish_attempt(
-            x,
-            problem.head,
-            problem.tail,
-            problem.tau_scale,
-            problem.t_start_s,
-            p.check_step_s,
-            p.z_limits_m[0],
-            p.z_limits_m[1],
-            view.fld,
-            p.check_obstacle_m,
-            pack.c,
-            pack.T,
-            pack.n,
-            pack.t0,
-            p.check_drone_m,
-            COMFORT_LOOKAHEAD_S,
-            view.known_mode,
-            p.check_known_s,
-            view.known,
-        )
+        coeffs, T, finite = kn.trajectory_from_x(x, problem.head, problem.tail, problem.tau_scale)
         if not finite:
             return None, False, "non-finite solution", math.nan, math.nan
         traj = Trajectory.trusted(problem.t_start_s, coeffs, T)
-        safe, why, clearance, ahead = self._verdict(
-            res, traj, problem.t_start_s, field, view, peers
-        )
+        safe, why, clearance, ahead = self._check(traj, problem.t_start_s, field, view, peers, pack)
         return traj, safe, why, clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
