@@ -289,6 +289,9 @@ def test_clock_offset_estimated_and_warned(
     ahead = 0.3
     cfg = BusConfig(clock_offset_bound_s=0.05, subscribe_states=True)
     a, b = mesh([0, 1], **{"0": {"clock": lambda: time.time() + ahead}, "1": {"config": cfg}})
+    # b subscribes to states: put nothing before Zenoh matched it (a state put earlier reaches
+    # nobody)
+    wait_for(lambda: a.heard_by_someone("state"), "a subscriber of the states")
     with caplog.at_level(logging.WARNING, logger="onboard.comm.clock"):
         for k in range(5):
             a.publish_state(state(float(k)))
