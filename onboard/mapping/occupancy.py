@@ -37,6 +37,14 @@ through it, so a no-return ray (every ``no_return_step``-th pixel) is cut three 
 - the frame: none is cast when less than ``no_return_min_valid`` of the frame's pixels measured
   a depth (a covered lens, an obstacle too close to see filling the view).
 
+The limit: an obstacle the map has never seen that returns nothing over more than the radius,
+in a frame that measured enough elsewhere (a texture-less wall or glass for a real D435, a
+surface closer than its minimum depth, the D435's invalid band at the left image edge unless
+the source masks it as NaN), is cleared like the sky. On the mapping bench (forest-medium seed
+1) the rays left the occupied cells and the free cells inside trunks exactly as they were,
+made 3.5 times as many cells known, and cost about 0.5 ms of CPU per frame on average (about
+1.3 ms on the frames that cast them, every third at 30 frames/s).
+
 What else is never ray cast stays unknown: pixels without a measurement (NaN, inf, negative,
 below the minimum depth) mark nothing, so a bad or partial frame can only leave space unknown.
 
