@@ -153,7 +153,8 @@ def _half_known_field(known_below_x: float) -> GridField:
 
 
 def test_no_plan_enters_unobserved_space_before_the_next_replan() -> None:
-    params = PlannerParams(v_max_m_s=1.0, check_known_s=1.0)
+    params = PlannerParams(v_max_m_s=1.0)
+    assert params.check_known_s == 1.0  # on by default: the part flown before the next replan
     planner = FormationPlanner(params, LINE3, slot=1)
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
     # observed up to 5 m ahead: the plan is accepted

@@ -82,15 +82,17 @@ class PlannerParams:
     """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
     check_step_s: float = 0.05
     """Time step of the safety check of a new trajectory."""
-    check_known_s: float = 0.0
+    check_known_s: float = 1.0
     """A trajectory may not enter space the map has not observed during its first this many
     seconds: the part flown before the next replan replaces it (1.0 = the agent's replan period;
     a trajectory kept by that replan is checked again on the newer map); 0 disables the test.
-    Exact (analytic) fields are observed everywhere. Off by default: the local map leaves most
-    of the space at the drone's own height unobserved (depth pixels without a return, the sky
-    between trunks, carve nothing), so with 1.0 the hexagon's mapped flight through
-    forest-medium seed 2 had 95 emergency stops and 328 kept plans and only 4 of 7 drones
-    arrived (969 of its 1 015 refused attempts entered unobserved space)."""
+    Exact (analytic) fields are observed everywhere, so it changes nothing on them. It was off
+    while the map carved nothing along depth pixels without a return (the space at flight
+    height stayed unobserved unless a trunk lay behind it: with 1.0 the hexagon's mapped
+    flight through forest-medium seed 2 then had 95 emergency stops and only 4 of 7 drones
+    arrived); since the map clears free space along such pixels (``OccupancyParams.no_return_m``)
+    that flight arrives 7 of 7 with no attempt refused for unobserved space (BENCHMARKS.md
+    section 4)."""
     lead_slowdown_m: float = 0.0
     """Time-consistent formation: a drone ahead of its slot (relative to the centroid of itself
     and its peers, along its way to the goal) by ``lead`` metres plans with the speed limit of
