@@ -226,12 +226,90 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
     }
 
 
+class ReactionLog:
+    """A ``run_sim`` recorder that keeps, of every plan call and faulty drone, where the call
+    avoided it as a hover (its own hover trajectory, a silent peer's ghosts, a deviating
+    peer's reported position) and whether it was in the formation term. ``reactions`` then
+    tells, per faulty drone, how long after its fault each healthy drone first planned against
+    it where it stopped; ``healthy_hover_plans`` counts plans that avoided a healthy drone as
+    a hover the agent added (starting at the call's time, lasting ``HOVER_S``: a false alarm,
+    silent or deviating), ``healthy_dropped_plans`` plans that left a healthy drone out of the
+    formation term (silent, or its trajectory expired or older than the validity)."""
+
+    def __init__(self, n_form: int, plan_ahead_s: float, faulty: Sequence[int]) -> None:
+        self.n_form = n_form
+        self.plan_ahead_s = plan_ahead_s
+        self.faulty = frozenset(faulty)
+        # (drone, time of the plan, peer, its hover points (K, 3), whether it was formed with)
+        self.rows: list[tuple[int, float, int, np.ndarray, bool]] = []
+        self.healthy_hover_plans = 0
+        self.healthy_dropped_plans = 0
+
+    def __call__(self, call: Any) -> None:
+        from onboard.agent import HOVER_S
+
+        now = float(call.t_start_s) - self.plan_ahead_s
+        hovers: dict[int, list[np.ndarray]] = {}  # any constant row: where it may hold
+        added = False  # a hover the agent added for a healthy drone
+        formed: dict[int, bool] = {}
+        for q in call.peers:
+            tr = q.trajectory
+            pid = int(q.drone_id)
+            formed[pid] = formed.get(pid, False) or int(q.slot) < self.n_form
+            if tr.n_pieces == 1 and not np.any(tr.coeffs[0, 1:]):
+                hovers.setdefault(pid, []).append(tr.coeffs[0, 0].copy())
+                if pid not in self.faulty:
+                    added = added or (abs(tr.t0_s - now) < 1e-6 and tr.duration_s >= HOVER_S - 1e-6)
+        self.healthy_hover_plans += int(added)
+        self.healthy_dropped_plans += int(
+            any(pid not in self.faulty and not f for pid, f in formed.items())
+        )
+        for pid in self.faulty:
+            if pid in formed and pid != call.drone_id:
+                pts = np.array(hovers.get(pid, []), dtype=np.float64).reshape(-1, 3)
+                self.rows.append((int(call.drone_id), now, pid, pts, formed[pid]))
+
+    def reactions(
+        self, stopped: dict[int, tuple[float, Sequence[float]]], within_m: float = 0.3
+    ) -> dict[str, Any]:
+        """Per faulty drone (stopped: id -> (time, position) from ``SimResult.faults``): for
+        each other drone that planned after the fault, the delay from the fault to its first
+        plan avoiding a hover within ``within_m`` of where the faulty drone stopped
+        (``hover_s``; None: never) and to its first plan without it in the formation term
+        (``dropped_s``)."""
+        out: dict[str, Any] = {}
+        for pid, (t_f, p_f) in sorted(stopped.items()):
+            p = np.asarray(p_f, dtype=np.float64)
+            per: dict[str, dict[str, float | None]] = {}
+            for drone, now, q, pts, formed in self.rows:
+                if q != pid or now < t_f - 1e-9 or drone in self.faulty:
+                    continue
+                d = per.setdefault(str(drone), {"hover_s": None, "dropped_s": None})
+                near = pts.size and float(np.min(np.linalg.norm(pts - p, axis=1))) <= within_m
+                if d["hover_s"] is None and near:
+                    d["hover_s"] = round(now - t_f, 3)
+                if d["dropped_s"] is None and not formed:
+                    d["dropped_s"] = round(now - t_f, 3)
+            out[str(pid)] = per
+        return out
+
+
 def _run_one(args: tuple[FaultTrial, float, float | None]) -> dict[str, Any]:
     from gcs.fastsim import run_sim
 
     trial, v_max, limit = args
     cfg = trial_config(trial, v_max, limit)
-    return judge(trial, cfg, run_sim(cfg))
+    log = ReactionLog(
+        cfg.formation.n, cfg.plan_ahead_s, sorted(set(trial.killed) | set(trial.stuck))
+    )
+    result = run_sim(cfg, recorder=log)
+    row = judge(trial, cfg, result)
+    f = result.faults
+    stopped = {int(k): v for k, v in {**f["killed"], **f["stuck"]}.items()}
+    row["reactions"] = log.reactions(stopped)
+    row["healthy_hover_plans"] = log.healthy_hover_plans
+    row["healthy_dropped_plans"] = log.healthy_dropped_plans
+    return row
 
 
 def run_bench(
@@ -316,10 +394,47 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "ghost_uses": int(sum(r.get("ghost_uses", 0) for r in rows)),
         "silent_replans": int(sum(r.get("silent_replans", 0) for r in rows)),
         "refused_older": int(sum(r.get("refused_older", 0) for r in rows)),
+        "silent_replans_no_kill": int(
+            sum(r.get("silent_replans", 0) for r in rows if not r["killed"])
+        ),
+        "trials_no_kill": int(sum(1 for r in rows if not r["killed"])),
+        "trials_no_kill_with_silent": int(
+            sum(1 for r in rows if not r["killed"] and r.get("silent_replans", 0))
+        ),
+        "silent_replans_bus_only": int(
+            sum(r.get("silent_replans", 0) for r in rows if not r["killed"] and not r["stuck"])
+        ),
+        "healthy_hover_plans": int(sum(r.get("healthy_hover_plans", 0) for r in rows)),
+        "healthy_dropped_plans": int(sum(r.get("healthy_dropped_plans", 0) for r in rows)),
+        "reaction_killed": _reaction_summary(rows, "killed"),
+        "reaction_stuck": _reaction_summary(rows, "stuck"),
         "max_flight_time_s": max(r["flight_time_s"] for r in rows),
         "timed_out_trials": int(sum(r["timed_out"] for r in rows)),
         "sim_wall_s": summary([r["sim_wall_s"] for r in rows]),
     }
+
+
+def _reaction_summary(rows: Sequence[dict[str, Any]], kind: str) -> dict[str, Any]:
+    """Over the trials' ``kind`` ('killed', 'stuck') drones: the delays from the fault to each
+    healthy drone's first plan avoiding it as a hover where it stopped (``hover_s``) and to its
+    first plan without it in the formation term (``dropped_s``), and how many healthy drones
+    that planned after the fault never did either."""
+    from gcs.metrics import summary
+
+    out: dict[str, Any] = {}
+    for key in ("hover_s", "dropped_s"):
+        vals: list[float] = []
+        never = 0
+        for r in rows:
+            for pid in r[kind]:
+                for d in r.get("reactions", {}).get(str(pid), {}).values():
+                    if d[key] is None:
+                        never += 1
+                    else:
+                        vals.append(float(d[key]))
+        out[key] = summary(vals) if vals else None
+        out[f"{key}_never"] = never
+    return out
 
 
 @click.command("faults")
@@ -385,6 +500,25 @@ def bench_faults(
         f"replans with a silent peer {rep['silent_replans']} (ghost hovers avoided "
         f"{rep['ghost_uses']}), older trajectories refused {rep['refused_older']}"
     )
+    click.echo(
+        f"false alarms: replans with a silent peer in the {rep['trials_no_kill']} trials "
+        f"without a kill {rep['silent_replans_no_kill']} (in "
+        f"{rep['trials_no_kill_with_silent']} trials; bus faults only "
+        f"{rep['silent_replans_bus_only']}), plans avoiding a healthy drone as a hover "
+        f"{rep['healthy_hover_plans']}, plans leaving a healthy drone out of the formation "
+        f"{rep['healthy_dropped_plans']}"
+    )
+    for kind in ("killed", "stuck"):
+        rs = rep[f"reaction_{kind}"]
+        parts = []
+        for key, what in (("hover_s", "avoided where it stopped"), ("dropped_s", "dropped")):
+            sm = rs[key]
+            if sm is not None:
+                parts.append(
+                    f"{what} after median {sm['median']:.2f} s, max {sm['max']:.2f} s "
+                    f"({sm['count']} drones, never {rs[f'{key}_never']})"
+                )
+        click.echo(f"{kind} drones: " + ("; ".join(parts) or "none"))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(rep, indent=1, default=_json_default) + "\n")

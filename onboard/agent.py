@@ -85,6 +85,8 @@ GHOST_WINDOW_S = 0.5
 """A silent peer may have flown on this long after its newest message before it stopped."""
 GHOST_FORGET_S = 60.0
 """A silent peer's ghosts (where its vehicle may hold) are avoided this long."""
+HOVER_S = 3600.0
+"""Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
 
 
 class MapSource(Protocol):
@@ -682,9 +684,9 @@ class DroneAgent:
         sp, sv, sa = flying.state(t_start)
         msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         formed, avoided = self._split_peers(msgs, a, now, silent)
-        ghosts = [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in self._ghosts(silent, now)]
+        ghosts = [(pid, Trajectory.hover(p, now, HOVER_S)) for pid, p in self._ghosts(silent, now)]
         deviating = self._deviating(msgs, silent, a, now)
-        ghosts += [(pid, Trajectory.hover(p, now, 3600.0)) for pid, p in sorted(deviating.items())]
+        ghosts += [(pid, Trajectory.hover(p, now, HOVER_S)) for pid, p in sorted(deviating.items())]
         n_form = a.formation.shape[0]
         n_av = len(avoided)
         peers = (
