@@ -482,6 +482,17 @@ def _dist_point_segment_xy(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nd
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
+def _dist_to_segments_xy(
+    p: np.ndarray, a: np.ndarray, ab: np.ndarray, ab2: np.ndarray
+) -> np.ndarray:
+    """Horizontal distance from one point p (2,) to K segments a-(a + ab), (K, 2) each;
+    ``ab2`` (K,) the squared segment lengths."""
+    pa = p - a
+    t = np.clip((pa[:, 0] * ab[:, 0] + pa[:, 1] * ab[:, 1]) / ab2, 0.0, 1.0)
+    d = pa - t[:, None] * ab
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+
+
 def random_forest(
     rng_seed: int,
     n_cylinders: int,
@@ -551,6 +562,10 @@ def random_forest(
         else:
             raise ValueError(f"random_forest: could not place ring {i + 1} of {n_rings}")
 
+    # the rings' footprint segments as arrays: one vectorised distance per candidate cylinder
+    ring_a = np.array([a for a, _ in ring_ends]).reshape(-1, 2)
+    ring_ab = np.array([b - a for a, b in ring_ends]).reshape(-1, 2)
+    ring_ab2 = np.einsum("ij,ij->i", ring_ab, ring_ab)
     cyl = np.zeros((n_cylinders, CYLINDER_COLS))
     for i in range(n_cylinders):
         for _ in range(_TRIES_PER_OBJECT):
@@ -563,9 +578,9 @@ def random_forest(
                 np.linalg.norm(clear_xy - p, axis=1) - radius < clear_r
             ):
                 continue
-            if any(
-                _dist_point_segment_xy(p[None, :], a, b)[0] < radius + tube + 0.5 * min_spacing_m
-                for a, b in ring_ends
+            if ring_ends and np.any(
+                _dist_to_segments_xy(p, ring_a, ring_ab, ring_ab2)
+                < radius + tube + 0.5 * min_spacing_m
             ):
                 continue
             cyl[i] = (p[0], p[1], radius, base_z, base_z + height)
