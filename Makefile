@@ -57,13 +57,21 @@ typecheck: $(STAMP)
 
 # The quick tests run on every core (pytest-xdist, `-n auto`); the slow scenario tests (marker
 # `slow`: flights against the mock, the demo, whose processes are timing-sensitive) one at a
-# time, and only once: on Python 3.10, the interpreter of the drone whose service they fly
-# (on the default interpreter when no 3.10 is found). Everything else runs on both.
+# time. The whole suite runs once, on Python 3.10: the drone's interpreter, and everything runs
+# there (the ground station and the mock too). On the default interpreter (the `.venv` that
+# `make demo` uses) a smoke selection checks that environment: every module imports, the
+# planner's kernels, the mock, the bus, the view, the report and the demo's process handling.
+# Without a 3.10 interpreter the whole suite runs on the default one instead.
 PYTEST_FAST := -m "not slow" -n auto
+SMOKE_TESTS := tests/test_imports.py tests/test_layers.py tests/test_planner_kernels.py \
+	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py \
+	tests/test_demo.py
 pytest: $(STAMP)
-	$(VENV)/bin/pytest -q $(PYTEST_FAST)
 ifeq ($(strip $(PYTHON310)),)
+	$(VENV)/bin/pytest -q $(PYTEST_FAST)
 	$(VENV)/bin/pytest -q -m slow
+else
+	$(VENV)/bin/pytest -q $(PYTEST_FAST) $(SMOKE_TESTS)
 endif
 
 # The same environment and suite on Python 3.10. numba names its cache files after the Python
