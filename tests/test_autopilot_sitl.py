@@ -18,6 +18,7 @@ import select
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ from onboard.autopilot import (
     Setpoint,
     open_link,
 )
+from onboard.autopilot.config import DEFAULT_TELEMETRY_OFF, message_id
 from onboard.autopilot.link import AutopilotLink
 from sitl_mock.autopilot import AutopilotParams
 from sitl_mock.client import bind_consecutive_udp
@@ -71,6 +73,10 @@ class Relay:
         self.drop_down = False  # vehicle -> link
         self.heartbeat_types: list[int] = []  # of every HEARTBEAT the link sent
         self.setpoints_from_link = 0
+        self.count_down = False  # count the vehicle's messages to the link by id
+        self.down_ids: Counter[int] = Counter()
+        self._down_parser = mavlink.MAVLink(None)
+        self._down_parser.robust_parsing = True
         self._parser = mavlink.MAVLink(None)
         self._parser.robust_parsing = True
         self._stop = False
@@ -87,6 +93,9 @@ class Relay:
                     continue
                 if s is self.a:
                     self.vehicle_addr = addr
+                    if self.count_down:
+                        for m in self._down_parser.parse_buffer(data) or []:
+                            self.down_ids[m.get_msgId()] += 1
                     if not self.drop_down:
                         self.b.sendto(data, self.link_addr)
                 else:
@@ -693,3 +702,24 @@ def test_bad_serial_device(implementation: Literal["pymavlink", "mavsdk"]) -> No
     with pytest.raises(LinkError, match="/dev/ttyTHS-missing"):
         link.connect(1.0)
     link.close()
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_streams_the_service_never_reads_are_turned_off(implementation: str) -> None:
+    """``telemetry_off``: SET_MESSAGE_INTERVAL(-1) at connect; PX4 (the mock) stops exactly
+    those streams and keeps sending what the link reads."""
+    with rig(implementation, relay=True, telemetry_off=DEFAULT_TELEMETRY_OFF) as rg:
+        assert rg.relay is not None
+        results = rg.link.telemetry_rate_results
+        assert {n: results[n] for n in DEFAULT_TELEMETRY_OFF} == {
+            n: CommandResult.ACCEPTED for n in DEFAULT_TELEMETRY_OFF
+        }
+        rg.relay.count_down = True
+        time.sleep(1.5)  # 3 simulated seconds: every stream of 0.5 Hz or more would show
+        rg.relay.count_down = False
+        got = dict(rg.relay.down_ids)
+        off = {message_id(n) for n in DEFAULT_TELEMETRY_OFF}
+        assert not off & set(got), {k: v for k, v in got.items() if k in off}
+        for name in ("HEARTBEAT", "LOCAL_POSITION_NED", "ATTITUDE", "SYS_STATUS"):
+            assert got.get(message_id(name), 0) > 0, name
+        assert rg.link.state().position_enu_m is not None

@@ -360,6 +360,13 @@ def test_parse_url() -> None:
         ({"command_retries": -1}, "command_retries"),
         ({"telemetry_rates_hz": (("LOCAL_POSITION_NEDX", 10.0),)}, "telemetry_rates_hz"),
         ({"telemetry_rates_hz": (("ATTITUDE", -1.0),)}, "telemetry_rates_hz"),
+        ({"telemetry_off": ("VFR_HUDX",)}, "telemetry_off"),
+        ({"telemetry_off": ("HEARTBEAT",)}, "telemetry_off"),
+        ({"telemetry_off": ("VFR_HUD", "LOCAL_POSITION_NED")}, r"telemetry_off\[1\]"),
+        (
+            {"telemetry_rates_hz": (("VFR_HUD", 5.0),), "telemetry_off": ("VFR_HUD",)},
+            "telemetry_off",
+        ),
         (
             {"geofence_min_enu_m": (0.0, 0.0, 5.0), "geofence_max_enu_m": (1.0, 1.0, 5.0)},
             "geofence_max_enu_m",

@@ -19,6 +19,51 @@ DEFAULT_TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = (
     ("SYS_STATUS", 5.0),
 )
 
+# Streams of PX4's onboard link profile that the service never reads (its receiver skips them
+# undecoded): turned off at connect with SET_MESSAGE_INTERVAL(-1), which PX4 honours for every
+# stream but HEARTBEAT (mavlink_receiver.cpp, set_message_interval: a negative interval stops the
+# stream). About 265 of PX4's ~380 messages/s on that link; both ends then spend less on them.
+# The messages the links read (HEARTBEAT, LOCAL_POSITION_NED, ATTITUDE, EXTENDED_SYS_STATE,
+# SYS_STATUS, HOME_POSITION, COMMAND_ACK, ...) can never be listed here.
+DEFAULT_TELEMETRY_OFF: tuple[str, ...] = (
+    "ATTITUDE_QUATERNION",
+    "HIGHRES_IMU",
+    "GLOBAL_POSITION_INT",
+    "ODOMETRY",
+    "TIMESYNC",
+    "ALTITUDE",
+    "DISTANCE_SENSOR",
+    "ATTITUDE_TARGET",
+    "POSITION_TARGET_LOCAL_NED",
+    "SERVO_OUTPUT_RAW",
+    "VFR_HUD",
+    "GPS_RAW_INT",
+    "MISSION_CURRENT",
+    "ESTIMATOR_STATUS",
+    "SYSTEM_TIME",
+    "SCALED_PRESSURE",
+    "LINK_NODE_STATUS",
+    "BATTERY_STATUS",
+    "CURRENT_MODE",
+    "VIBRATION",
+)
+TELEMETRY_NEEDED: frozenset[str] = frozenset(
+    {
+        "HEARTBEAT",
+        "LOCAL_POSITION_NED",
+        "ATTITUDE",
+        "EXTENDED_SYS_STATE",
+        "SYS_STATUS",
+        "HOME_POSITION",
+        "COMMAND_ACK",
+        "MESSAGE_INTERVAL",
+        "AUTOPILOT_VERSION",
+        "PROTOCOL_VERSION",
+        "STATUSTEXT",
+    }
+)
+"""Messages a link reads: never turned off."""
+
 MAX_ABS_COORD_M = 10_000.0
 """Largest geofence / origin coordinate (the swarm bus's bound too)."""
 MAX_SPEED_M_S = 30.0
@@ -61,12 +106,22 @@ def _int_range(name: str, v: int, lo: int, hi: int) -> None:
         raise ValueError(f"{name}: expected an integer in [{lo}, {hi}], got {v!r}")
 
 
-def message_id(name: str) -> int | None:
-    """The id of a MAVLink common message by name (None if unknown)."""
-    from pymavlink.dialects.v20 import common as mavlink
+# Messages PX4 v1.16 streams that pymavlink 2.4.50's dialect files lack (LINK_NODE_STATUS, 1 Hz
+# on the onboard link; id from the MAVLink definitions)
+_EXTRA_MESSAGE_IDS = {"LINK_NODE_STATUS": 8}
 
-    v = getattr(mavlink, f"MAVLINK_MSG_ID_{name}", None)
-    return v if isinstance(v, int) else None
+
+def message_id(name: str) -> int | None:
+    """The id of a MAVLink message by name: the common dialect, then ``development`` (what PX4
+    is built with: CURRENT_MODE, ...), then the few PX4 sends that pymavlink lacks (None if
+    unknown)."""
+    from pymavlink.dialects.v20 import common, development
+
+    for dialect in (common, development):
+        v = getattr(dialect, f"MAVLINK_MSG_ID_{name}", None)
+        if isinstance(v, int):
+            return v
+    return _EXTRA_MESSAGE_IDS.get(name)
 
 
 @dataclass(frozen=True)
@@ -153,6 +208,10 @@ class LinkConfig:
     commanded_mode_window_s: float = 5.0
     """A mode change this long after the link asked for that mode counts as commanded."""
     telemetry_rates_hz: tuple[tuple[str, float], ...] = DEFAULT_TELEMETRY_RATES_HZ
+    telemetry_off: tuple[str, ...] = ()
+    """Streams turned off at connect (SET_MESSAGE_INTERVAL -1), e.g. ``DEFAULT_TELEMETRY_OFF``:
+    the flight service's choice (``autopilot.trim_telemetry``); none by default here, since
+    another program on the same MAVLink instance may read them."""
 
     local_origin_enu_m: Vec3 = (0.0, 0.0, 0.0)
     """Where PX4's local-frame origin lies in the service's ENU frame."""
@@ -221,6 +280,12 @@ class LinkConfig:
             _positive(f"telemetry_rates_hz[{i}]", item[1])
             if message_id(item[0]) is None:
                 raise ValueError(f"telemetry_rates_hz[{i}]: unknown MAVLink message {item[0]!r}")
+        rated = {item[0] for item in self.telemetry_rates_hz}
+        for i, name in enumerate(self.telemetry_off):
+            if not isinstance(name, str) or message_id(name) is None:
+                raise ValueError(f"telemetry_off[{i}]: unknown MAVLink message {name!r}")
+            if name in TELEMETRY_NEEDED or name in rated:
+                raise ValueError(f"telemetry_off[{i}]: {name} is read by the link, cannot be off")
         for name in ("local_origin_enu_m", "geofence_min_enu_m", "geofence_max_enu_m"):
             v = getattr(self, name)
             if len(v) != 3 or not all(math.isfinite(float(x)) for x in v):

@@ -977,17 +977,20 @@ class AutopilotLink(ABC):
         )
 
     def request_telemetry_rates(self) -> dict[str, CommandResult]:
-        """SET_MESSAGE_INTERVAL for every configured stream. A refusal is logged and kept in
-        ``telemetry_rate_results``, not raised (PX4 keeps its default rate then)."""
+        """SET_MESSAGE_INTERVAL for every configured stream, then interval -1 (off) for each of
+        ``telemetry_off``. A refusal is logged and kept in ``telemetry_rate_results``, not
+        raised (PX4 keeps its default rate then)."""
         results: dict[str, CommandResult] = {}
-        for name, hz in self.config.telemetry_rates_hz:
+        wanted = [(name, 1e6 / hz, f"{hz:g} Hz") for name, hz in self.config.telemetry_rates_hz]
+        wanted += [(name, -1.0, "off") for name in self.config.telemetry_off]
+        for name, interval_us, what in wanted:
             mid = message_id(name)
             assert mid is not None  # checked by LinkConfig
             try:
                 self.command(
                     px4.CMD_SET_MESSAGE_INTERVAL,
-                    (float(mid), 1e6 / hz),
-                    name=f"MAV_CMD_SET_MESSAGE_INTERVAL({name}, {hz:g} Hz)",
+                    (float(mid), interval_us),
+                    name=f"MAV_CMD_SET_MESSAGE_INTERVAL({name}, {what})",
                 )
                 results[name] = CommandResult.ACCEPTED
             except CommandError as e:

@@ -62,6 +62,7 @@ def _finite3(v: Any) -> np.ndarray | None:
 def link_config(cfg: OnboardConfig) -> Any:
     """The autopilot link's ``LinkConfig`` for this drone."""
     from onboard.autopilot import LinkConfig
+    from onboard.autopilot.config import DEFAULT_TELEMETRY_OFF
 
     ap = cfg.autopilot
     url = ap.endpoint(cfg.drone.id)
@@ -90,6 +91,7 @@ def link_config(cfg: OnboardConfig) -> Any:
         ),
         signing_required=ap.signing_required,
         local_origin_enu_m=ap.local_origin(cfg.drone.id),
+        telemetry_off=DEFAULT_TELEMETRY_OFF if ap.trim_telemetry else (),
     )
 
 

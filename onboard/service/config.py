@@ -93,6 +93,10 @@ class AutopilotSection:
     the service then refuses to start while signing is required. pymavlink implementation only."""
     signing_required: bool | None = None
     """None: required when a key is given; false: unsigned telemetry accepted (and counted)."""
+    trim_telemetry: bool = True
+    """Turn off, at connect, the streams of PX4's onboard link the service never reads
+    (``onboard.autopilot.config.DEFAULT_TELEMETRY_OFF``: ~265 of ~380 messages/s). False when
+    another program reads them on the same MAVLink instance."""
     local_origin_enu_m: Vec3 = (0.0, 0.0, 0.0)
     """Where this PX4's local frame origin (its EKF origin: usually where it was powered up)
     lies in the swarm's ENU frame, the frame of the map, the plans, the geofence and the bus.
