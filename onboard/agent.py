@@ -21,26 +21,39 @@ slot lies outside the template, equals ours, or is claimed twice. Avoided-only p
 template rows whose formation-graph edges are masked out (an isolated vertex adds nothing to
 the similarity metric), so the formation among the others is unchanged.
 
-Silent peers. A peer is *heard* at the sender's time of its newest message of any kind: a new
-trajectory (``valid_until_s - validity_s``; the receive time when validity is infinite) or a
-state message the owner passes to ``heard`` (10 Hz in the service and the simulator). It is
-*silent* when nothing newer was heard for ``peer_silence_s`` (plus one replan period for a peer
-never heard through ``heard``, whose trajectories are its only sign of life). A silent peer may
-have died (its autopilot then holds where it was: PX4's offboard-loss failsafe) anywhere along
-its last trajectory after it was last heard: it leaves the formation term and, besides its last
-trajectory, is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
+Quiet and silent peers. A peer is *heard* at the sender's time of its newest message of any
+kind: a new trajectory (``valid_until_s - validity_s``; the receive time when validity is
+infinite) or a state message the owner passes to ``heard`` (10 Hz in the service and the
+simulator). It is *quiet* when nothing newer was heard for ``peer_silence_s`` (plus one replan
+period for a peer never heard through ``heard``, whose trajectories are its only sign of life).
+A quiet peer may have died (its autopilot then holds where it was: PX4's offboard-loss
+failsafe) anywhere along its last trajectory after it was last heard: besides its last
+trajectory, it is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
 trajectory from where it was last heard to where it could have flown in ``ghost_window_s`` more
-(its messages in between lost), and at its last reported position. A peer heard alive whose
+(its messages in between lost), and at its last reported position; ``watch`` asks for a replan
+at once only if the trajectory we fly comes closer than ``check_drone_m`` to a ghost (it is in
+our way). A quiet peer stays in the formation term until it is *silent*: quiet for longer than
+its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (how long it
+went unheard before something newer arrived, measured at each look: ``watch``, a replan,
+``peer_view``) plus ``spell_margin_s``, at least the quiet limit and at most
+``peer_silence_max_s``. On a clean link (states every 0.1 s, spells 0.1 s) quiet and silent
+coincide; under loss and delay a healthy peer's newest state is often older than
+``peer_silence_s`` (20 % loss and up to 300 ms delay: 1-3 % of looks), which then costs at most
+ghosts avoided for a moment, while silence waits for what this link's spells say is
+improbable. A killed peer is thus avoided where it may have stopped ``peer_silence_s`` after its
+last message was sent and out of the formation at most ``peer_silence_max_s`` after it (both
+one look later at most; one replan period more without states). A peer whose
 last reported position is further than ``peer_deviation_m`` from its trajectory (stuck or
 lagging, its new trajectory late) is also avoided as a hover there; with ``avoid_reported``,
 so is a peer heard through states without a trajectory considered. ``watch`` (called at the
-state rate) asks for a replan at once when a peer falls silent or leaves its trajectory;
+state rate) asks for a replan at once when a peer falls silent, falls quiet in our way or
+leaves its trajectory;
 ``peer_view`` gives what a plan made now would avoid (for a safety monitor between replans).
 A peer whose newest trajectory started more than ``validity_s`` ago (a stuck drone
-re-announcing its hover) leaves the formation term too. A silent peer's last trajectory is
-forgotten ``peer_forget_s`` after it fell silent (or after its message's validity, if
+re-announcing its hover) leaves the formation term too. A quiet peer's last trajectory is
+forgotten ``peer_forget_s`` after it fell quiet (or after its message's validity, if
 earlier); its ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell
-silent. A trajectory with a lower ``traj_id`` than one already received from the same peer (a
+quiet. A trajectory with a lower ``traj_id`` than one already received from the same peer (a
 late, reordered or duplicated copy) never replaces it.
 
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
@@ -56,7 +69,7 @@ import dataclasses
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -78,13 +91,21 @@ EPS_T = 1e-9
 # (``reactions.peer_lost``) and the values of the fast-time fault trials (BENCHMARKS 9b). The
 # agent's own arguments leave silence and deviation off (inf) unless they are passed.
 PEER_SILENCE_S = 0.5
-"""A peer heard of nothing newer for this long is silent (10 Hz states: five in a row lost)."""
+"""A peer heard of nothing newer for this long is quiet: avoided where it may have stopped."""
+PEER_SILENCE_MAX_S = 1.5
+"""A quiet peer is silent (out of the formation) at the latest this long after its newest
+message was sent (10 Hz states with 28 % of them missing: 12 in a row with p = 2e-7)."""
+SPELL_MARGIN_S = 0.4
+"""A peer is silent once quiet this much longer than its longest recent quiet spell."""
+SPELL_WINDOW_S = 30.0
+"""How far back a peer's quiet spells (how long it went unheard before it was heard again)
+count."""
 PEER_DEVIATION_M = 0.3
 """A peer reported further than this from its trajectory is also avoided where it reported."""
 GHOST_WINDOW_S = 0.5
-"""A silent peer may have flown on this long after its newest message before it stopped."""
+"""A quiet peer may have flown on this long after its newest message before it stopped."""
 GHOST_FORGET_S = 60.0
-"""A silent peer's ghosts (where its vehicle may hold) are avoided this long."""
+"""A quiet peer's ghosts (where its vehicle may hold) are avoided this long."""
 HOVER_S = 3600.0
 """Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
 
@@ -129,7 +150,8 @@ class PlanInputs:
     edge_mask: np.ndarray | None
     """None: the complete graph; else the mask that isolates the avoided-only rows."""
     n_ghosts: int = 0
-    """The last ``n_ghosts`` of ``peers`` are hovers where silent peers may have stopped."""
+    """The last ``n_ghosts`` of ``peers`` are hovers where quiet peers (silent ones included)
+    may have stopped, or where deviating peers reported themselves."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,7 +182,7 @@ class PlanReport:
     avoided_peers: tuple[int, ...]
     """Peers only avoided (excluded, expired, other epoch, bad or conflicting slot)."""
     peers: tuple[PeerTrajectory, ...]
-    """The peers' trajectories the plan was made against (formation peers first, the silent
+    """The peers' trajectories the plan was made against (formation peers first, the quiet
     peers' ghost hovers last), e.g. for a safety monitor's
     ``agent.planner.check(trajectory, t, field, peers)``."""
     silent_peers: tuple[int, ...] = ()
@@ -168,6 +190,8 @@ class PlanReport:
     deviating_peers: tuple[int, ...] = ()
     """Peers heard alive but reported off their trajectory: also avoided where they reported
     (with ``avoid_reported``, also peers heard without a trajectory considered)."""
+    quiet_peers: tuple[int, ...] = ()
+    """Peers quiet but not (yet) silent: avoided at their ghosts too, still in the formation."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,13 +205,17 @@ class PeerView:
     hover_ids: tuple[int, ...]
     """The drone of each row of ``hover_points``."""
     hover_points: np.ndarray
-    """(K, 3) ENU m, read-only: the silent peers' ghosts (where each may have stopped), then
+    """(K, 3) ENU m, read-only: the quiet and silent peers' ghosts (where each may have
+    stopped), then
     where the deviating peers reported themselves: the hovers a plan avoids besides the
     trajectories."""
     silent: tuple[int, ...]
     """Peers judged silent (out of the formation, avoided at their ghosts too)."""
     deviating: tuple[int, ...]
     """Peers avoided where they reported themselves (``PlanReport.deviating_peers``)."""
+    quiet: tuple[int, ...] = ()
+    """Peers quiet but not (yet) silent: avoided at their ghosts too, still in the formation
+    (``PlanReport.quiet_peers``)."""
 
 
 @dataclass(frozen=True)
@@ -268,16 +296,20 @@ class DroneAgent:
     formation_epoch: the assignment the slot belongs to (peers of another epoch are avoided,
     not formed with); validity_s: published messages are valid this long after publication
     (inf: forever, the in-memory bus); peer_forget_s: an expired or silent peer is still
-    avoided this long; ghost_forget_s: a silent peer's ghosts are avoided this long after it
-    fell silent (at least as long as its trajectory); ghost_window_s: how long after its newest
-    message a silent peer may have flown on before it stopped (its messages in between lost;
+    avoided this long; ghost_forget_s: a quiet peer's ghosts are avoided this long after it
+    fell quiet (at least as long as its trajectory); ghost_window_s: how long after its newest
+    message a quiet peer may have flown on before it stopped (its messages in between lost;
     one replan period more for a peer heard only through trajectories); peer_silence_s: a
-    peer heard of nothing newer for this long is silent (see the module docstring; inf:
-    never; flown with ``PEER_SILENCE_S``); peer_deviation_m: a peer whose reported position is
+    peer heard of nothing newer for this long is quiet (see the module docstring; inf:
+    never; flown with ``PEER_SILENCE_S``); peer_silence_max_s: a quiet peer is silent at the
+    latest this long after it was last heard (or at the quiet limit, if that is longer;
+    ``peer_silence_s`` here makes quiet and silent one); spell_margin_s, spell_window_s: a
+    quiet peer is silent once quiet ``spell_margin_s`` longer than its longest quiet spell of
+    the last ``spell_window_s``; peer_deviation_m: a peer whose reported position is
     further than this from its trajectory (a stuck or lagging vehicle) is also avoided as a
     hover where it reported itself (inf: never; more than the vehicles' tracking error; flown
     with ``PEER_DEVIATION_M``); ghost_spacing_m:
-    spacing of a silent peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
+    spacing of a quiet peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
     them by that distance); avoid_reported: a peer heard through ``heard`` with a position but
     no trajectory considered (none received, or forgotten: one flown by hand, or stuck long
@@ -310,6 +342,9 @@ class DroneAgent:
         validity_s: float = math.inf,
         peer_forget_s: float = 5.0,
         peer_silence_s: float = math.inf,
+        peer_silence_max_s: float = PEER_SILENCE_MAX_S,
+        spell_margin_s: float = SPELL_MARGIN_S,
+        spell_window_s: float = SPELL_WINDOW_S,
         ghost_forget_s: float = GHOST_FORGET_S,
         ghost_window_s: float = GHOST_WINDOW_S,
         peer_deviation_m: float = math.inf,
@@ -329,6 +364,12 @@ class DroneAgent:
             raise ValueError(f"peer_forget_s must be >= 0, got {peer_forget_s!r}")
         if not peer_silence_s > 0.0:
             raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
+        if not peer_silence_max_s > 0.0:
+            raise ValueError(f"peer_silence_max_s must be > 0, got {peer_silence_max_s!r}")
+        if not (math.isfinite(spell_margin_s) and spell_margin_s >= 0.0):
+            raise ValueError(f"spell_margin_s must be >= 0, got {spell_margin_s!r}")
+        if not (math.isfinite(spell_window_s) and spell_window_s > 0.0):
+            raise ValueError(f"spell_window_s must be > 0, got {spell_window_s!r}")
         if not (math.isfinite(ghost_window_s) and ghost_window_s >= 0.0):
             raise ValueError(f"ghost_window_s must be >= 0, got {ghost_window_s!r}")
         if not peer_deviation_m > 0.0:
@@ -348,6 +389,9 @@ class DroneAgent:
         self.validity_s = float(validity_s)
         self.peer_forget_s = float(peer_forget_s)
         self.peer_silence_s = float(peer_silence_s)
+        self.peer_silence_max_s = float(peer_silence_max_s)
+        self.spell_margin_s = float(spell_margin_s)
+        self.spell_window_s = float(spell_window_s)
         self.ghost_spacing_m = float(ghost_spacing_m)
         self.ghost_forget_s = float(ghost_forget_s)
         self.ghost_window_s = float(ghost_window_s)
@@ -386,10 +430,21 @@ class DroneAgent:
         self._seen: dict[int, _Seen] = {}  # newest trajectory per peer (the cycle writes)
         self._heard: dict[int, _Heard] = {}  # newest state per peer (``heard`` writes)
         self._flagged: dict[int, float] = {}  # peer -> heard time its silence was flagged at
+        self._in_way: dict[int, float] = {}  # peer -> heard time its quiet ghosts were in the way
+        self._looked: dict[int, float] = {}  # peer -> its newest heard time at the last look
+        self._spells: dict[int, deque[tuple[float, float]]] = {}  # peer -> (look, spell)
+        self._look_s = -math.inf  # the latest look's time
+        self._refused: dict[int, TrajectoryMsg] = {}  # peer -> the last message refused
         self.refused_older = 0
         """Trajectories refused because a newer one of the same peer had been received."""
         self.silent_count = 0
-        """Replans in which at least one peer was silent (avoided at its ghosts)."""
+        """Replans in which at least one peer was silent (out of the formation, avoided at its
+        ghosts)."""
+        self.quiet_count = 0
+        """Replans in which at least one peer was quiet but not silent (avoided at its ghosts,
+        still in the formation)."""
+        self.in_the_way_count = 0
+        """Times ``watch`` found a quiet peer's ghosts on our path (each asks for a replan)."""
 
     # --- trajectories (any thread) ----------------------------------------------------------
 
@@ -572,38 +627,109 @@ class DroneAgent:
         return max(-math.inf if h is None else h.stamp_s, -math.inf if s is None else s.sent_s)
 
     def _silence_limit(self, pid: int) -> float:
-        """How long ``pid`` may be heard of nothing newer before it is silent."""
+        """How long ``pid`` may be heard of nothing newer before it is quiet."""
         if pid in self._heard:
             return self.peer_silence_s
         return self.peer_silence_s + self.replan_period_s
 
+    def silence_limit(self, drone_id: int) -> float:
+        """How long ``drone_id`` may now be heard of nothing newer before it is silent: its
+        longest quiet spell of the last ``spell_window_s`` plus ``spell_margin_s``, at least
+        the quiet limit (``peer_silence_s``; one replan period more without states) and at
+        most ``peer_silence_max_s`` (or the quiet limit, if larger)."""
+        with self._peer_lock:
+            return self._silent_limit(int(drone_id))
+
+    def _silent_limit(self, pid: int) -> float:
+        base = self._silence_limit(pid)
+        spells = self._spells.get(pid)
+        longest = max((d for _, d in spells), default=0.0) if spells else 0.0
+        return max(base, min(self.peer_silence_max_s, longest + self.spell_margin_s))
+
+    def _note(self, now: float) -> None:
+        """A look at ``now``: every peer heard of something newer since the last look went
+        unheard for ``now`` minus its newest heard time at that look (a quiet spell, kept for
+        ``spell_window_s``). Under ``_peer_lock``."""
+        if now > self._look_s:
+            self._look_s = now
+        cut = self._look_s - self.spell_window_s
+        for pid in set(self._seen) | set(self._heard):
+            h = self._heard_s(pid)
+            prev = self._looked.get(pid)
+            self._looked[pid] = h
+            spells = self._spells.get(pid)
+            if prev is not None and h > prev and math.isfinite(prev):
+                if spells is None:
+                    spells = self._spells[pid] = deque(maxlen=1024)
+                spells.append((now, max(0.0, now - prev)))
+            while spells and spells[0][0] < cut:
+                spells.popleft()
+
     def watch(self, now_s: float) -> tuple[int, ...]:
-        """Peers that fell silent, or whose reported position left their trajectory, since the
-        last call (see the module docstring); a replan is requested at once when there is one.
-        Call at the rate of the state messages; with ``peer_deviation_m`` set it reads the bus
-        first (states are compared with the newest trajectories)."""
+        """Peers that fell silent, fell quiet with a ghost on our path (the trajectory we fly
+        comes closer than ``check_drone_m`` to a place where it may have stopped), or whose
+        reported position left their trajectory, since the last call (see the module
+        docstring); a replan is requested at once when there is one. Call at the rate of the
+        state messages (each call is a look that measures the peers' quiet spells); with
+        ``peer_deviation_m`` or ``peer_silence_s`` set it reads the bus first (states are
+        compared with the newest trajectories, ghosts lie along them)."""
         out = []
+        quiet = []
+        now = float(now_s)
         fresh = None
-        if math.isfinite(self.peer_deviation_m):  # compare states with the newest trajectories
-            fresh = self.bus.receive(self.drone_id, now_s)
+        if math.isfinite(self.peer_deviation_m) or math.isfinite(self.peer_silence_s):
+            fresh = self.bus.receive(self.drone_id, now)  # states vs the newest trajectories
         with self._peer_lock:
             if fresh is not None:
-                self._take(fresh, now_s)
+                self._take(fresh, now)
+            self._note(now)
             for pid in sorted(set(self._seen) | set(self._heard)):
                 h = self._heard_s(pid)
-                if now_s - h > self._silence_limit(pid):
+                if now - h > self._silent_limit(pid):
                     if self._flagged.get(pid) != h:
                         self._flagged[pid] = h
                         out.append(pid)
+                elif now - h > self._silence_limit(pid):
+                    if pid in self._seen and self._in_way.get(pid) != h:
+                        quiet.append((pid, h))
                 elif self._deviation(pid) is not None:
                     if pid not in self._deviant:
                         self._deviant.add(pid)
                         out.append(pid)
                 else:
                     self._deviant.discard(pid)
+        for pid, h in quiet:  # outside the lock: sampling trajectories
+            if self._in_the_way(pid, now):
+                with self._peer_lock:
+                    self._in_way[pid] = h
+                with self._cfg_lock:
+                    self.in_the_way_count += 1
+                out.append(pid)
         if out and self._assign.goal is not None:
             self.request_replan()
-        return tuple(out)
+        return tuple(sorted(out))
+
+    def _in_the_way(self, pid: int, now: float) -> bool:
+        """Does the trajectory we fly from ``now`` (the one in control, then the queued ones)
+        come closer than ``check_drone_m`` to one of quiet peer ``pid``'s ghosts?"""
+        ghosts = self._ghosts({pid}, now)
+        if not ghosts:
+            return False
+        g = np.array([p for _, p in ghosts], dtype=np.float64)
+        plan = self._plan
+        trs = (plan.current, *plan.queue)
+        starts = [max(now, trs[0].t0_s)] + [q.t0_s for q in trs[1:]]
+        ends = [q.t0_s for q in trs[1:]] + [max(trs[-1].t_end_s, now)]
+        limit = self.params.check_drone_m
+        for tr, t_a, t_b in zip(trs, starts, ends, strict=True):
+            if t_b < now:
+                continue
+            ts = np.append(np.arange(max(t_a, now), t_b, 0.05), t_b)
+            pts = tr.sample(ts)
+            d = np.linalg.norm(pts[:, None, :] - g[None, :, :], axis=2)
+            if float(d.min()) < limit:
+                return True
+        return False
 
     def _deviation(self, pid: int) -> np.ndarray | None:
         """Where ``pid`` last reported itself if that is further than ``peer_deviation_m``
@@ -626,13 +752,17 @@ class DroneAgent:
 
     def counters(self) -> dict[str, int]:
         """A snapshot: ``replans``, ``status.<value>`` per plan status, ``avoided`` (replans
-        with some peer only avoided), ``silent`` (replans with some peer silent),
+        with some peer only avoided), ``silent`` (replans with some peer silent), ``quiet``
+        (replans with some peer quiet, not silent), ``in_the_way`` (quiet peers whose ghosts
+        ``watch`` found on our path),
         ``refused_older`` (older trajectories refused), ``seq`` (messages published)."""
         with self._cfg_lock:
             out = {f"status.{k}": v for k, v in self.status_counts.items()}
             out["replans"] = sum(self.status_counts.values())
             out["avoided"] = self.avoided_count
             out["silent"] = self.silent_count
+            out["quiet"] = self.quiet_count
+            out["in_the_way"] = self.in_the_way_count
             out["refused_older"] = self.refused_older
         out["seq"] = self._seq
         return out
@@ -682,10 +812,10 @@ class DroneAgent:
         t_start = now + self.plan_ahead_s
         flying = self.flying(t_start)
         sp, sv, sa = flying.state(t_start)
-        msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
+        msgs, quiet, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
         formed, avoided = self._split_peers(msgs, a, now, silent)
-        ghosts = [(pid, Trajectory.hover(p, now, HOVER_S)) for pid, p in self._ghosts(silent, now)]
-        deviating = self._deviating(msgs, silent, a, now)
+        ghosts = [(pid, Trajectory.hover(p, now, HOVER_S)) for pid, p in self._ghosts(quiet, now)]
+        deviating = self._deviating(msgs, quiet, a, now)
         ghosts += [(pid, Trajectory.hover(p, now, HOVER_S)) for pid, p in sorted(deviating.items())]
         n_form = a.formation.shape[0]
         n_av = len(avoided)
@@ -734,6 +864,8 @@ class DroneAgent:
                 self.avoided_count += 1
             if silent:
                 self.silent_count += 1
+            if quiet - silent:
+                self.quiet_count += 1
         report = PlanReport(
             drone_id=self.drone_id,
             seq=seq,
@@ -754,6 +886,7 @@ class DroneAgent:
             peers=peers,
             silent_peers=tuple(sorted(silent)),
             deviating_peers=tuple(sorted(deviating)),
+            quiet_peers=tuple(sorted(quiet - silent)),
         )
         self._last = report
         if self.on_plan is not None:
@@ -789,7 +922,9 @@ class DroneAgent:
                 if m.traj_id < o.traj_id or (
                     m.traj_id == o.traj_id and m.trajectory.t0_s < o.trajectory.t0_s - EPS_T
                 ):
-                    self.refused_older += 1
+                    if self._refused.get(pid) is not m:  # each message counted once
+                        self._refused[pid] = m
+                        self.refused_older += 1
                     continue
             if math.isfinite(self.validity_s) and math.isfinite(m.valid_until_s):
                 sent = m.valid_until_s - self.validity_s
@@ -801,13 +936,16 @@ class DroneAgent:
 
     def _peers_now(
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float
-    ) -> tuple[dict[int, TrajectoryMsg], set[int]]:
+    ) -> tuple[dict[int, TrajectoryMsg], set[int], set[int]]:
         """Take the newest trajectory of each peer from ``msgs`` (an older one never replaces
-        a newer one); the peers whose trajectory to consider (not ignored, not forgotten) and
-        the silent peers whose ghosts to avoid (not ignored, ghosts not forgotten)."""
+        a newer one) and look at the peers (``_note``); the peers whose trajectory to consider
+        (not ignored, not forgotten), the quiet peers whose ghosts to avoid (not ignored,
+        ghosts not forgotten; the silent ones included) and the silent ones among them."""
         with self._peer_lock:
             self._take(msgs, now)
+            self._note(now)
             out: dict[int, TrajectoryMsg] = {}
+            quiet: set[int] = set()
             silent: set[int] = set()
             for pid in sorted(self._seen):
                 if pid in a.ignore:
@@ -816,11 +954,13 @@ class DroneAgent:
                 lim = self._silence_limit(pid)
                 h = self._heard_s(pid)
                 if now - h > lim and now <= h + lim + max(self.ghost_forget_s, self.peer_forget_s):
-                    silent.add(pid)
+                    quiet.add(pid)
+                    if now - h > self._silent_limit(pid):
+                        silent.add(pid)
                 if now > min(m.valid_until_s, h + lim) + self.peer_forget_s:
                     continue  # its trajectory is forgotten
                 out[pid] = m
-        return out, silent
+        return out, quiet, silent
 
     def _deviating(
         self, msgs: dict[int, TrajectoryMsg], silent: set[int], a: _Assignment, now: float
@@ -847,14 +987,14 @@ class DroneAgent:
 
     def peer_view(self, now_s: float) -> PeerView:
         """The peers as a plan made at ``now_s`` would see them: their trajectories still
-        considered, the silent peers' ghosts and the deviating peers' reported positions
+        considered, the quiet peers' ghosts and the deviating peers' reported positions
         (module docstring). Reads the bus (newer trajectories are taken as a cycle takes
         them); changes nothing else. Any thread."""
         now = float(now_s)
         a = self._assign
-        msgs, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
-        hovers = self._ghosts(silent, now)
-        deviating = self._deviating(msgs, silent, a, now)
+        msgs, quiet, silent = self._peers_now(self.bus.receive(self.drone_id, now), a, now)
+        hovers = self._ghosts(quiet, now)
+        deviating = self._deviating(msgs, quiet, a, now)
         hovers += sorted(deviating.items())
         points = np.array([p for _, p in hovers], dtype=np.float64).reshape(-1, 3)
         points.setflags(write=False)
@@ -867,15 +1007,16 @@ class DroneAgent:
             hover_points=points,
             silent=tuple(sorted(silent)),
             deviating=tuple(sorted(deviating)),
+            quiet=tuple(sorted(quiet - silent)),
         )
 
-    def _ghosts(self, silent: set[int], now: float) -> list[tuple[int, np.ndarray]]:
-        """Where each silent peer may have stopped (its ghosts, avoided as hovers): points
+    def _ghosts(self, quiet: set[int], now: float) -> list[tuple[int, np.ndarray]]:
+        """Where each quiet peer may have stopped (its ghosts, avoided as hovers): points
         ``ghost_spacing_m`` apart along its last reported position and its last trajectory
         from when it was last heard to ``ghost_window_s`` later (one replan period more without
         states; at most now)."""
         out: list[tuple[int, np.ndarray]] = []
-        for pid in sorted(silent):
+        for pid in sorted(quiet):
             with self._peer_lock:
                 seen = self._seen[pid]
                 state = self._heard.get(pid)

@@ -277,6 +277,8 @@ def test_emergency_is_reported_and_the_policy_hook_decides() -> None:
         "replans": 1,
         "avoided": 0,
         "silent": 0,
+        "quiet": 0,
+        "in_the_way": 0,
         "refused_older": 0,
         "seq": 1,
     }
@@ -336,14 +338,15 @@ def _line(p0: np.ndarray, v: np.ndarray, t0: float, duration: float = 10.0) -> T
 
 def test_a_silent_peer_is_avoided_where_it_may_have_stopped() -> None:
     """Peer 1 flies +x at 1 m/s; its last state is stamped 0.3 s, then nothing: 0.5 s later it
-    is silent, a replan is due at once, it leaves the formation and is avoided at hovers at
-    most 0.25 m apart from its last reported position along its trajectory to where it could
-    have flown in ghost_window_s more; an older copy of its trajectory never replaces the
-    newer one."""
+    is silent (peer_silence_max_s = peer_silence_s: quiet is silent at once), a replan is due
+    at once, it leaves the formation and is avoided at hovers at most 0.25 m apart from its
+    last reported position along its trajectory to where it could have flown in
+    ghost_window_s more; an older copy of its trajectory never replaces the newer one."""
     bus = InMemoryBus()
     me = np.array([0.0, 0, 1])
     a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_forget_s=2.0,
-               ghost_forget_s=3.0, ghost_window_s=0.7, peer_silence_s=0.5)  # fmt: skip
+               ghost_forget_s=3.0, ghost_window_s=0.7, peer_silence_s=0.5,
+               peer_silence_max_s=0.5)  # fmt: skip
     p0 = np.array([0.0, 3.0, 1.0])
     v = np.array([1.0, 0.0, 0.0])
     newer = _line(p0, v, 0.0)

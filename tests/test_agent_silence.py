@@ -1,0 +1,196 @@
+"""DroneAgent's quiet and silent peers (issue #12): a healthy peer under bus faults is at most
+quiet (avoided at its ghosts for a moment, still in the formation), never silent; a killed one
+is quiet ``peer_silence_s`` and silent at most ``peer_silence_max_s`` after its last message;
+a quiet peer asks for a replan only when its ghosts lie on our path."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from onboard.agent import PEER_SILENCE_MAX_S, SPELL_MARGIN_S, DroneAgent, StaticMap
+from onboard.comm import InMemoryBus, TrajectoryMsg
+from onboard.comm.faults import BusFaults, FaultyBus
+from onboard.planner.field import AnalyticField
+from onboard.planner.params import PlannerParams
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+TRIANGLE = np.array([[0.0, 0.0, 0.0], [-1.0, 1.5, 0.0], [-1.0, -1.5, 0.0]])
+PARAMS = PlannerParams(v_max_m_s=1.0)
+EMPTY = StaticMap(AnalyticField(World.empty(0.0)))
+PERIOD = 0.1  # states and looks, as in the simulator and the service
+
+
+def _agent(bus: InMemoryBus, goal: np.ndarray | None, **kw: object) -> DroneAgent:
+    return DroneAgent(
+        0,
+        PARAMS,
+        TRIANGLE,
+        0,
+        Trajectory.hover(np.array([0.0, 0.0, 1.0]), 0.0),
+        bus,
+        EMPTY,
+        goal=goal,
+        validity_s=3.0,
+        peer_silence_s=0.5,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _line(p0: np.ndarray, v: np.ndarray, t0: float, duration: float = 600.0) -> Trajectory:
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = p0
+    c[0, 1] = v
+    return Trajectory(t0, c, np.array([duration]))
+
+
+@dataclass(frozen=True)
+class _State:
+    drone_id: int
+    stamp_s: float
+    position: np.ndarray
+
+
+class _StateChannel:
+    """The inner bus of the states: each receiver gets every sender's newest state by stamp."""
+
+    def __init__(self) -> None:
+        self.newest: dict[int, _State] = {}
+
+    def publish(self, msg: _State, now_s: float) -> None:
+        old = self.newest.get(msg.drone_id)
+        if old is None or msg.stamp_s > old.stamp_s:
+            self.newest[msg.drone_id] = msg
+
+    def receive(self, drone_id: int, now_s: float) -> dict[int, _State]:
+        return {s: m for s, m in self.newest.items() if s != drone_id}
+
+
+def test_a_live_peer_under_bus_faults_is_never_silent_a_dead_one_is_within_the_bound() -> None:
+    """Peer 1 sends its state every 0.1 s through 20 % loss, delays up to 300 ms, 20 %
+    duplication and 10 % held back 1.5 s; we look every 0.1 s. For 400 s it is often older
+    than peer_silence_s (the old rule's silence; here quiet) but never silent. Then it dies:
+    quiet peer_silence_s after its last state was sent, silent at most peer_silence_max_s
+    after it (one look later at most)."""
+    bus = InMemoryBus()
+    a = _agent(bus, None)
+    v = np.array([1.0, 0.0, 0.0])
+    traj = _line(np.array([0.0, 3.0, 1.0]), v, 0.0)
+    bus.publish(TrajectoryMsg(1, 0, 1, traj, valid_until_s=math.inf), 0.0)
+    faults = BusFaults(loss=0.2, delay_max_s=0.3, duplicate=0.2, reorder=0.1)
+    states: Any = FaultyBus(_StateChannel(), faults, seed=3, gate=False)  # type: ignore[arg-type]
+    t_kill = 400.0
+    quiet_looks = silent_looks = 0
+    last_sent = -math.inf
+    first_quiet = first_silent = math.inf
+    for k in range(int((t_kill + 3.0) / PERIOD)):
+        t = round(k * PERIOD, 9)
+        if t <= t_kill:
+            states.publish(_State(1, t, traj.sample(t)), t)
+            last_sent = t
+        for pid, st in states.receive(0, t).items():
+            a.heard(pid, st.stamp_s, st.position)
+        view = a.peer_view(t)
+        if t <= t_kill:
+            quiet_looks += 1 in view.quiet
+            silent_looks += 1 in view.silent
+        else:
+            if 1 in view.quiet or 1 in view.silent:
+                first_quiet = min(first_quiet, t)
+            if 1 in view.silent:
+                first_silent = min(first_silent, t)
+    assert silent_looks == 0
+    assert quiet_looks > 20  # the faults bite: the 0.5 s rule alone would have fired
+    assert t_kill < first_quiet <= last_sent + 0.5 + PERIOD + 1e-9
+    assert first_quiet < first_silent <= last_sent + PEER_SILENCE_MAX_S + PERIOD + 1e-9
+    assert a.counters()["silent"] == 0
+
+
+def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() -> None:
+    """On a clean link the silence limit is peer_silence_s; after a peer came back from a 0.6 s
+    gap it is that plus spell_margin_s; after a 5 s outage peer_silence_max_s; it falls back
+    once the long spells are older than spell_window_s."""
+    bus = InMemoryBus()
+    a = _agent(bus, None, spell_window_s=10.0)
+    p = np.array([0.0, 3.0, 1.0])
+    bus.publish(TrajectoryMsg(1, 0, 1, Trajectory.hover(p, 0.0, 600.0), valid_until_s=3.0), 0.0)
+
+    def talk(t0: float, t1: float) -> None:
+        for k in range(int(round((t1 - t0) / PERIOD)) + 1):
+            t = t0 + k * PERIOD
+            a.heard(1, t, p)
+            a.peer_view(t)
+
+    talk(0.0, 2.0)
+    assert a.silence_limit(1) == pytest.approx(0.5)
+    a.peer_view(2.4)
+    talk(2.6, 4.0)  # unheard 0.6 s
+    assert a.silence_limit(1) == pytest.approx(0.6 + SPELL_MARGIN_S)
+    talk(9.0, 10.0)  # unheard 5 s: silent meanwhile
+    assert a.silence_limit(1) == pytest.approx(PEER_SILENCE_MAX_S)
+    talk(10.1, 19.0)
+    assert a.silence_limit(1) == pytest.approx(PEER_SILENCE_MAX_S)
+    talk(19.1, 20.5)  # the long spells (seen at 2.6 and 9.0) left the 10 s window
+    assert a.silence_limit(1) == pytest.approx(0.5)
+    # peer_silence_max_s = peer_silence_s: one fixed limit
+    b = _agent(bus, None, peer_silence_max_s=0.5)
+    b.heard(1, 0.0, p)
+    b.peer_view(0.0)
+    b.heard(1, 5.0, p)
+    b.peer_view(5.0)
+    assert b.silence_limit(1) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="peer_silence_max_s"):
+        _agent(bus, None, peer_silence_max_s=0.0)
+    with pytest.raises(ValueError, match="spell_margin_s"):
+        _agent(bus, None, spell_margin_s=-0.1)
+    with pytest.raises(ValueError, match="spell_window_s"):
+        _agent(bus, None, spell_window_s=math.inf)
+
+
+def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_way() -> None:
+    """Peers 1 (3 m ahead in our lane) and 2 (3 m to the side) fly +x at 1 m/s like us and
+    have had a 0.4 s quiet spell; both go quiet at 0.7 s. Quiet (0.5 s later): only peer 1's
+    ghosts lie on our path, so only it asks for a replan; the plan avoids both at their ghosts
+    and keeps both in the formation. Silent (limit 0.4 + margin 0.4 = 0.8 s): both leave the
+    formation and ask for a replan."""
+    bus = InMemoryBus()
+    me = np.array([0.0, 0.0, 1.0])
+    v = np.array([1.0, 0.0, 0.0])
+    a = _agent(bus, me + np.array([8.0, 0.0, 0.0]), spell_margin_s=0.4)
+    a.reset(_line(me, v, 0.0, 8.0))
+    p1 = np.array([3.0, 0.0, 1.0])
+    p2 = np.array([-1.0, 3.0, 1.0])
+    tr1, tr2 = _line(p1, v, 0.0), _line(p2, v, 0.0)
+    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
+    bus.publish(TrajectoryMsg(2, 0, 2, tr2, valid_until_s=3.0), 0.0)
+    a.request_replan(math.inf)  # the reset already counts as the current plan
+    for k in range(8):
+        t = round(k * PERIOD, 9)
+        if k not in (2, 3, 4):  # heard at 0.0, 0.1, 0.5, 0.6, 0.7: a 0.4 s spell
+            a.heard(1, t, tr1.sample(t))
+            a.heard(2, t, tr2.sample(t))
+        assert a.watch(t) == ()
+    assert a.silence_limit(1) == pytest.approx(0.8) and a.silence_limit(2) == pytest.approx(0.8)
+    assert a.watch(1.2) == ()  # 0.5 s: not yet quiet
+    assert a.watch(1.3) == (1,) and a.due(1.3)  # quiet, and in our way
+    assert a.watch(1.4) == ()  # once per quiet spell
+    rep = a.replan(1.3)
+    assert rep.quiet_peers == (1, 2) and rep.silent_peers == ()
+    assert rep.formation_peers == (1, 2) and rep.avoided_peers == ()
+    ghosts = [q for q in rep.peers if q.slot >= 3]
+    assert {q.drone_id for q in ghosts} == {1, 2} and rep.status.value.startswith("ok"), rep.message
+    ts = np.arange(1.4, rep.trajectory.t_end_s, 0.05)
+    for g in ghosts:
+        d = np.linalg.norm(rep.trajectory.sample(ts) - g.trajectory.sample(5.0), axis=1)
+        assert d.min() >= PARAMS.check_drone_m - 1e-6
+    assert a.watch(1.5) == ()  # 0.8 s: not yet silent
+    assert a.watch(1.6) == (1, 2)  # silent: out of the formation
+    rep = a.replan(1.6)
+    assert rep.silent_peers == (1, 2) and rep.quiet_peers == () and rep.formation_peers == ()
+    c = a.counters()
+    assert c["quiet"] == 1 and c["silent"] == 1 and c["in_the_way"] == 1
