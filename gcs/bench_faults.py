@@ -12,19 +12,25 @@ combined:
   duplication and reordering (each present or not).
 
 Every drone whose process runs also broadcasts its state at 10 Hz through the same faults.
-A peer heard of nothing newer (trajectory or state) for ``SimConfig.peer_silence_s`` (0.8 s) is
-silent: its peers replan at once, drop it from the formation term and avoid it both along its
-last trajectory and at hovers 0.25 m apart where it may have stopped (``DroneAgent``); a peer
-whose message's validity (3 s, the service's ``reactions.peer_lost.validity_s``) has passed, or
-whose plan started longer ago than that (a stuck drone re-announcing its hover), leaves the
-formation term too; a silent or expired peer is still avoided for 10 s (``avoid_for_s``).
+A peer heard of nothing newer (trajectory or state) for ``SimConfig.peer_silence_s`` (0.5 s) is
+quiet: its peers avoid it both along its last trajectory and at hovers 0.25 m apart where it
+may have stopped, and replan at once if those lie on their path; once unheard longer than its
+recent quiet spells allow (at most ``onboard.agent.PEER_SILENCE_MAX_S``, 1.5 s) it is silent
+and leaves the formation term (``DroneAgent``); a peer whose message's validity (3 s, the
+service's ``reactions.peer_lost.validity_s``) has passed, or whose plan started longer ago than
+that (a stuck drone re-announcing its hover), leaves the formation term too; a silent or
+expired peer is still avoided for 10 s (``avoid_for_s``).
 
 Per trial and in total: collisions (every drone, the hovering faulty ones included: they are
 still in the air), arrivals of the healthy drones, e_sim of the remaining (healthy) formation,
 the minimum obstacle clearance and drone distance, and the audit of peer trajectories used by
 the planner: a message past its validity used in the formation term is a failure
 (``stale_formation_uses``, must be 0); past its validity but only avoided is the designed
-``peer_lost`` reaction (``expired_avoided_uses``, counted).
+``peer_lost`` reaction (``expired_avoided_uses``, counted). The reaction to the faulty drones
+(``ReactionLog``): how long after the fault each healthy drone first planned against the
+faulty one as a hover where it stopped, and first left it out of the formation term; and the
+false alarms: replans with a silent peer in trials without a kill, plans that avoided a healthy
+drone at hovers the agent added (quiet or deviating) or left it out of the formation term.
 
 Trials are shortened by a time limit (``--time-limit``, default 60 s simulated) and flown at
 ``--v-max`` (default 1 m/s) so that 100 of them fit in minutes on two cores.
@@ -216,6 +222,8 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
         "unknown_uses": int(f["unknown_uses"]),
         "ghost_uses": int(f.get("ghost_uses", 0)),
         "silent_replans": int(f.get("agents", {}).get("silent", 0)),
+        "replans": int(sum(result.status_counts.values())),
+        "status_counts": dict(result.status_counts),
         "refused_older": int(f["refused_older"]) + int(f.get("agents", {}).get("refused_older", 0)),
         "peer_uses_audited": int(f["peer_uses_audited"]),
         "bus_counters": dict(f.get("bus", {})),
@@ -404,6 +412,10 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "silent_replans_bus_only": int(
             sum(r.get("silent_replans", 0) for r in rows if not r["killed"] and not r["stuck"])
         ),
+        "replans": int(sum(r.get("replans", 0) for r in rows)),
+        "replans_bus_only": int(
+            sum(r.get("replans", 0) for r in rows if not r["killed"] and not r["stuck"])
+        ),
         "healthy_hover_plans": int(sum(r.get("healthy_hover_plans", 0) for r in rows)),
         "healthy_dropped_plans": int(sum(r.get("healthy_dropped_plans", 0) for r in rows)),
         "reaction_killed": _reaction_summary(rows, "killed"),
@@ -506,7 +518,8 @@ def bench_faults(
         f"{rep['trials_no_kill_with_silent']} trials; bus faults only "
         f"{rep['silent_replans_bus_only']}), plans avoiding a healthy drone as a hover "
         f"{rep['healthy_hover_plans']}, plans leaving a healthy drone out of the formation "
-        f"{rep['healthy_dropped_plans']}"
+        f"{rep['healthy_dropped_plans']}; replans {rep['replans']} (bus faults only "
+        f"{rep['replans_bus_only']})"
     )
     for kind in ("killed", "stuck"):
         rs = rep[f"reaction_{kind}"]

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gcs.bench_faults import bench_faults, draw_trial, run_bench
+from gcs.bench_faults import ReactionLog, bench_faults, draw_trial, run_bench
 from gcs.fastsim import PeerAudit, PlanCall, SimConfig, SimResult, run_sim
-from onboard.agent import PlanInputs
+from onboard.agent import HOVER_S, PlanInputs
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults
 from onboard.comm.messages import TrajectoryMsg
@@ -248,8 +248,42 @@ def test_bench_faults_command_writes_the_report(tmp_path: Path) -> None:
     assert rep["n_trials"] == 1 and len(rep["trials"]) == 1
     row = rep["trials"][0]
     assert row["kinds"] and row["collisions"] == 0 and row["stale_formation_uses"] == 0
-    assert row["peer_uses_audited"] > 0
+    assert row["peer_uses_audited"] > 0 and row["replans"] > 0
     assert rep["collisions"] == 0
+    for key in ("silent_replans_no_kill", "healthy_hover_plans", "healthy_dropped_plans"):
+        assert isinstance(rep[key], int)
+    assert set(rep["reaction_killed"]) == {
+        "hover_s",
+        "hover_s_never",
+        "dropped_s",
+        "dropped_s_never",
+    }
+
+
+def test_reaction_log_times_the_reaction_and_counts_false_alarms() -> None:
+    """Drone 2 is killed at 1.0 s at p: drone 0 keeps it in the formation along its moving
+    trajectory at 1.3 s and avoids it as a hover near p, out of the formation, at 1.6 s; a plan
+    that avoids healthy drone 1 at an added hover, out of the formation, is a false alarm."""
+    log = ReactionLog(3, 0.1, [2])
+    p = np.array([1.0, 2.0, 1.0])
+    z = np.zeros(3)
+    moving = Trajectory(0.0, np.array([[p, [1.0, 0, 0], z, z, z, z]]), np.array([5.0]))
+    one = Trajectory.hover(np.ones(3), 0.0, 30.0)
+
+    def call(t: float, *peers: PeerTrajectory) -> PlanCall:
+        return PlanCall(0, 0, t + 0.1, z, z, z, z, peers, World.empty(), None)
+
+    log(call(1.3, PeerTrajectory(1, 1, one), PeerTrajectory(2, 2, moving)))
+    log(call(1.6, PeerTrajectory(1, 1, one), PeerTrajectory(2, 3, moving),
+             PeerTrajectory(2, 4, Trajectory.hover(p + 0.1, 1.6, HOVER_S))))  # fmt: skip
+    assert log.healthy_hover_plans == 0 and log.healthy_dropped_plans == 0
+    log(call(2.0, PeerTrajectory(1, 3, one), PeerTrajectory(1, 4, Trajectory.hover(
+        np.ones(3), 2.0, HOVER_S))))  # fmt: skip
+    assert log.healthy_hover_plans == 1 and log.healthy_dropped_plans == 1
+    r = log.reactions({2: (1.0, p.tolist())})
+    assert r == {"2": {"0": {"hover_s": pytest.approx(0.6), "dropped_s": pytest.approx(0.6)}}}
+    # never seen where it stopped: None
+    assert log.reactions({2: (1.0, (p + 5.0).tolist())})["2"]["0"]["hover_s"] is None
 
 
 def test_run_bench_refuses_bad_arguments() -> None:
