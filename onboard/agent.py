@@ -33,11 +33,11 @@ trajectory from where it was last heard to where it could have flown in ``ghost_
 (its messages in between lost), and at its last reported position; ``watch`` asks for a replan
 at once only if the trajectory we fly comes closer than ``check_drone_m`` to a ghost (it is in
 our way). A quiet peer stays in the formation term until it is *silent*: quiet for longer than
-its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (how long it
-went unheard before something newer arrived, measured at each look: ``watch``, a replan,
-``peer_view``) plus ``spell_margin_s``, at least the quiet limit and at most
-``peer_silence_max_s``. On a clean link (states every 0.1 s, spells 0.1 s) quiet and silent
-coincide; under loss and delay a healthy peer's newest state is often older than
+its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (the age
+of its newest message at the last look before something newer arrived; looks: ``watch``, a
+replan, ``peer_view``) plus ``spell_margin_s``, at least the quiet limit and at most
+``peer_silence_max_s``. On a clean link (states and looks every 0.1 s: spells of 0.1 s) quiet
+and silent coincide; under loss and delay a healthy peer's newest state is often older than
 ``peer_silence_s`` (20 % loss and up to 300 ms delay: 1-3 % of looks), which then costs at most
 ghosts avoided for a moment, while silence waits for what this link's spells say is
 improbable. A killed peer is thus avoided where it may have stopped ``peer_silence_s`` after its
@@ -96,7 +96,8 @@ PEER_SILENCE_MAX_S = 1.5
 """A quiet peer is silent (out of the formation) at the latest this long after its newest
 message was sent (10 Hz states with 28 % of them missing: 12 in a row with p = 2e-7)."""
 SPELL_MARGIN_S = 0.4
-"""A peer is silent once quiet this much longer than its longest recent quiet spell."""
+"""A peer is silent once quiet this much longer than its longest recent quiet spell (with
+spells of one 0.1 s look period on a clean link: silent when quiet, at ``PEER_SILENCE_S``)."""
 SPELL_WINDOW_S = 30.0
 """How far back a peer's quiet spells (how long it went unheard before it was heard again)
 count."""
@@ -647,10 +648,12 @@ class DroneAgent:
         return max(base, min(self.peer_silence_max_s, longest + self.spell_margin_s))
 
     def _note(self, now: float) -> None:
-        """A look at ``now``: every peer heard of something newer since the last look went
-        unheard for ``now`` minus its newest heard time at that look (a quiet spell, kept for
-        ``spell_window_s``). Under ``_peer_lock``."""
-        if now > self._look_s:
+        """A look at ``now``: a peer heard of something newer since the last look ended a
+        quiet spell as long as the age of its newest message at the last look (the longest
+        age a look saw before it was heard again; kept for ``spell_window_s``). Under
+        ``_peer_lock``."""
+        last = self._look_s
+        if now > last:
             self._look_s = now
         cut = self._look_s - self.spell_window_s
         for pid in set(self._seen) | set(self._heard):
@@ -658,10 +661,10 @@ class DroneAgent:
             prev = self._looked.get(pid)
             self._looked[pid] = h
             spells = self._spells.get(pid)
-            if prev is not None and h > prev and math.isfinite(prev):
+            if prev is not None and h > prev and math.isfinite(prev) and last >= prev:
                 if spells is None:
                     spells = self._spells[pid] = deque(maxlen=1024)
-                spells.append((now, max(0.0, now - prev)))
+                spells.append((now, min(last, now) - prev))
             while spells and spells[0][0] < cut:
                 spells.popleft()
 

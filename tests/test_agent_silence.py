@@ -112,9 +112,9 @@ def test_a_live_peer_under_bus_faults_is_never_silent_a_dead_one_is_within_the_b
 
 
 def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() -> None:
-    """On a clean link the silence limit is peer_silence_s; after a peer came back from a 0.6 s
-    gap it is that plus spell_margin_s; after a 5 s outage peer_silence_max_s; it falls back
-    once the long spells are older than spell_window_s."""
+    """On a clean link the silence limit is peer_silence_s; after a look saw a peer's newest
+    message 0.5 s old before it was heard again, that plus spell_margin_s; after a 5 s outage
+    peer_silence_max_s; it falls back once the long spells are older than spell_window_s."""
     bus = InMemoryBus()
     a = _agent(bus, None, spell_window_s=10.0)
     p = np.array([0.0, 3.0, 1.0])
@@ -128,10 +128,14 @@ def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() ->
 
     talk(0.0, 2.0)
     assert a.silence_limit(1) == pytest.approx(0.5)
-    a.peer_view(2.4)
-    talk(2.6, 4.0)  # unheard 0.6 s
-    assert a.silence_limit(1) == pytest.approx(0.6 + SPELL_MARGIN_S)
-    talk(9.0, 10.0)  # unheard 5 s: silent meanwhile
+    a.peer_view(2.3)
+    a.peer_view(2.5)  # its newest message is 0.5 s old
+    talk(2.6, 4.0)  # heard again: a 0.5 s spell
+    assert a.silence_limit(1) == pytest.approx(0.5 + SPELL_MARGIN_S)
+    for k in range(1, 50):  # unheard 5 s: silent meanwhile
+        a.peer_view(4.0 + k * PERIOD)
+        assert 1 in a.peer_view(4.0 + k * PERIOD).silent or k * PERIOD <= 0.9 + 1e-9
+    talk(9.0, 10.0)
     assert a.silence_limit(1) == pytest.approx(PEER_SILENCE_MAX_S)
     talk(10.1, 19.0)
     assert a.silence_limit(1) == pytest.approx(PEER_SILENCE_MAX_S)
@@ -154,7 +158,7 @@ def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() ->
 
 def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_way() -> None:
     """Peers 1 (3 m ahead in our lane) and 2 (3 m to the side) fly +x at 1 m/s like us and
-    have had a 0.4 s quiet spell; both go quiet at 0.7 s. Quiet (0.5 s later): only peer 1's
+    have had a 0.4 s quiet spell; both go quiet after 0.7 s. Quiet (0.5 s later): only peer 1's
     ghosts lie on our path, so only it asks for a replan; the plan avoids both at their ghosts
     and keeps both in the formation. Silent (limit 0.4 + margin 0.4 = 0.8 s): both leave the
     formation and ask for a replan."""
@@ -171,7 +175,7 @@ def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_w
     a.request_replan(math.inf)  # the reset already counts as the current plan
     for k in range(8):
         t = round(k * PERIOD, 9)
-        if k not in (2, 3, 4):  # heard at 0.0, 0.1, 0.5, 0.6, 0.7: a 0.4 s spell
+        if k not in (2, 3, 4, 5):  # heard at 0.0, 0.1, 0.6, 0.7: seen 0.4 s old at 0.5
             a.heard(1, t, tr1.sample(t))
             a.heard(2, t, tr2.sample(t))
         assert a.watch(t) == ()
