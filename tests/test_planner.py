@@ -366,3 +366,44 @@ def test_a_narrow_gap_is_left_for_a_roomier_way_with_the_comfort_clearance() -> 
 
     assert closest(0.0) < 0.3
     assert closest(0.4) >= 0.4
+
+
+def test_the_a_star_fallback_takes_the_roomiest_way_before_the_checks_distance() -> None:
+    """A trunk on the straight way, then a wall whose gaps are all narrower than the
+    optimiser's 0.6 m clearance needs: one 0.5 m gap straight ahead (0.25 m from each trunk,
+    the check allows 0.22 m) and one 1.0 m gap 2.2 m aside. The A* guide path used to fall from
+    0.6 m straight to the check's distance and take the narrow gap; an optimised trajectory
+    there passes a few centimetres over the check at best (on a drone's own map, whose gaps are
+    narrower than the true ones, the check refused every plan: mapped forest-medium seed 3).
+    The clearances in between find the wide gap."""
+    ys = [-0.55 - 0.9 * k for k in range(11)] + [0.55, 1.4] + [3.0 + 0.9 * k for k in range(8)]
+    world = _world([[4.0, y, 0.3, 0.0, 3.0] for y in ys] + [[1.8, 0.0, 0.25, 0.0, 3.0]])
+    field = AnalyticField(world)
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([8.0, 0.0, 1.0])
+
+    def fly(params: PlannerParams) -> tuple[float, float]:
+        """(closest approach to a trunk, y where the plan crosses the wall)."""
+        res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
+        assert res.status == PlanStatus.OK, res.message
+        tr = res.trajectory
+        pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 800))
+        crossing = pts[int(np.argmin(np.abs(pts[:, 0] - 4.0))), 1]
+        return float(field.distance(pts)[0].min()), float(crossing)
+
+    params = PlannerParams(v_max_m_s=1.0)
+    assert params.astar_ladder_m == (0.6, 0.5, 0.4, 0.3, 0.22)
+    clearance, crossing = fly(params)
+    assert clearance >= 0.4
+    assert crossing == pytest.approx(2.2, abs=0.25)  # through the wide gap
+    # the old two-step fallback (0.6, then the check's 0.22) threads the narrow gap
+    clearance, crossing = fly(PlannerParams(v_max_m_s=1.0, astar_clearances_m=()))
+    assert clearance < 0.3
+    assert crossing == pytest.approx(0.0, abs=0.2)
+
+
+def test_bad_a_star_clearances_raise() -> None:
+    with pytest.raises(ValueError, match="astar_clearances_m"):
+        PlannerParams(astar_clearances_m=(0.5, -0.1))
+    # levels outside (check, optimiser) are left out; equal ones give the single level
+    assert PlannerParams(astar_clearances_m=(0.7, 0.1, 0.45)).astar_ladder_m == (0.6, 0.45, 0.22)
+    assert PlannerParams(obstacle_clearance_m=0.22).astar_ladder_m == (0.22,)

@@ -161,9 +161,11 @@ def _oracle_x0(
         path = np.vstack([sp, target])
     else:
         res, band = p.astar_resolution_m, p.altitude_band_inner_m
-        astar = astar_path(field, sp, target, p.obstacle_clearance_m, res, z_limits=band)
-        if astar is None and p.obstacle_clearance_m > p.check_obstacle_m:
-            astar = astar_path(field, sp, target, p.check_obstacle_m, res, z_limits=band)
+        astar = None
+        for clearance in p.astar_ladder_m:  # one search per level, the first path found
+            astar = astar_path(field, sp, target, clearance, res, z_limits=band)
+            if astar is not None:
+                break
         path = np.vstack([sp, target]) if astar is None else astar
     path[0] = sp
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])

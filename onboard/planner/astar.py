@@ -7,6 +7,7 @@ guide path when the straight line crosses obstacles); it is not itself the flown
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numba import njit
@@ -256,6 +257,24 @@ def astar_path(
     start and goal at the same node: ``[start, goal]``. None: no path, or more than
     max_expansions nodes expanded.
     """
+    return astar_path_levels(
+        field, start, goal, (clearance_m,), resolution_m, margin_m, z_limits, max_expansions
+    )[0]
+
+
+def astar_path_levels(
+    field: DistanceField,
+    start: np.ndarray,
+    goal: np.ndarray,
+    clearances_m: Sequence[float],
+    resolution_m: float = 0.2,
+    margin_m: float = 3.0,
+    z_limits: tuple[float, float] | None = None,
+    max_expansions: int = 200_000,
+) -> tuple[np.ndarray | None, float]:
+    """``astar_path`` at each of ``clearances_m`` in turn until one finds a path (the field is
+    sampled on the grid once): (path, the clearance it keeps), or (None, NaN) when none does.
+    max_expansions bounds each search."""
     p0 = np.asarray(start, dtype=np.float64).reshape(3)
     p1 = np.asarray(goal, dtype=np.float64).reshape(3)
     if resolution_m <= 0.0 or margin_m < 0.0:
@@ -276,16 +295,19 @@ def astar_path(
     axes = [lo[a] + np.arange(shape[a]) * resolution_m for a in range(3)]
     nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     d, _ = field.distance(nodes)
-    occupied = (d < clearance_m).reshape(tuple(shape))
-    s = _nearest_free(occupied, (p0 - lo) / resolution_m)
-    t = _nearest_free(occupied, (p1 - lo) / resolution_m)
-    if s is None or t is None:
-        return None
-    if np.array_equal(s, t):
-        return np.stack([p0, p1])
-    cells, status = astar_grid(occupied, s, t, int(max_expansions))
-    if status != ASTAR_FOUND:
-        return None
-    turning = lo + _drop_collinear(cells) * resolution_m
-    pts = np.concatenate([p0[None], turning, p1[None]])
-    return _shortcut(field, pts, clearance_m)
+    d = d.reshape(tuple(shape))
+    for clearance_m in clearances_m:
+        occupied = d < clearance_m
+        s = _nearest_free(occupied, (p0 - lo) / resolution_m)
+        t = _nearest_free(occupied, (p1 - lo) / resolution_m)
+        if s is None or t is None:
+            continue
+        if np.array_equal(s, t):
+            return np.stack([p0, p1]), float(clearance_m)
+        cells, status = astar_grid(occupied, s, t, int(max_expansions))
+        if status != ASTAR_FOUND:
+            continue
+        turning = lo + _drop_collinear(cells) * resolution_m
+        pts = np.concatenate([p0[None], turning, p1[None]])
+        return _shortcut(field, pts, clearance_m), float(clearance_m)
+    return None, math.nan

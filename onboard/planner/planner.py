@@ -31,7 +31,7 @@ import numpy as np
 
 from onboard.planner import kernels as kn
 from onboard.planner import objective as obj
-from onboard.planner.astar import astar_path
+from onboard.planner.astar import astar_path_levels
 from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
@@ -396,28 +396,19 @@ class FormationPlanner:
     def _astar(
         self, start: np.ndarray, target: np.ndarray, field: DistanceField, margin_m: float
     ) -> np.ndarray:
-        """An A* path start-target at the optimiser's clearance, else at the check's, else the
-        straight line, (K, 3)."""
+        """An A* path start-target at the optimiser's clearance, else at the next lower of
+        ``params.astar_ladder_m`` that finds one (the check's last), else the straight line,
+        (K, 3)."""
         p = self.params
-        path = astar_path(
+        path, _ = astar_path_levels(
             field,
             start,
             target,
-            clearance_m=p.obstacle_clearance_m,
+            p.astar_ladder_m,
             resolution_m=p.astar_resolution_m,
             margin_m=margin_m,
             z_limits=p.altitude_band_inner_m,
         )
-        if path is None and p.obstacle_clearance_m > p.check_obstacle_m:
-            path = astar_path(
-                field,
-                start,
-                target,
-                clearance_m=p.check_obstacle_m,
-                resolution_m=p.astar_resolution_m,
-                margin_m=margin_m,
-                z_limits=p.altitude_band_inner_m,
-            )
         if path is None:
             return np.vstack([start, target])
         return np.ascontiguousarray(path, dtype=np.float64)
