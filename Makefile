@@ -66,7 +66,12 @@ PYTEST_FAST := -m "not slow" -n auto
 SMOKE_TESTS := tests/test_imports.py tests/test_layers.py tests/test_planner_kernels.py \
 	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py \
 	tests/test_demo.py
+# numba's kernels compiled once, two processes side by side, before the xdist workers start
+# (else each worker compiles the same kernels at the same time: tests/warm_kernels.py)
+WARM = $(1) tests/warm_kernels.py planner & p=$$!; $(1) tests/warm_kernels.py rest; r=$$?; \
+	wait $$p && test $$r = 0
 pytest: $(STAMP)
+	@$(call WARM,$(PY))
 ifeq ($(strip $(PYTHON310)),)
 	$(VENV)/bin/pytest -q $(PYTEST_FAST)
 	$(VENV)/bin/pytest -q -m slow
@@ -93,6 +98,7 @@ pytest310:
 	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PYTHON) -V 2>&1) only"
 else
 pytest310: $(STAMP310) | system-deps
+	@$(call WARM,$(PY310))
 	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_FAST)
 	$(VENV310)/bin/pytest -q -p no:cacheprovider -m slow
 endif
