@@ -764,6 +764,7 @@ def run_service_bench(
                     "depth_frames_per_s": frames,
                     "depth_frames_missed_per_s": delta("service.frames_missed") / wall,
                     "esdf_refreshes_per_s": delta("service.esdf_builds") / wall,
+                    "esdf_new_buffer_sets": delta("service.esdf_new_buffer_sets"),
                     "cpu_cores_by_worker": workers,
                     "autopilot_late_ticks": delta("autopilot.late_ticks"),
                     "replans": c1.get("service.replans", 0) - c0.get("service.replans", 0),

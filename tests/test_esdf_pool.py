@@ -39,6 +39,20 @@ def test_fields_nobody_holds_give_their_arrays_to_the_next_refresh() -> None:
         del f
         gc.collect()
     assert len(seen) == 1  # one buffer set, reused every time
+    assert b.new_sets == 1
+
+
+def test_the_builder_counts_the_buffer_sets_it_had_to_allocate() -> None:
+    om = _random_map(2)
+    b = EsdfBuilder()
+    held = [b.build(om, inflate_m=0.1) for _ in range(5)]  # each still held: a new set each
+    assert b.new_sets == 5
+    del held
+    gc.collect()
+    for _ in range(4):
+        b.build(om, inflate_m=0.1)
+        gc.collect()
+    assert b.new_sets == 5  # the pooled ones came back
 
 
 def test_a_field_or_any_view_of_it_still_held_is_never_overwritten() -> None:
@@ -68,11 +82,15 @@ def test_a_field_or_any_view_of_it_still_held_is_never_overwritten() -> None:
         np.testing.assert_array_equal(got.inflated(0.1).values, fresh.inflated(0.1).values)
         del got, fresh
         gc.collect()
-    np.testing.assert_array_equal(held.values, copies["values"])
-    np.testing.assert_array_equal(planning.values, copies["planning"])
+    for name, a in (("values", held.values), ("planning", planning.values)):
+        want = copies[name]
+        assert want is not None
+        np.testing.assert_array_equal(a, want)
     assert held.known is not None and copies["known"] is not None
     np.testing.assert_array_equal(held.known, copies["known"])
-    np.testing.assert_array_equal(held.occupied, copies["occupied"])
+    occupied = copies["occupied"]
+    assert occupied is not None
+    np.testing.assert_array_equal(held.occupied, occupied)
     np.testing.assert_array_equal(v2, copy2[0])
     assert k2 is not None and copy2[1] is not None
     np.testing.assert_array_equal(k2, copy2[1])

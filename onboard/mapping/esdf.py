@@ -52,16 +52,20 @@ def _column_pass(
     the nearest occupied cell (f_out, whose window-linear index goes to feat) and to the nearest
     non-occupied cell (f_in). Occupied cells get their surface point (mean of their hits, the
     centre when none), relative to the window origin, in spt (nx, ny, nz, 3). Returns the
-    number of occupied cells."""
+    number of occupied cells. A column without an occupied cell (most: free and unknown space)
+    gets f_out big and f_in 0 without the scans, and no feat (never read where f_out is big)."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
-    big = 1e30
+    big = np.float32(1e30)
     n_occ = 0
     sz_of = np.empty(nz, dtype=np.int64)
     for wk in range(nz):
         s = (lo[2] + wk) % nz
         sz_of[wk] = s + nz if s < 0 else s
+    col = np.empty(nz, dtype=np.float32)
+    ocol = np.empty(nz, dtype=np.bool_)
+    dn = np.empty(nz, dtype=np.int64)
     for wi in range(nx):
         si = (lo[0] + wi) % nx
         if si < 0:
@@ -70,17 +74,30 @@ def _column_pass(
             sj = (lo[1] + wj) % ny
             if sj < 0:
                 sj += ny
-            last_occ = -1
-            last_free = -1
+            base = (si * ny + sj) * nz
+            any_occ = False
             for wk in range(nz):
                 v = logodds[si, sj, sz_of[wk]]
                 o = v >= l_occ
-                occ[wi, wj, wk] = o
+                ocol[wk] = o
                 known[wi, wj, wk] = v > _UNKNOWN_BELOW
+                any_occ |= o
+            if not any_occ:
+                for wk in range(nz):
+                    occ[wi, wj, wk] = False
+                    f_out[wi, wj, wk] = big
+                    f_in[wi, wj, wk] = 0.0
+                continue
+            fbase = (wi * ny + wj) * nz
+            last_occ = -1
+            last_free = -1
+            for wk in range(nz):
+                o = ocol[wk]
+                occ[wi, wj, wk] = o
                 if o:
                     n_occ += 1
                     last_occ = wk
-                    e = (si * ny + sj) * nz + sz_of[wk]
+                    e = base + sz_of[wk]
                     c = surf[e, 3]
                     spt[wi, wj, wk, 0] = (wi + 0.5) * res
                     spt[wi, wj, wk, 1] = (wj + 0.5) * res
@@ -91,24 +108,26 @@ def _column_pass(
                         spt[wi, wj, wk, 2] += surf[e, 2] / c
                 else:
                     last_free = wk
-                f_out[wi, wj, wk] = (wk - last_occ) if last_occ >= 0 else big
-                f_in[wi, wj, wk] = (wk - last_free) if last_free >= 0 else big
-                feat[wi, wj, wk] = (wi * ny + wj) * nz + last_occ
+                dn[wk] = last_occ
+                col[wk] = (wk - last_free) if last_free >= 0 else big
             last_occ = -1
             last_free = -1
             for wk in range(nz - 1, -1, -1):
-                if occ[wi, wj, wk]:
+                if ocol[wk]:
                     last_occ = wk
                 else:
                     last_free = wk
-                if last_occ >= 0 and last_occ - wk < f_out[wi, wj, wk]:
-                    f_out[wi, wj, wk] = last_occ - wk
+                lb = dn[wk]
+                a = (wk - lb) if lb >= 0 else big
+                if last_occ >= 0 and last_occ - wk < a:
+                    a = last_occ - wk
+                if last_occ >= 0 and last_occ - wk <= a:
+                    feat[wi, wj, wk] = fbase + last_occ
+                else:
+                    feat[wi, wj, wk] = fbase + lb
+                b = col[wk]
                 if last_free >= 0:
-                    f_in[wi, wj, wk] = min(f_in[wi, wj, wk], last_free - wk)
-                if last_occ >= 0 and last_occ - wk <= f_out[wi, wj, wk]:
-                    feat[wi, wj, wk] = (wi * ny + wj) * nz + last_occ
-                a = f_out[wi, wj, wk]
-                b = f_in[wi, wj, wk]
+                    b = min(b, last_free - wk)
                 f_out[wi, wj, wk] = a * a if a < big else big
                 f_in[wi, wj, wk] = b * b if b < big else big
     return n_occ
@@ -218,6 +237,52 @@ def _envelope_pass(
                 if with_feat:
                     for i in range(nx):
                         feat[i, j, k] = fo[i]
+
+
+@njit(cache=True, nogil=True)
+def _envelope_pass_x(f: np.ndarray, skip_value: float, feat: np.ndarray, with_feat: bool) -> None:
+    """``_envelope_pass`` along axis 0, one (x, z) plane at a time through a transposed copy
+    (the lines along x lie a plane apart in f)."""
+    nx = f.shape[0]
+    ny = f.shape[1]
+    nz = f.shape[2]
+    F = np.empty((nz, nx))
+    FT = np.zeros((nz, nx), dtype=np.int32)
+    out = np.empty(nx)
+    v = np.empty(nx, dtype=np.int64)
+    z = np.empty(nx + 1)
+    fo = np.empty(nx, dtype=np.int32)
+    big = 1e30
+    for j in range(ny):
+        for i in range(nx):
+            for k in range(nz):
+                F[k, i] = f[i, j, k]
+        if with_feat:
+            for i in range(nx):
+                for k in range(nz):
+                    FT[k, i] = feat[i, j, k]
+        for k in range(nz):
+            line = F[k]
+            same = True
+            for i in range(nx):
+                if line[i] != skip_value:
+                    same = False
+                    break
+            if same:
+                continue
+            _envelope_line(line, nx, out, v, z, big, FT[k], fo, with_feat)
+            for i in range(nx):
+                line[i] = out[i]
+            if with_feat:
+                for i in range(nx):
+                    FT[k, i] = fo[i]
+        for i in range(nx):
+            for k in range(nz):
+                f[i, j, k] = F[k, i]
+        if with_feat:
+            for i in range(nx):
+                for k in range(nz):
+                    feat[i, j, k] = FT[k, i]
 
 
 @njit(cache=True, nogil=True)
@@ -417,12 +482,13 @@ def esdf_kernel(
     non-finite values written (0 unless an input was bad). f_out, feat, f_in and spt
     (nx, ny, nz, 3) float32 are work buffers."""
     n_occ = _column_pass(logodds, surf, lo, l_occ, res, f_out, feat, f_in, occ, known, spt)
-    big = 1e30
+    # the float32 the grids hold for "no occupied cell" (a float64 1e30 never equals it)
+    big = np.float32(1e30)
     _envelope_pass(f_out, 1, big, feat, sub_cell)
-    _envelope_pass(f_out, 0, big, feat, sub_cell)
+    _envelope_pass_x(f_out, big, feat, sub_cell)
     if n_occ > 0 and not _inside_local(occ, f_in, n_occ, _INSIDE_SEARCH_CELLS):
-        _envelope_pass(f_in, 1, 0.0, feat, False)
-        _envelope_pass(f_in, 0, 0.0, feat, False)
+        _envelope_pass(f_in, 1, np.float32(0.0), feat, False)
+        _envelope_pass(f_in, 0, np.float32(0.0), feat, False)
     if inflated is None:
         bad = _combine(
             f_out,
@@ -559,6 +625,9 @@ class _OutputPool:
         self.sets: list[tuple[np.ndarray, ...]] = []
         self.max_sets = sets
         self._free_count = -1
+        self.new_sets = 0
+        """Buffer sets allocated (the pooled ones, then one per refresh that found none free:
+        fresh arrays cost page faults)."""
 
     def _new_set(self) -> tuple[np.ndarray, ...]:
         sh = self.shape
@@ -581,6 +650,7 @@ class _OutputPool:
             if self._is_free(bufs):
                 return bufs
         bufs = self._new_set()
+        self.new_sets += 1
         if len(self.sets) < self.max_sets:
             self.sets.append(bufs)
         return bufs
@@ -602,6 +672,12 @@ class EsdfBuilder:
         self._shape: tuple[int, int, int] | None = None
         self._bufs: tuple[np.ndarray, ...] = ()
         self._pool: _OutputPool | None = None
+        self._new_sets_before = 0  # of pools replaced after a change of shape
+
+    @property
+    def new_sets(self) -> int:
+        """Output buffer sets allocated so far (see ``_OutputPool.new_sets``)."""
+        return self._new_sets_before + (self._pool.new_sets if self._pool is not None else 0)
 
     def build(
         self, omap: OccupancyMap, stamp_s: float = math.nan, inflate_m: float | None = None
@@ -616,6 +692,7 @@ class EsdfBuilder:
                 np.empty(shape, dtype=np.float32),
                 np.empty((*shape, 3), dtype=np.float32),
             )
+            self._new_sets_before = self.new_sets
             self._pool = _OutputPool(shape)
             self._shape = shape
         f_out, feat, f_in, spt = self._bufs

@@ -86,6 +86,12 @@ class LocalMapper:
             self.rejected += 1
         return res
 
+    @property
+    def esdf_new_buffer_sets(self) -> int:
+        """Output buffer sets the ESDF refreshes allocated (pooled ones first; more means a
+        refresh found every pooled set still held by some field)."""
+        return self._builder.new_sets
+
     def field(self) -> EsdfField:
         """The ESDF of the current window (recomputed only if the map changed since)."""
         if self._dirty or self._field is None:

@@ -499,6 +499,7 @@ class FlightService:
             nxt = self._next_esdf_s + period
             self._next_esdf_s = nxt if now < nxt else now + period
             self.counters["esdf_builds"] += 1
+            self.counters["esdf_new_buffer_sets"] = self.mapper.esdf_new_buffer_sets
             self._cpu("esdf", time.thread_time() - c1)
             if now - self._last_map_record_s >= 0.5:
                 self._last_map_record_s = now
