@@ -269,6 +269,13 @@ class SimResult:
     the designed reaction), ``peer_uses_audited``, ``killed`` / ``stuck`` (id -> time and
     position where the vehicle stopped), ``bus`` (the ``FaultyBus`` counters)."""
 
+    refusals: dict[str, int] = field(default_factory=dict)
+    """Optimised attempts the safety check refused, over all replans (a replan that ends
+    ok-no-formation, kept-previous or emergency refused one or more): ``attempts`` in all,
+    ``unobserved`` of them because they entered unobserved map space within
+    ``check_known_s``, ``obstacle`` / ``drone`` / ``altitude`` for those reasons (from the
+    plan reports' messages)."""
+
     def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
         """A JSON-serialisable summary (tracks only when asked: they are large)."""
         out: dict[str, Any] = {
@@ -294,6 +301,7 @@ class SimResult:
             "iterations": {k: _num(v) for k, v in self.iterations.items()},
             "evaluations": {k: _num(v) for k, v in self.evaluations.items()},
             "status_counts": dict(self.status_counts),
+            "refusals": dict(self.refusals),
             "sim_wall_s": _num(self.sim_wall_s),
             "warmup_s": _num(self.warmup_s),
             "formation": self.formation_name,
@@ -318,6 +326,31 @@ class SimResult:
                 "e_dist": self.tracks.e_dist.tolist(),
             }
         return out
+
+
+REFUSAL_KEYS = ("attempts", "unobserved", "obstacle", "drone", "altitude", "other")
+_ATTEMPT_PREFIXES = ("formation", "a* retry")
+
+
+def count_refusals(message: str, counts: dict[str, int]) -> None:
+    """Add the attempts a plan's message says the safety check refused to ``counts``
+    (``REFUSAL_KEYS``): the planner joins one "<attempt>: <reason>" per refused attempt
+    (``FormationPlanner.plan``) with "; "."""
+    for part in message.split("; "):
+        if not part.startswith(_ATTEMPT_PREFIXES) or ": " not in part:
+            continue
+        why = part.split(": ", 1)[1]
+        counts["attempts"] += 1
+        if why.startswith("enters unobserved space"):
+            counts["unobserved"] += 1
+        elif why.startswith("obstacle clearance"):
+            counts["obstacle"] += 1
+        elif why.startswith("drone "):
+            counts["drone"] += 1
+        elif why.startswith("altitude"):
+            counts["altitude"] += 1
+        else:
+            counts["other"] += 1
 
 
 def _num(x: float) -> float | int | None:
@@ -608,6 +641,7 @@ def run_sim(
     iterations: list[float] = []
     evaluations: list[float] = []
     status_counts: dict[str, int] = {}
+    refusals = dict.fromkeys(REFUSAL_KEYS, 0)
 
     def replan(ag: DroneAgent, t: float, p_now: np.ndarray) -> None:
         # the states that have arrived by now (a service's subscriber hands them over as they
@@ -620,6 +654,7 @@ def run_sim(
         evaluations.append(float(rep.evaluations))
         key = str(rep.status.value)
         status_counts[key] = status_counts.get(key, 0) + 1
+        count_refusals(rep.message, refusals)
 
     dt = cfg.dt_s
     mon = FlightMonitor(
@@ -712,6 +747,7 @@ def run_sim(
         iterations=iterations,
         evaluations=evaluations,
         status_counts=status_counts,
+        refusals=refusals,
         wall_s=time.perf_counter() - wall0,
         warmup_s=warmup_s,
         config=_config_summary(cfg, params),
@@ -743,6 +779,7 @@ def result_from_monitor(
     iterations: Sequence[float],
     evaluations: Sequence[float],
     status_counts: dict[str, int],
+    refusals: dict[str, int] | None = None,
     wall_s: float,
     warmup_s: float,
     config: dict[str, Any],
@@ -788,6 +825,7 @@ def result_from_monitor(
         cluttered_x=(float(lo), float(hi)),
         config=config,
         faults={} if faults is None else faults,
+        refusals={} if refusals is None else dict(refusals),
     )
 
 

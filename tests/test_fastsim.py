@@ -143,3 +143,39 @@ def test_planner_params_own_the_speed_limit() -> None:
     assert slow.v_max_m_s == slow.params.v_max_m_s == 0.3 and slow.seed == own.seed
     with pytest.raises(ValueError, match="v_max_m_s must be > 0"):
         SimConfig(form, world, v_max_m_s=0.0)
+
+
+def test_refused_attempts_are_counted_by_reason() -> None:
+    """A plan that must enter unobserved space at once: both attempts are refused for it, and
+    the flight's counter reads that off the planner's own message."""
+    from gcs.fastsim import REFUSAL_KEYS, count_refusals
+    from onboard.planner.field import AnalyticField, GridField
+    from onboard.planner.params import PlannerParams
+    from onboard.planner.planner import FormationPlanner, PlanStatus
+    from onboard.world import World
+
+    exact = AnalyticField(World.empty(0.0))
+    grid = GridField.from_function(exact.distance, [-2.0, -2.0, 0.0], [8.0, 2.0, 2.0], 0.1)
+    field = GridField(grid.values, grid.origin, grid.res, known=grid.cell_centres()[..., 0] < 0.1)
+    line = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+    z = np.zeros(3)
+    res = FormationPlanner(PlannerParams(v_max_m_s=1.0), line, slot=1).plan(
+        0.0, np.array([0.0, 0.0, 1.0]), z, z, np.array([6.0, 0.0, 1.0]), [], field
+    )
+    assert res.status == PlanStatus.EMERGENCY
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    count_refusals(res.message, counts)
+    assert counts == {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 2, "unobserved": 2}
+    count_refusals("formation: obstacle clearance 0.18 m at t=1.70 s; roomier a* way: 0.2 -> "
+                   "0.3 m; a* retry without formation: drone 3 at 0.40 m at t=0.50 s; previous: "
+                   "obstacle clearance 0.1 m at t=0.10 s", counts)  # fmt: skip
+    assert (counts["attempts"], counts["obstacle"], counts["drone"]) == (4, 1, 1)
+
+
+def test_a_flight_reports_its_refusals(small_flight: tuple[SimResult, list[PlanCall]]) -> None:
+    r = small_flight[0]
+    refused = sum(v for k, v in r.status_counts.items() if k != "ok")
+    d = r.to_json()["refusals"]
+    assert set(d) == {"attempts", "unobserved", "obstacle", "drone", "altitude", "other"}
+    assert d["attempts"] >= refused  # every replan not "ok" refused at least one attempt
+    assert d["attempts"] == sum(v for k, v in d.items() if k != "attempts")
