@@ -5,7 +5,8 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. A failed attempt is retried from an A* path with the formation term
-(``astar_keeps_formation``), then from an A* path without it; failing that the previous
+(``astar_keeps_formation``), then from an A* path without it (A* keeps the largest of the
+clearances ``astar_ladder_m`` at which it finds a path); failing that the previous
 trajectory is kept if it is still safe, else an emergency stop is returned. A drone ahead of
 its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so the
 swarm waits for a drone left behind rather than stretching the shape for the rest of the
