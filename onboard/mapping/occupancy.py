@@ -71,7 +71,6 @@ from onboard.mapping.camera import CameraIntrinsics
 UNKNOWN_LOGODDS = np.float32(-100.0)
 """Log-odds value that marks a never-observed cell (below any clamped value)."""
 _UNKNOWN_BELOW = -50.0
-_MAX_MARK = (2**31 - 1) // 8 - 1
 _BIT_FREE = 1
 _BIT_HIT = 2
 _BIT_END = 4
@@ -209,14 +208,15 @@ def _wrap(g: int, n: int) -> int:
 
 @njit(cache=True, nogil=True)
 def _touch(
-    touch: np.ndarray, touched: np.ndarray, n_touched: int, idx: int, mark: int, bits: int
+    touch: np.ndarray, touched: np.ndarray, n_touched: int, idx: int, bits: int
 ) -> tuple[int, int]:
-    """Add bits to cell idx's mark of this frame; returns (its previous bits, n_touched)."""
+    """Add bits to cell idx's mark of this frame (0: untouched so far); returns (its previous
+    bits, n_touched)."""
     m = touch[idx]
-    if (m >> 3) != mark:
+    if m == 0:
         touched[n_touched] = idx
         n_touched += 1
-        touch[idx] = (mark << 3) | bits
+        touch[idx] = bits
         return 0, n_touched
     touch[idx] = m | bits
     return m & 7, n_touched
@@ -230,13 +230,13 @@ def _cast_ray(
     touched: np.ndarray,
     n_touched: int,
     lo: np.ndarray,
+    lo_s: np.ndarray,
     res: float,
     o: np.ndarray,
     px: float,
     py: float,
     pz: float,
     hit: bool,
-    mark: int,
 ) -> int:
     """One ray from camera centre o to end point p (both inside the window); returns
     n_touched. The end cell gets a hit (or a miss when ``hit`` is False), the cells between it
@@ -252,9 +252,16 @@ def _cast_ray(
     gx = min(max(gx, lo[0]), lo[0] + nx - 1)
     gy = min(max(gy, lo[1]), lo[1] + ny - 1)
     gz = min(max(gz, lo[2]), lo[2] + nz - 1)
-    sx = _wrap(gx, nx)
-    sy = _wrap(gy, ny)
-    sz = _wrap(gz, nz)
+    # storage slots without a modulo: gx - lo in [0, n), lo_s = lo mod n
+    sx = gx - lo[0] + lo_s[0]
+    if sx >= nx:
+        sx -= nx
+    sy = gy - lo[1] + lo_s[1]
+    if sy >= ny:
+        sy -= ny
+    sz = gz - lo[2] + lo_s[2]
+    if sz >= nz:
+        sz -= nz
     idx = (sx * ny + sy) * nz + sz
     if hit:
         if surf[idx, 3] >= _SURF_MAX_COUNT:  # forget slowly: keep following the surface
@@ -265,7 +272,7 @@ def _cast_ray(
         surf[idx, 2] += pz - (gz + 0.5) * res
         surf[idx, 3] += 1.0
     bits = _BIT_END | (_BIT_HIT if hit else _BIT_FREE)
-    prev, n_touched = _touch(touch, touched, n_touched, idx, mark, bits)
+    prev, n_touched = _touch(touch, touched, n_touched, idx, bits)
     if prev & _BIT_END:
         # a ray of this frame already ended in this cell: from here to the camera it crosses
         # the same cells (up to the neighbours of this one, which other rays end in)
@@ -351,7 +358,7 @@ def _cast_ray(
         if not (lo[0] <= gx < lo[0] + nx and lo[1] <= gy < lo[1] + ny and lo[2] <= gz < lo[2] + nz):
             break
         idx = (sx * ny + sy) * nz + sz
-        prev, n_touched = _touch(touch, touched, n_touched, idx, mark, _BIT_FREE)
+        prev, n_touched = _touch(touch, touched, n_touched, idx, _BIT_FREE)
     return n_touched
 
 
@@ -367,7 +374,6 @@ def _cast_free_ray(
     px: float,
     py: float,
     pz: float,
-    mark: int,
     l_min: float,
 ) -> tuple[int, bool]:
     """A no-return ray from camera centre o out to p (both inside the window): the cells it
@@ -387,7 +393,7 @@ def _cast_free_ray(
     ez_g = min(max(int(math.floor(pz / res)), lo[2]), lo[2] + nz - 1)
     end = (_wrap(ex_g, nx) * ny + _wrap(ey_g, ny)) * nz + _wrap(ez_g, nz)
     m = touch[end]
-    if (m >> 3) == mark and (m & _BIT_END):
+    if m & _BIT_END:
         return n_touched, False
     gx = int(math.floor(o[0] / res))
     gy = int(math.floor(o[1] / res))
@@ -445,10 +451,10 @@ def _cast_free_ray(
         last = idx == end or (tmx > 1.0 and tmy > 1.0 and tmz > 1.0)
         if v > floor or v < _UNKNOWN_BELOW or last:  # (a miss changes nothing at l_min)
             m = touch[idx]
-            if (m >> 3) == mark and (m & _BIT_HIT):
+            if m & _BIT_HIT:
                 break
             bits = _BIT_FREE | (_BIT_END if last else 0)
-            prev, n_touched = _touch(touch, touched, n_touched, idx, mark, bits)
+            prev, n_touched = _touch(touch, touched, n_touched, idx, bits)
             if last:
                 break
         if tmx <= tmy and tmx <= tmz:
@@ -535,6 +541,18 @@ def _clip_ray(
     if length > max_ray:
         s = max_ray / length
         hit = False
+    # the usual ray ends well inside the window: no clipping to compute (1e-6 m is far more
+    # than the rounding of o + d, so the box test below would give s_box > 1 >= s)
+    ex = o[0] + dx
+    ey = o[1] + dy
+    ez = o[2] + dz
+    m = 1e-6
+    if (
+        box_lo[0] + m < ex < box_hi[0] - m
+        and box_lo[1] + m < ey < box_hi[1] - m
+        and box_lo[2] + m < ez < box_hi[2] - m
+    ):
+        return s, hit
     s_box = _clip_to_window(o, dx, dy, dz, box_lo, box_hi)
     if s_box < s:
         s = max(s_box - eps / length, 0.0)
@@ -554,10 +572,13 @@ def _apply_updates(
     l_min: float,
     l_max: float,
 ) -> None:
+    """One log-odds update per cell the frame touched (a hit wins over misses), and the
+    cell's mark set back to 0 for the next frame."""
     flat = logodds.reshape(-1)
     for i in range(n_touched):
         idx = touched[i]
         m = touch[idx]
+        touch[idx] = 0
         v = flat[idx]
         if v < _UNKNOWN_BELOW:
             v = 0.0
@@ -590,7 +611,6 @@ def ingest_depth_kernel(
     l_miss: float,
     l_min: float,
     l_max: float,
-    mark: int,
     nr_len: float,
     nr_step: int,
     nr_margin: float,
@@ -623,23 +643,32 @@ def ingest_depth_kernel(
     box_hi[1] = (lo[1] + ny) * res
     box_hi[2] = (lo[2] + nz) * res
     eps = 1e-6 * res
+    lo_s = np.empty(3, dtype=np.int64)
+    lo_s[0] = _wrap(lo[0], nx)
+    lo_s[1] = _wrap(lo[1], ny)
+    lo_s[2] = _wrap(lo[2], nz)
     n_touched = 0
     rays = 0
     masked = 0
     track = nr_len > 0.0
+    # block of each pixel column (no division per pixel)
+    bu = np.zeros(depth.shape[1], dtype=np.int64)
     if track:
         blocks[:, :] = np.inf
+        for u in range(depth.shape[1]):
+            bu[u] = u // nr_block
     for v in range(0, depth.shape[0], step):
+        bv = v // nr_block if track else 0
         for u in range(0, depth.shape[1], step):
             z = depth[v, u]
             if not (z >= min_depth) or z > 1e30:
                 masked += 1
                 if track and z != 0.0:  # an invalid value, not "no return": stop rays here
-                    blocks[v // nr_block, u // nr_block] = 0.0
+                    blocks[bv, bu[u]] = 0.0
                 continue
             rays += 1
-            if track and z < blocks[v // nr_block, u // nr_block]:
-                blocks[v // nr_block, u // nr_block] = z
+            if track and z < blocks[bv, bu[u]]:
+                blocks[bv, bu[u]] = z
             xc = xn[u] * z
             yc = yn[v] * z
             dx = R[0, 0] * xc + R[0, 1] * yc + R[0, 2] * z
@@ -655,13 +684,13 @@ def ingest_depth_kernel(
                 touched,
                 n_touched,
                 lo,
+                lo_s,
                 res,
                 o,
                 o[0] + s * dx,
                 o[1] + s * dy,
                 o[2] + s * dz,
                 hit,
-                mark,
             )
     clear = 0
     if track and rays > 0 and rays >= nr_min_valid * (rays + masked):
@@ -692,7 +721,6 @@ def ingest_depth_kernel(
                     o[0] + s * dx,
                     o[1] + s * dy,
                     o[2] + s * dz,
-                    mark,
                     l_min,
                 )
                 clear += 1 if cast else 0
@@ -715,7 +743,6 @@ def ingest_points_kernel(
     l_miss: float,
     l_min: float,
     l_max: float,
-    mark: int,
 ) -> tuple[int, int, int]:
     """Ray cast measured surface points (K, 3) seen from o; returns (rays, skipped, cells)."""
     nx = logodds.shape[0]
@@ -730,6 +757,10 @@ def ingest_points_kernel(
     box_hi[1] = (lo[1] + ny) * res
     box_hi[2] = (lo[2] + nz) * res
     eps = 1e-6 * res
+    lo_s = np.empty(3, dtype=np.int64)
+    lo_s[0] = _wrap(lo[0], nx)
+    lo_s[1] = _wrap(lo[1], ny)
+    lo_s[2] = _wrap(lo[2], nz)
     n_touched = 0
     rays = 0
     skipped = 0
@@ -751,13 +782,13 @@ def ingest_points_kernel(
             touched,
             n_touched,
             lo,
+            lo_s,
             res,
             o,
             o[0] + s * dx,
             o[1] + s * dy,
             o[2] + s * dz,
             hit,
-            mark,
         )
     _apply_updates(logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max)
     return rays, skipped, n_touched
@@ -775,9 +806,11 @@ class OccupancyMap:
         self.logodds = np.full(self.shape, UNKNOWN_LOGODDS, dtype=np.float32)
         # per cell (flat storage order): sum of hit offsets from the cell centre (3) and count
         self.surf = np.zeros((int(np.prod(self.shape)), 4), dtype=np.float32)
-        self._touch = np.zeros(int(np.prod(self.shape)), dtype=np.int32)  # flat
+        # per cell (flat storage order): what the frame being cast did to it (free / hit / end
+        # bits, 0: nothing); the cells it touched are listed in _touched and set back to 0 as
+        # the frame's updates are applied (one byte a cell: the marks stay in the caches)
+        self._touch = np.zeros(int(np.prod(self.shape)), dtype=np.uint8)
         self._touched = np.empty(int(np.prod(self.shape)), dtype=np.int64)
-        self._mark = 0
         self.frames = 0
         c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
         self.lo = self._lo_for(c)
@@ -848,13 +881,6 @@ class OccupancyMap:
 
     # --- updates ----------------------------------------------------------------------------
 
-    def _next_mark(self) -> int:
-        self._mark += 1
-        if self._mark > _MAX_MARK:
-            self._touch[...] = 0
-            self._mark = 1
-        return self._mark
-
     def ingest_depth(
         self,
         depth: np.ndarray,
@@ -906,7 +932,6 @@ class OccupancyMap:
             intrinsics.max_depth_m,
             p.max_ray_m,
             *self._l,
-            self._next_mark(),
             p.no_return_m if no_return else 0.0,
             k_nr,
             p.no_return_margin_m,
@@ -940,7 +965,6 @@ class OccupancyMap:
             pts,
             self.params.max_ray_m,
             *self._l,
-            self._next_mark(),
         )
         self.frames += 1
         return IngestResult(True, "", int(rays), int(skipped), int(cells))
