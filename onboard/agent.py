@@ -33,28 +33,28 @@ trajectory from where it was last heard to where it could have flown in ``ghost_
 (its messages in between lost), and at its last reported position; ``watch`` asks for a replan
 at once only if the trajectory we fly comes closer than ``check_drone_m`` to a ghost (it is in
 our way). A quiet peer stays in the formation term until it is *silent*: quiet for longer than
-its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (the age
-of its newest message at the last look before something newer arrived; looks: ``watch``, a
-replan, ``peer_view``) plus ``spell_margin_s``, at least the quiet limit and at most
-``peer_silence_max_s``. On a clean link (states and looks every 0.1 s: spells of 0.1 s) quiet
-and silent coincide; under loss and delay a healthy peer's newest state is often older than
-``peer_silence_s`` (20 % loss and up to 300 ms delay: 1-3 % of looks), which then costs at most
-ghosts avoided for a moment, while silence waits for what this link's spells say is
-improbable. A killed peer is thus avoided where it may have stopped ``peer_silence_s`` after its
-last message was sent and out of the formation at most ``peer_silence_max_s`` after it (both
-one look later at most; one replan period more without states). A peer whose
-last reported position is further than ``peer_deviation_m`` from its trajectory (stuck or
-lagging, its new trajectory late) is also avoided as a hover there; with ``avoid_reported``,
-so is a peer heard through states without a trajectory considered. ``watch`` (called at the
-state rate) asks for a replan at once when a peer falls silent, falls quiet in our way or
-leaves its trajectory;
-``peer_view`` gives what a plan made now would avoid (for a safety monitor between replans).
-A peer whose newest trajectory started more than ``validity_s`` ago (a stuck drone
-re-announcing its hover) leaves the formation term too. A quiet peer's last trajectory is
-forgotten ``peer_forget_s`` after it fell quiet (or after its message's validity, if
-earlier); its ghosts, where its vehicle may still hold, ``ghost_forget_s`` after it fell
-quiet. A trajectory with a lower ``traj_id`` than one already received from the same peer (a
-late, reordered or duplicated copy) never replaces it.
+its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (the age of
+its newest message at the last look before something newer arrived; looks: ``watch``, a replan,
+``peer_view``) times ``spell_factor`` plus ``spell_margin_s``, at least the quiet limit and at
+most ``peer_silence_max_s``. On a clean link (states and looks every 0.1 s: spells of 0.1 s)
+quiet and silent coincide; under loss and delay a healthy peer's newest state is often older
+than ``peer_silence_s`` (20 % loss and up to 300 ms delay: 1-3 % of looks), which then costs at
+most ghosts avoided for a moment, while silence waits for what this link's spells say is
+improbable. A killed peer is thus avoided where it may have stopped ``peer_silence_s`` after
+its last message was sent and out of the formation at most ``peer_silence_max_s`` after it
+(both one look later at most; one replan period more without states).
+
+A peer whose last reported position is further than ``peer_deviation_m`` from its trajectory
+(stuck or lagging, its new trajectory late) is also avoided as a hover there; with
+``avoid_reported``, so is a peer heard through states without a trajectory considered.
+``watch`` (called at the state rate) asks for a replan at once when a peer falls silent, falls
+quiet in our way or leaves its trajectory; ``peer_view`` gives what a plan made now would avoid
+(for a safety monitor between replans). A peer whose newest trajectory started more than
+``validity_s`` ago (a stuck drone re-announcing its hover) leaves the formation term too. A
+quiet peer's last trajectory is forgotten ``peer_forget_s`` after it fell quiet (or after its
+message's validity, if earlier); its ghosts, where its vehicle may still hold,
+``ghost_forget_s`` after it fell quiet. A trajectory with a lower ``traj_id`` than one already
+received from the same peer (a late, reordered or duplicated copy) never replaces it.
 
 Threads (flight service): ``flying``, ``state``, ``current``, ``queued`` and ``last`` read
 immutable snapshots without locking and may be called from any thread (the 50 Hz setpoint
@@ -95,9 +95,12 @@ PEER_SILENCE_S = 0.5
 PEER_SILENCE_MAX_S = 1.5
 """A quiet peer is silent (out of the formation) at the latest this long after its newest
 message was sent (10 Hz states with 28 % of them missing: 12 in a row with p = 2e-7)."""
-SPELL_MARGIN_S = 0.4
-"""A peer is silent once quiet this much longer than its longest recent quiet spell (with
-spells of one 0.1 s look period on a clean link: silent when quiet, at ``PEER_SILENCE_S``)."""
+SPELL_FACTOR = 2.0
+SPELL_MARGIN_S = 0.3
+"""A peer is silent once quiet longer than ``SPELL_FACTOR`` times its longest recent quiet
+spell plus ``SPELL_MARGIN_S`` (spells of one 0.1 s look period on a clean link: silent when
+quiet, at ``PEER_SILENCE_S``; the factor because the longest of a few hundred spells
+underestimates a lossy link's tail: with 20 % loss, k states in a row are lost with 0.2^k)."""
 SPELL_WINDOW_S = 30.0
 """How far back a peer's quiet spells (how long it went unheard before it was heard again)
 count."""
@@ -304,9 +307,10 @@ class DroneAgent:
     peer heard of nothing newer for this long is quiet (see the module docstring; inf:
     never; flown with ``PEER_SILENCE_S``); peer_silence_max_s: a quiet peer is silent at the
     latest this long after it was last heard (or at the quiet limit, if that is longer;
-    ``peer_silence_s`` here makes quiet and silent one); spell_margin_s, spell_window_s: a
-    quiet peer is silent once quiet ``spell_margin_s`` longer than its longest quiet spell of
-    the last ``spell_window_s``; peer_deviation_m: a peer whose reported position is
+    ``peer_silence_s`` here makes quiet and silent one); spell_factor, spell_margin_s,
+    spell_window_s: a quiet peer is silent once quiet longer than ``spell_factor`` times its
+    longest quiet spell of the last ``spell_window_s`` plus ``spell_margin_s``;
+    peer_deviation_m: a peer whose reported position is
     further than this from its trajectory (a stuck or lagging vehicle) is also avoided as a
     hover where it reported itself (inf: never; more than the vehicles' tracking error; flown
     with ``PEER_DEVIATION_M``); ghost_spacing_m:
@@ -344,6 +348,7 @@ class DroneAgent:
         peer_forget_s: float = 5.0,
         peer_silence_s: float = math.inf,
         peer_silence_max_s: float = PEER_SILENCE_MAX_S,
+        spell_factor: float = SPELL_FACTOR,
         spell_margin_s: float = SPELL_MARGIN_S,
         spell_window_s: float = SPELL_WINDOW_S,
         ghost_forget_s: float = GHOST_FORGET_S,
@@ -367,6 +372,8 @@ class DroneAgent:
             raise ValueError(f"peer_silence_s must be > 0, got {peer_silence_s!r}")
         if not peer_silence_max_s > 0.0:
             raise ValueError(f"peer_silence_max_s must be > 0, got {peer_silence_max_s!r}")
+        if not (math.isfinite(spell_factor) and spell_factor >= 1.0):
+            raise ValueError(f"spell_factor must be >= 1, got {spell_factor!r}")
         if not (math.isfinite(spell_margin_s) and spell_margin_s >= 0.0):
             raise ValueError(f"spell_margin_s must be >= 0, got {spell_margin_s!r}")
         if not (math.isfinite(spell_window_s) and spell_window_s > 0.0):
@@ -391,6 +398,7 @@ class DroneAgent:
         self.peer_forget_s = float(peer_forget_s)
         self.peer_silence_s = float(peer_silence_s)
         self.peer_silence_max_s = float(peer_silence_max_s)
+        self.spell_factor = float(spell_factor)
         self.spell_margin_s = float(spell_margin_s)
         self.spell_window_s = float(spell_window_s)
         self.ghost_spacing_m = float(ghost_spacing_m)
@@ -634,8 +642,9 @@ class DroneAgent:
         return self.peer_silence_s + self.replan_period_s
 
     def silence_limit(self, drone_id: int) -> float:
-        """How long ``drone_id`` may now be heard of nothing newer before it is silent: its
-        longest quiet spell of the last ``spell_window_s`` plus ``spell_margin_s``, at least
+        """How long ``drone_id`` may now be heard of nothing newer before it is silent:
+        ``spell_factor`` times its longest quiet spell of the last ``spell_window_s`` plus
+        ``spell_margin_s``, at least
         the quiet limit (``peer_silence_s``; one replan period more without states) and at
         most ``peer_silence_max_s`` (or the quiet limit, if larger)."""
         with self._peer_lock:
@@ -645,7 +654,8 @@ class DroneAgent:
         base = self._silence_limit(pid)
         spells = self._spells.get(pid)
         longest = max((d for _, d in spells), default=0.0) if spells else 0.0
-        return max(base, min(self.peer_silence_max_s, longest + self.spell_margin_s))
+        longest = self.spell_factor * longest + self.spell_margin_s
+        return max(base, min(self.peer_silence_max_s, longest))
 
     def _note(self, now: float) -> None:
         """A look at ``now``: a peer heard of something newer since the last look ended a

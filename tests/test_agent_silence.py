@@ -12,7 +12,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from onboard.agent import PEER_SILENCE_MAX_S, SPELL_MARGIN_S, DroneAgent, StaticMap
+from onboard.agent import (
+    PEER_SILENCE_MAX_S,
+    SPELL_FACTOR,
+    SPELL_MARGIN_S,
+    DroneAgent,
+    StaticMap,
+)
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.comm.faults import BusFaults, FaultyBus
 from onboard.planner.field import AnalyticField
@@ -113,7 +119,8 @@ def test_a_live_peer_under_bus_faults_is_never_silent_a_dead_one_is_within_the_b
 
 def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() -> None:
     """On a clean link the silence limit is peer_silence_s; after a look saw a peer's newest
-    message 0.5 s old before it was heard again, that plus spell_margin_s; after a 5 s outage
+    message 0.5 s old before it was heard again, spell_factor times that plus spell_margin_s
+    (1.3 s); after a 5 s outage
     peer_silence_max_s; it falls back once the long spells are older than spell_window_s."""
     bus = InMemoryBus()
     a = _agent(bus, None, spell_window_s=10.0)
@@ -131,10 +138,12 @@ def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() ->
     a.peer_view(2.3)
     a.peer_view(2.5)  # its newest message is 0.5 s old
     talk(2.6, 4.0)  # heard again: a 0.5 s spell
-    assert a.silence_limit(1) == pytest.approx(0.5 + SPELL_MARGIN_S)
-    for k in range(1, 50):  # unheard 5 s: silent meanwhile
-        a.peer_view(4.0 + k * PERIOD)
-        assert 1 in a.peer_view(4.0 + k * PERIOD).silent or k * PERIOD <= 0.9 + 1e-9
+    assert a.silence_limit(1) == pytest.approx(SPELL_FACTOR * 0.5 + SPELL_MARGIN_S)
+    lim = a.silence_limit(1)
+    for k in range(1, 50):  # unheard 5 s: silent once quiet longer than the limit
+        view = a.peer_view(4.0 + k * PERIOD)
+        assert (1 in view.silent) == (k * PERIOD > lim + 1e-9)
+        assert (1 in view.quiet) == (0.5 + 1e-9 < k * PERIOD <= lim + 1e-9)
     talk(9.0, 10.0)
     assert a.silence_limit(1) == pytest.approx(PEER_SILENCE_MAX_S)
     talk(10.1, 19.0)
@@ -150,6 +159,8 @@ def test_the_silence_limit_follows_the_links_quiet_spells_within_its_bounds() ->
     assert b.silence_limit(1) == pytest.approx(0.5)
     with pytest.raises(ValueError, match="peer_silence_max_s"):
         _agent(bus, None, peer_silence_max_s=0.0)
+    with pytest.raises(ValueError, match="spell_factor"):
+        _agent(bus, None, spell_factor=0.5)
     with pytest.raises(ValueError, match="spell_margin_s"):
         _agent(bus, None, spell_margin_s=-0.1)
     with pytest.raises(ValueError, match="spell_window_s"):
@@ -160,12 +171,12 @@ def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_w
     """Peers 1 (3 m ahead in our lane) and 2 (3 m to the side) fly +x at 1 m/s like us and
     have had a 0.4 s quiet spell; both go quiet after 0.7 s. Quiet (0.5 s later): only peer 1's
     ghosts lie on our path, so only it asks for a replan; the plan avoids both at their ghosts
-    and keeps both in the formation. Silent (limit 0.4 + margin 0.4 = 0.8 s): both leave the
+    and keeps both in the formation. Silent (limit 1 * 0.4 + 0.4 = 0.8 s): both leave the
     formation and ask for a replan."""
     bus = InMemoryBus()
     me = np.array([0.0, 0.0, 1.0])
     v = np.array([1.0, 0.0, 0.0])
-    a = _agent(bus, me + np.array([8.0, 0.0, 0.0]), spell_margin_s=0.4)
+    a = _agent(bus, me + np.array([8.0, 0.0, 0.0]), spell_factor=1.0, spell_margin_s=0.4)
     a.reset(_line(me, v, 0.0, 8.0))
     p1 = np.array([3.0, 0.0, 1.0])
     p2 = np.array([-1.0, 3.0, 1.0])
