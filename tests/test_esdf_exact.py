@@ -161,7 +161,7 @@ def _kernel(
     f_out = rng.normal(size=sh).astype(np.float32)
     feat = rng.integers(-5, 5, size=sh).astype(np.int32)
     f_in = rng.normal(size=sh).astype(np.float32)
-    spt = rng.normal(size=(*sh, 3)).astype(np.float32)
+    spt = rng.normal(size=(int(np.prod(sh)), 3)).astype(np.float32)
     occ = rng.random(sh) < 0.5
     known = rng.random(sh) < 0.5
     values = rng.normal(size=sh)

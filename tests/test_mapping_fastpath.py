@@ -124,7 +124,7 @@ def _column(om: OccupancyMap) -> tuple[np.ndarray, ...]:
     f_in = np.empty(shape, np.float32)
     occ = np.empty(shape, np.bool_)
     known = np.empty(shape, np.bool_)
-    spt = np.empty((*shape, 3), np.float32)
+    spt = np.empty((int(np.prod(shape)), 3), np.float32)
     n = _column_pass(
         om.logodds, om.surf, om.lo, om.params.l_occ, om.res, f_out, feat, f_in, occ, known, spt
     )

@@ -49,14 +49,18 @@ def _column_pass(
     spt: np.ndarray,
 ) -> int:
     """Read the ring buffer in window order; per z column, the squared 1-D distance (cells) to
-    the nearest occupied cell (f_out, whose window-linear index goes to feat) and to the nearest
-    non-occupied cell (f_in). Occupied cells get their surface point (mean of their hits, the
-    centre when none), relative to the window origin, in spt (nx, ny, nz, 3). Returns the
+    the nearest occupied cell (f_out, whose number goes to feat) and to the nearest
+    non-occupied cell (f_in). Occupied cells are numbered 0, 1, ... in window order; the m-th
+    gets its surface point (mean of its hits, the centre when none), relative to the window
+    origin, in spt[m] (spt: (at least the number of occupied cells, 3): a few hundred kB for
+    a mapped window, where one slot per cell would spread them over megabytes). Returns the
     number of occupied cells. A column without an occupied cell (most: free and unknown space)
     gets f_out big and f_in 0 without the scans, and no feat (never read where f_out is big)."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
+    if spt.ndim != 2 or spt.shape[1] != 3 or spt.shape[0] < nx * ny * nz:
+        raise ValueError("spt must have shape (at least the number of cells, 3)")
     big = np.float32(1e30)
     n_occ = 0
     sz_of = np.empty(nz, dtype=np.int64)
@@ -66,6 +70,7 @@ def _column_pass(
     col = np.empty(nz, dtype=np.float32)
     ocol = np.empty(nz, dtype=np.bool_)
     dn = np.empty(nz, dtype=np.int64)
+    num = np.empty(nz, dtype=np.int64)
     for wi in range(nx):
         si = (lo[0] + wi) % nx
         if si < 0:
@@ -88,24 +93,25 @@ def _column_pass(
                     f_out[wi, wj, wk] = big
                     f_in[wi, wj, wk] = 0.0
                 continue
-            fbase = (wi * ny + wj) * nz
             last_occ = -1
             last_free = -1
             for wk in range(nz):
                 o = ocol[wk]
                 occ[wi, wj, wk] = o
                 if o:
+                    m = n_occ
+                    num[wk] = m
                     n_occ += 1
                     last_occ = wk
                     e = base + sz_of[wk]
                     c = surf[e, 3]
-                    spt[wi, wj, wk, 0] = (wi + 0.5) * res
-                    spt[wi, wj, wk, 1] = (wj + 0.5) * res
-                    spt[wi, wj, wk, 2] = (wk + 0.5) * res
+                    spt[m, 0] = (wi + 0.5) * res
+                    spt[m, 1] = (wj + 0.5) * res
+                    spt[m, 2] = (wk + 0.5) * res
                     if c > 0.0:
-                        spt[wi, wj, wk, 0] += surf[e, 0] / c
-                        spt[wi, wj, wk, 1] += surf[e, 1] / c
-                        spt[wi, wj, wk, 2] += surf[e, 2] / c
+                        spt[m, 0] += surf[e, 0] / c
+                        spt[m, 1] += surf[e, 1] / c
+                        spt[m, 2] += surf[e, 2] / c
                 else:
                     last_free = wk
                 dn[wk] = last_occ
@@ -122,9 +128,9 @@ def _column_pass(
                 if last_occ >= 0 and last_occ - wk < a:
                     a = last_occ - wk
                 if last_occ >= 0 and last_occ - wk <= a:
-                    feat[wi, wj, wk] = fbase + last_occ
-                else:
-                    feat[wi, wj, wk] = fbase + lb
+                    feat[wi, wj, wk] = num[last_occ]
+                elif lb >= 0:
+                    feat[wi, wj, wk] = num[lb]
                 b = col[wk]
                 if last_free >= 0:
                     b = min(b, last_free - wk)
@@ -360,10 +366,10 @@ def _combine(
                                 gz += 1.0
                             gn = math.sqrt(gx * gx + gy * gy + gz * gz)
                             if gn > 0.0:
+                                # an occupied cell is its own nearest: feat is its number
+                                w = 3 * feat[i, j, k]
                                 d = (
-                                    (x - spt[i, j, k, 0]) * gx
-                                    + (y - spt[i, j, k, 1]) * gy
-                                    + (z - spt[i, j, k, 2]) * gz
+                                    (x - sp[w]) * gx + (y - sp[w + 1]) * gy + (z - sp[w + 2]) * gz
                                 ) / gn
                         val = max(d, -cap)
                 if not math.isfinite(val):
@@ -395,6 +401,7 @@ def _inside_local(occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int) -> 
     ny = occ.shape[1]
     nz = occ.shape[2]
     out = np.empty(n_occ, dtype=np.float32)
+    at = np.empty(n_occ, dtype=np.int64)  # where each result goes
     m = 0
     for i in range(nx):
         for j in range(ny):
@@ -410,6 +417,7 @@ def _inside_local(occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int) -> 
                     or (k < nz - 1 and not occ[i, j, k + 1])
                 ):
                     out[m] = 1.0
+                    at[m] = (i * ny + j) * nz + k
                     m += 1
                     continue
                 best = f_in[i, j, k]  # the column's own (big when the column is all occupied)
@@ -440,14 +448,11 @@ def _inside_local(occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int) -> 
                                     best = d2
                     r += 1
                 out[m] = best
+                at[m] = (i * ny + j) * nz + k
                 m += 1
-    m = 0
-    for i in range(nx):
-        for j in range(ny):
-            for k in range(nz):
-                if occ[i, j, k]:
-                    f_in[i, j, k] = out[m]
-                    m += 1
+    flat = f_in.reshape(-1)
+    for q in range(m):
+        flat[at[q]] = out[q]
     return True
 
 
@@ -479,8 +484,9 @@ def esdf_kernel(
     """Signed distance of the ring-buffered window (see the module docstring) into values,
     occ and known (window order), and when ``inflated`` is given the values minus ``margin``
     (within +-cap) into it; returns the number of occupied cells and the number of
-    non-finite values written (0 unless an input was bad). f_out, feat, f_in and spt
-    (nx, ny, nz, 3) float32 are work buffers."""
+    non-finite values written (0 unless an input was bad). f_out, feat, f_in (nx, ny, nz) and
+    spt (nx * ny * nz, 3) float32 are work buffers (feat: the number of each cell's nearest
+    occupied cell, whose surface point is that row of spt)."""
     n_occ = _column_pass(logodds, surf, lo, l_occ, res, f_out, feat, f_in, occ, known, spt)
     # the float32 the grids hold for "no occupied cell" (a float64 1e30 never equals it)
     big = np.float32(1e30)
@@ -690,7 +696,7 @@ class EsdfBuilder:
                 np.empty(shape, dtype=np.float32),
                 np.empty(shape, dtype=np.int32),
                 np.empty(shape, dtype=np.float32),
-                np.empty((*shape, 3), dtype=np.float32),
+                np.empty((int(np.prod(shape)), 3), dtype=np.float32),
             )
             self._new_sets_before = self.new_sets
             self._pool = _OutputPool(shape)
