@@ -585,6 +585,11 @@ class ServiceBenchConfig:
             raise ValueError("depth_rate_hz must be 0 (no camera) or in [1, 90]")
 
 
+def _per_op_ms(cpu_us: int, ops: int) -> float | None:
+    """Milliseconds of CPU per operation, None without an operation."""
+    return cpu_us / 1e3 / ops if ops > 0 else None
+
+
 def _stats(x: np.ndarray) -> dict[str, float | None]:
     if x.size == 0:
         return {"n": 0, "p50": None, "p99": None, "max": None, "mean": None}
@@ -765,6 +770,13 @@ def run_service_bench(
                     "depth_frames_missed_per_s": delta("service.frames_missed") / wall,
                     "esdf_refreshes_per_s": delta("service.esdf_builds") / wall,
                     "esdf_new_buffer_sets": delta("service.esdf_new_buffer_sets"),
+                    # CPU per operation (the thread counters over the operations counted)
+                    "ingest_cpu_ms_per_frame": _per_op_ms(
+                        delta("service.cpu_us.depth_ingest"), delta("service.frames")
+                    ),
+                    "esdf_cpu_ms_per_refresh": _per_op_ms(
+                        delta("service.cpu_us.esdf"), delta("service.esdf_builds")
+                    ),
                     "cpu_cores_by_worker": workers,
                     "autopilot_late_ticks": delta("autopilot.late_ticks"),
                     "replans": c1.get("service.replans", 0) - c0.get("service.replans", 0),
@@ -914,6 +926,12 @@ def bench_service(
     t.add_row("depth frames mapped per s", _fmt(report["depth_frames_per_s"]), f"{depth_rate:g}")
     t.add_row("depth frames missed per s", _fmt(report["depth_frames_missed_per_s"]), "0")
     t.add_row("ESDF refreshes per s", _fmt(report.get("esdf_refreshes_per_s")), ">= 10")
+    t.add_row(
+        "  CPU per frame ingested / per ESDF refresh, ms",
+        f"{_fmt(report.get('ingest_cpu_ms_per_frame'), '.2f')} / "
+        f"{_fmt(report.get('esdf_cpu_ms_per_refresh'), '.1f')}",
+        "",
+    )
     for name, cores in sorted(report["cpu_cores_by_worker"].items()):
         t.add_row(f"  CPU of the {name} thread, cores", _fmt(cores, ".3f"), "")
     t.add_row("replans (failed)", f"{report['replans']} ({report['plans_failed']})", "")
