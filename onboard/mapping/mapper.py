@@ -78,7 +78,11 @@ class LocalMapper:
         )
         if res.accepted:
             self.last_stamp_s = t
-            self._dirty = True
+            # a frame that changed nothing the ESDF reads (no cell changed between unknown,
+            # free and occupied, no occupied cell was hit) leaves the field as it is: the
+            # next field() is the same object, bit for bit what a refresh would give
+            if res.esdf_changes:
+                self._dirty = True
             if no_return:
                 nxt = self._next_no_return_s + period
                 self._next_no_return_s = nxt if t < nxt else t + period
@@ -93,7 +97,8 @@ class LocalMapper:
         return self._builder.new_sets
 
     def field(self) -> EsdfField:
-        """The ESDF of the current window (recomputed only if the map changed since)."""
+        """The ESDF of the current window (recomputed only if the window moved or a frame
+        changed what it reads since: see ``IngestResult.esdf_changes``)."""
         if self._dirty or self._field is None:
             # the planning field (inflated by the drone's radius) in the same pass
             self._field = self._builder.build(

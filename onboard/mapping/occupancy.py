@@ -198,6 +198,10 @@ class IngestResult:
     cells_updated: int = 0
     clear_rays: int = 0
     """No-return pixels cast as free space (see ``OccupancyParams.no_return_m``)."""
+    esdf_changes: int = 0
+    """Cells whose state as the ESDF reads it changed: unknown / free / occupied, or hit while
+    occupied (its surface point; counted even when the same points again leave the mean as
+    it was). 0: the ESDF of the window is what it was, bit for bit."""
 
 
 @njit(cache=True, nogil=True)
@@ -571,15 +575,22 @@ def _apply_updates(
     l_miss: float,
     l_min: float,
     l_max: float,
-) -> None:
+    l_occ: float,
+) -> int:
     """One log-odds update per cell the frame touched (a hit wins over misses), and the
-    cell's mark set back to 0 for the next frame."""
+    cell's mark set back to 0 for the next frame. Returns the number of cells whose state as
+    the ESDF reads it changed: unknown / free / occupied, or hit while occupied after the
+    frame (its surface point; the ESDF reads the surface points of occupied cells only, and
+    a cell that turns free forgets its own)."""
     flat = logodds.reshape(-1)
+    changed = 0
     for i in range(n_touched):
         idx = touched[i]
         m = touch[idx]
         touch[idx] = 0
         v = flat[idx]
+        was_known = v > _UNKNOWN_BELOW
+        was_occ = v >= l_occ
         if v < _UNKNOWN_BELOW:
             v = 0.0
         v += l_hit if (m & _BIT_HIT) else l_miss
@@ -588,6 +599,10 @@ def _apply_updates(
         if v < 0.0:  # more likely free than not: drop the surface estimate
             for a in range(4):
                 surf[idx, a] = 0.0
+        is_occ = flat[idx] >= l_occ  # as the ESDF will read it (the stored float32)
+        if not was_known or is_occ != was_occ or (is_occ and (m & _BIT_HIT)):
+            changed += 1
+    return changed
 
 
 @njit(cache=True, nogil=True)
@@ -611,6 +626,7 @@ def ingest_depth_kernel(
     l_miss: float,
     l_min: float,
     l_max: float,
+    l_occ: float,
     nr_len: float,
     nr_step: int,
     nr_margin: float,
@@ -620,9 +636,10 @@ def ingest_depth_kernel(
     blocks: np.ndarray,
     blocks_tmp: np.ndarray,
     blocks_near: np.ndarray,
-) -> tuple[int, int, int, int]:
+) -> tuple[int, int, int, int, int]:
     """Ray cast one depth image (height, width) float32 into the window; returns (rays,
-    masked pixels, cells updated, no-return rays). Pixels with depth not in [min_depth, inf)
+    masked pixels, cells updated, no-return rays, cells changed for the ESDF: see
+    ``_apply_updates``). Pixels with depth not in [min_depth, inf)
     are skipped; depths above max_depth and rays longer than max_ray mark free space only.
 
     No-return rays (``nr_len`` > 0; see the module docstring): pixels that are exactly 0, every
@@ -724,8 +741,10 @@ def ingest_depth_kernel(
                     l_min,
                 )
                 clear += 1 if cast else 0
-    _apply_updates(logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max)
-    return rays, masked, n_touched, clear
+    changed = _apply_updates(
+        logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max, l_occ
+    )
+    return rays, masked, n_touched, clear, changed
 
 
 @njit(cache=True, nogil=True)
@@ -743,8 +762,10 @@ def ingest_points_kernel(
     l_miss: float,
     l_min: float,
     l_max: float,
-) -> tuple[int, int, int]:
-    """Ray cast measured surface points (K, 3) seen from o; returns (rays, skipped, cells)."""
+    l_occ: float,
+) -> tuple[int, int, int, int]:
+    """Ray cast measured surface points (K, 3) seen from o; returns (rays, skipped, cells,
+    cells changed for the ESDF: see ``_apply_updates``)."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
@@ -790,8 +811,10 @@ def ingest_points_kernel(
             o[2] + s * dz,
             hit,
         )
-    _apply_updates(logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max)
-    return rays, skipped, n_touched
+    changed = _apply_updates(
+        logodds, surf, touch, touched, n_touched, l_hit, l_miss, l_min, l_max, l_occ
+    )
+    return rays, skipped, n_touched, changed
 
 
 class OccupancyMap:
@@ -915,7 +938,7 @@ class OccupancyMap:
         shape = (-(-d.shape[0] // block), -(-d.shape[1] // block))
         if self._blocks[0].shape != shape:
             self._blocks = tuple(np.empty(shape, dtype=np.float32) for _ in range(3))
-        rays, masked, cells, clear = ingest_depth_kernel(
+        rays, masked, cells, clear, changed = ingest_depth_kernel(
             self.logodds,
             self.surf,
             self._touch,
@@ -932,6 +955,7 @@ class OccupancyMap:
             intrinsics.max_depth_m,
             p.max_ray_m,
             *self._l,
+            p.l_occ,
             p.no_return_m if no_return else 0.0,
             k_nr,
             p.no_return_margin_m,
@@ -941,7 +965,7 @@ class OccupancyMap:
             *self._blocks,
         )
         self.frames += 1
-        return IngestResult(True, "", int(rays), int(masked), int(cells), int(clear))
+        return IngestResult(True, "", int(rays), int(masked), int(cells), int(clear), int(changed))
 
     def ingest_points(self, origin: np.ndarray, points: np.ndarray) -> IngestResult:
         """Ray cast measured surface points (K, 3) (world frame) seen from ``origin``: e.g. a
@@ -954,7 +978,7 @@ class OccupancyMap:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             return IngestResult(False, f"points must have shape (K, 3), got {pts.shape}")
-        rays, skipped, cells = ingest_points_kernel(
+        rays, skipped, cells, changed = ingest_points_kernel(
             self.logodds,
             self.surf,
             self._touch,
@@ -965,9 +989,10 @@ class OccupancyMap:
             pts,
             self.params.max_ray_m,
             *self._l,
+            self.params.l_occ,
         )
         self.frames += 1
-        return IngestResult(True, "", int(rays), int(skipped), int(cells))
+        return IngestResult(True, "", int(rays), int(skipped), int(cells), 0, int(changed))
 
     # --- reading ----------------------------------------------------------------------------
 

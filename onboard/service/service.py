@@ -490,7 +490,12 @@ class FlightService:
         self._last_frame_stamp = stamp
         self._last_frame_s = now
         if now >= self._next_esdf_s:
+            before = self._field
+            # the same object when no frame since the last refresh changed what the ESDF
+            # reads (and the window did not move): the field is current either way
             self._field = self.mapper.planning_field()
+            if self._field is before:
+                self.counters["esdf_skipped"] = self.counters.get("esdf_skipped", 0) + 1
             # deadlines a period apart, each refresh at the first frame at or after one: the
             # refreshes keep esdf_rate_hz on average whatever the frames' jitter (a period
             # measured from the last refresh lost a whole frame interval to a frame that came
