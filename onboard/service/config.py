@@ -21,7 +21,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from onboard.agent import GHOST_FORGET_S, GHOST_WINDOW_S, PEER_DEVIATION_M, PEER_SILENCE_S
+from onboard.agent import (
+    GHOST_FORGET_S,
+    GHOST_WINDOW_S,
+    PEER_DEVIATION_M,
+    PEER_SILENCE_MAX_S,
+    PEER_SILENCE_S,
+)
 from onboard.config import (
     ConfigError,
     config_dir,
@@ -363,10 +369,14 @@ class PeerLostReaction:
     ``PEER_DEVIATION_M``, ``GHOST_WINDOW_S``, ``GHOST_FORGET_S``).
 
     A peer's last sign of life is its newest message of any kind (10 Hz states, trajectories).
-    Heard of nothing newer for ``peer_silence_s``, it leaves the formation and is avoided along
-    its last trajectory (``avoid_for_s`` more) and as hovering ghosts where it may have stopped:
-    along that trajectory from where it was last heard to ``ghost_window_s`` later, and at its
-    last reported position (``ghost_forget_s``). A peer reported further than
+    Heard of nothing newer for ``peer_silence_s`` it is *quiet*: still in the formation, but
+    avoided as hovering ghosts where it may have stopped (along its last trajectory from where
+    it was last heard to ``ghost_window_s`` later, and at its last reported position, for
+    ``ghost_forget_s``), with a replan at once when those lie in our way. It is *silent*, out of
+    the formation and avoided along its last trajectory (``avoid_for_s`` more), once quiet
+    longer than its link's recent quiet spells allow (twice the longest of the last 30 s plus
+    0.3 s), at most ``peer_silence_max_s``: so that a lossy, delayed bus does not take healthy
+    peers for silent. A peer reported further than
     ``peer_deviation_m`` from its trajectory is also avoided where it reported itself. A peer
     whose newest trajectory is older than ``validity_s`` (a stuck drone) or past its message's
     own validity leaves the formation and is still avoided for ``avoid_for_s``.
@@ -378,7 +388,11 @@ class PeerLostReaction:
     avoid_for_s: float = 10.0
     """A silent or expired peer's last trajectory is still avoided this long."""
     peer_silence_s: float = PEER_SILENCE_S
-    """Nothing heard from a peer for this long: it is silent (more than 2 state periods)."""
+    """Nothing heard from a peer for this long: it is quiet, avoided at its ghosts (more than 2
+    state periods)."""
+    peer_silence_max_s: float = PEER_SILENCE_MAX_S
+    """Nothing heard from a peer for this long: it is silent, out of the formation, whatever its
+    link's recent quiet spells (at least ``peer_silence_s``)."""
     peer_deviation_m: float = PEER_DEVIATION_M
     """A peer reported further than this from its trajectory is avoided where it reported
     itself (more than the vehicles' tracking error)."""
@@ -391,6 +405,12 @@ class PeerLostReaction:
         _in_range("validity_s", self.validity_s, 0.1, 60.0)
         _in_range("avoid_for_s", self.avoid_for_s, 0.0, 600.0)
         _in_range("peer_silence_s", self.peer_silence_s, 0.05, 60.0)
+        _in_range("peer_silence_max_s", self.peer_silence_max_s, 0.05, 60.0)
+        if self.peer_silence_max_s < self.peer_silence_s:
+            raise ValueError(
+                f"peer_silence_max_s: expected at least peer_silence_s ({self.peer_silence_s:g}), "
+                f"got {self.peer_silence_max_s:g}"
+            )
         _in_range("peer_deviation_m", self.peer_deviation_m, 0.05, 10.0)
         _in_range("ghost_window_s", self.ghost_window_s, 0.0, 10.0)
         _in_range("ghost_forget_s", self.ghost_forget_s, 0.0, 3600.0)

@@ -179,6 +179,7 @@ class FlightService:
             validity_s=rc.validity_s,
             peer_forget_s=rc.avoid_for_s,
             peer_silence_s=rc.peer_silence_s,
+            peer_silence_max_s=rc.peer_silence_max_s,
             ghost_window_s=rc.ghost_window_s,
             ghost_forget_s=rc.ghost_forget_s,
             peer_deviation_m=rc.peer_deviation_m,
@@ -675,8 +676,8 @@ class FlightService:
 
     def _peer_conflict(self, now: float, ts: np.ndarray, pos: np.ndarray, limit_m: float) -> str:
         """The first peer closer than ``limit_m`` to ``pos`` (the trajectory in control at
-        ``ts``), as the agent avoids them: their trajectories (same times), the silent peers'
-        ghosts and where deviating peers reported themselves (hovers); '' when none."""
+        ``ts``), as the agent avoids them: their trajectories (same times), the quiet and silent
+        peers' ghosts and where deviating peers reported themselves (hovers); '' when none."""
         view = self.peers_now(now)
         for pt in view.trajectories:
             dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
@@ -689,7 +690,12 @@ class FlightService:
             k, j = divmod(flat, d.shape[1])
             if d[k, j] < limit_m:
                 pid = view.hover_ids[j]
-                what = "a ghost of silent" if pid in view.silent else "where it reported itself:"
+                if pid in view.silent:
+                    what = "a ghost of silent"
+                elif pid in view.quiet:
+                    what = "a ghost of quiet"
+                else:
+                    what = "where it reported itself:"
                 return f"{what} drone {pid} {d[k, j]:.2f} m in {ts[k] - now:.1f} s"
         return ""
 
