@@ -453,6 +453,7 @@ class MockProcess:
         workdir: Path,
         depth_rate_hz: float = 0.0,
         extra_args: Sequence[str] = (),
+        depth_step: int = 3,
     ) -> None:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
@@ -465,7 +466,11 @@ class MockProcess:
         self._truth: dict[int, Any] = {}
         self._sub: Any = None
         self._session: Any = None
-        depth = ["--depth", "--depth-rate", str(depth_rate_hz)] if depth_rate_hz > 0 else []
+        depth = (
+            ["--depth", "--depth-rate", str(depth_rate_hz), "--depth-step", str(depth_step)]
+            if depth_rate_hz > 0
+            else []
+        )
         self.args = [
             str(BIN / "swarm-sitl"),
             *("--count", str(count), "--world", str(world), "--base-port", str(base_port)),
@@ -571,6 +576,8 @@ class ServiceBenchConfig:
     seconds: float = 30.0
     """Measurement window, while the drone flies back and forth."""
     depth_rate_hz: float = 30.0
+    depth_step: int = 3
+    """Every n-th pixel row and column: rendered by the mock and ray cast by the service."""
     v_max_m_s: float = 1.0
     implementation: str = "pymavlink"
     setpoint_rate_hz: float = 50.0
@@ -583,6 +590,8 @@ class ServiceBenchConfig:
             raise ValueError("seconds must be > 0")
         if not (self.depth_rate_hz == 0.0 or 1.0 <= self.depth_rate_hz <= 90.0):
             raise ValueError("depth_rate_hz must be 0 (no camera) or in [1, 90]")
+        if not 1 <= self.depth_step <= 16:
+            raise ValueError("depth_step must be in [1, 16]")
 
 
 def _per_op_ms(cpu_us: int, ops: int) -> float | None:
@@ -636,6 +645,7 @@ def run_service_bench(
         prefix,
         workdir,
         depth_rate_hz=cfg.depth_rate_hz,
+        depth_step=cfg.depth_step,
     ).start()
     mesh = peer_mesh(2)
     svc_ep, gcs_ep = mesh
@@ -648,6 +658,7 @@ def run_service_bench(
         depth={
             "source": "zenoh-sim",
             "rate_hz": cfg.depth_rate_hz,
+            "step": cfg.depth_step,
             "sim_prefix": prefix,
             "sim_connect": [truth_ep],
         }
@@ -846,6 +857,13 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
     help="Depth frames per second (0: no camera and no trunks, a baseline).",
 )
 @click.option(
+    "--depth-step",
+    default=3,
+    show_default=True,
+    type=click.IntRange(1, 16),
+    help="Every n-th pixel row and column, rendered by the mock and ray cast by the service.",
+)
+@click.option(
     "--implementation",
     type=click.Choice(["pymavlink", "mavsdk"]),
     default="pymavlink",
@@ -872,6 +890,7 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
 def bench_service(
     seconds: float,
     depth_rate: float,
+    depth_step: int,
     implementation: str,
     json_path: Path | None,
     workdir: Path | None,
@@ -885,7 +904,11 @@ def bench_service(
 
     console = Console(quiet=quiet, highlight=False)
     cfg = ServiceBenchConfig(
-        seconds=seconds, depth_rate_hz=depth_rate, implementation=implementation, nice=nice
+        seconds=seconds,
+        depth_rate_hz=depth_rate,
+        depth_step=depth_step,
+        implementation=implementation,
+        nice=nice,
     )
     tmp = None
     if workdir is None:
@@ -904,8 +927,8 @@ def bench_service(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(report, indent=2) + "\n")
     sp = report["setpoint_period_ms"]
-    t = Table(title=f"flight service: {implementation}, {depth_rate:g} depth frames/s, "
-              f"{report['window_s']:.0f} s window, nice {nice}")  # fmt: skip
+    t = Table(title=f"flight service: {implementation}, {depth_rate:g} depth frames/s "
+              f"(step {depth_step}), {report['window_s']:.0f} s window, nice {nice}")  # fmt: skip
     t.add_column("measure")
     t.add_column("value", justify="right")
     t.add_column("target", justify="right")

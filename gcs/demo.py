@@ -87,7 +87,7 @@ class DemoConfig:
     altitude_m: float | None = None
     depth_rate_hz: float | None = None
     sitl_nice: int = -5
-    depth_step: int = 2
+    depth_step: int = 3
     v_max_m_s: float | None = None
     spacing_m: float = 1.5
     onboard_sets: tuple[str, ...] = ()

@@ -131,7 +131,12 @@ def parse_signing(values: Sequence[str], require: bool) -> tuple[Any, ...]:
 @click.option("--zenoh-prefix", default="swarm/sim", show_default=True, help="Zenoh key prefix.")
 @click.option("--depth", is_flag=True, help="Render simulated D435 depth frames (needs --world).")
 @click.option("--depth-rate", default=15.0, show_default=True, help="Depth frames per second.")
-@click.option("--depth-step", default=2, show_default=True, help="Render every n-th pixel.")
+@click.option(
+    "--depth-step",
+    default=3,
+    show_default=True,
+    help="Render every n-th pixel (the flight service ray casts every 3rd by default).",
+)
 @click.option(
     "--depth-idle-rate",
     type=click.FloatRange(min=0.0, min_open=True),

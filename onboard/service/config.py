@@ -253,8 +253,11 @@ class DepthSection:
     sim_prefix: str = "swarm/sim"
     sim_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     realsense_bag: str | None = None
-    step: int = 2
-    """Ray cast every step-th pixel row and column."""
+    step: int = 3
+    """Ray cast every step-th pixel row and column (the simulated camera must render them:
+    ``swarm-sitl --depth-step`` the same). 3 rather than 2: ingest CPU per frame -37 % (6.7 ->
+    4.2 ms at 30 frames/s), ESDF error p95 / p99 0.080 / 0.143 -> 0.073 / 0.130 m, 1.5 % fewer
+    known and 10 % fewer occupied cells (``bench mapping``, forest-medium seed 1)."""
 
     def __post_init__(self) -> None:
         _in_range("rate_hz", self.rate_hz, 1.0, 90.0)
