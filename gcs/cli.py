@@ -467,6 +467,7 @@ _FLIGHT_KEYS = (
     "flight_time_s",
     "replan_ms",
     "status_counts",
+    "refusals",
 )
 
 

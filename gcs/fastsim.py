@@ -122,12 +122,13 @@ class SimConfig:
     the bus's delay and ``bus_faults`` (drawn independently of the trajectories'); receivers
     pass the newest to ``DroneAgent.heard`` and call ``DroneAgent.watch``."""
     peer_silence_s: float = 0.5
-    """A peer heard of nothing newer for this long is silent (``DroneAgent``): out of the
-    formation, avoided where it may have stopped. A follower close behind a drone that dies
-    reaches it in under a second (0.8 s grazed one in bench faults seed 1000 trial 59). With
-    10 Hz states a live drone goes unheard this long with probability 3e-4 per look under 20 %
-    loss, ~1 % with loss, 300 ms delays and reordering together (harmless: its ghosts lie on
-    the path it has just flown)."""
+    """A peer heard of nothing newer for this long is quiet (``DroneAgent``): avoided where it
+    may have stopped, still in the formation; it is silent (out of the formation) once quiet
+    longer than its link's recent quiet spells allow, at most ``DroneAgent``'s
+    ``peer_silence_max_s`` (1.5 s). A follower close behind a drone that dies reaches it in
+    under a second (0.8 s grazed one in bench faults seed 1000 trial 59). With 10 Hz states a
+    live drone goes unheard this long with probability 3e-4 per look under 20 % loss, ~1 % with
+    loss, 300 ms delays and reordering together (harmless: quiet, not silent)."""
 
     def __post_init__(self) -> None:
         positive = ("replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")

@@ -146,6 +146,10 @@ def test_bench_flights_over_seeds(tmp_path: Path) -> None:
     assert data["seeds"] == 2 and len(data["flights"]) == 2
     assert data["collision_free_count"] == 2
     assert [f["seed"] for f in data["flights"]] == [1, 2]
+    # the attempts the safety check refused, by reason, per flight
+    for f in data["flights"]:
+        assert f["refusals"]["attempts"] >= 0
+        assert set(f["refusals"]) >= {"unobserved", "obstacle", "drone", "altitude"}
 
 
 def test_onboard_warmup_and_sitl(tmp_path: Path) -> None:
