@@ -264,6 +264,7 @@ class DepthStreamer:
                         "max_depth_m",
                     )
                 },
+                render_step=int(getattr(frame, "render_step", 1)),
             )
             for sink in self.sinks:
                 sink.publish_depth(img)

@@ -92,6 +92,10 @@ class DepthFrame:
     position: np.ndarray
     rotation: np.ndarray
     intrinsics: CameraIntrinsics
+    render_step: int = 1
+    """Only every render_step-th row and column holds a measurement (a simulated camera that
+    renders a subset); the other pixels read 0 but are not "no return". A mapper casting a
+    pixel grid that is not a subset of these refuses the frame."""
 
 
 class FrameRejected(ValueError):

@@ -66,6 +66,16 @@ class LocalMapper:
         if frame.stamp_s < self.last_stamp_s:
             self.rejected += 1
             return IngestResult(False, "frame older than the last accepted one")
+        cast = self.params.skip_pixel if step is None else int(step)
+        render = int(getattr(frame, "render_step", 1))
+        if render > 1 and cast % render:
+            # the pixels between the rendered ones read 0: cast, they would clear free space
+            self.rejected += 1
+            return IngestResult(
+                False,
+                f"frame rendered every {render}th pixel but cast every {cast}th: the cast "
+                f"step (depth.step) must be a multiple of the render step",
+            )
         if recenter:
             self.recenter(frame.position)
         # no-return rays at most every no_return_period_s (a fixed phase, as the ESDF refresh;

@@ -124,4 +124,5 @@ class SimulatedDepthCamera:
             np.array(position, dtype=np.float64),
             np.array(rotation, dtype=np.float64),
             self.intrinsics,
+            render_step=int(p.step),
         )

@@ -237,6 +237,9 @@ class DepthImage:
     position: np.ndarray
     rotation: np.ndarray
     intrinsics: dict[str, float]
+    render_step: int = 1
+    """Only every render_step-th row and column was rendered (the rest reads 0); on the wire
+    only when above 1."""
 
     def to_bytes(self) -> bytes:
         """The wire form (raises ValueError for a non-finite stamp, pose or intrinsics)."""
@@ -249,6 +252,7 @@ class DepthImage:
                 "intrinsics": self.intrinsics,
                 "shape": list(self.depth_m.shape),
                 "encoding": DEPTH_ENCODING,
+                **({"render_step": int(self.render_step)} if self.render_step != 1 else {}),
             },
             separators=(",", ":"),
             allow_nan=False,
@@ -273,7 +277,7 @@ class DepthImage:
         if 8 + n > len(data):
             raise DecodeError("truncated", f"header of {n} bytes, {len(data) - 8} left")
         h = _json(data[8 : 8 + n], "depth header")
-        _keys(h, _HEADER_KEYS, "depth header")
+        _keys(h, _HEADER_KEYS | {"render_step"}, "depth header", frozenset({"render_step"}))
         if h["encoding"] != DEPTH_ENCODING:
             raise DecodeError("wrong-version", f"encoding {h['encoding']!r}")
         shape = h["shape"]
@@ -304,6 +308,7 @@ class DepthImage:
             position=np.array(_vector("position", h["position"], 3)),
             rotation=rot,
             intrinsics=intr,
+            render_step=_integer("render_step", h.get("render_step", 1), 1, 64),
         )
 
     def to_depth_frame(self) -> DepthFrame:
@@ -319,7 +324,9 @@ class DepthImage:
             i.get("min_depth_m", 0.2),
             i.get("max_depth_m", 5.0),
         )
-        return DepthFrame(self.depth_m, self.stamp_s, self.position, self.rotation, intr)
+        return DepthFrame(
+            self.depth_m, self.stamp_s, self.position, self.rotation, intr, self.render_step
+        )
 
 
 def _intrinsics(v: Any) -> dict[str, float]:

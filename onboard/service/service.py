@@ -186,6 +186,7 @@ class FlightService:
             avoid_reported=True,  # a peer with states but no trajectory (stuck long, by hand)
             on_plan=self._on_plan,
         )
+        self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
         self.peer_view: PeerView | None = None
         """The peers as the agent avoids them, at the last look (``peers_now``)."""
@@ -481,7 +482,11 @@ class FlightService:
         self._cpu("depth_ingest", c1 - c0)
         if not res.accepted:
             self.counters["frames_rejected"] += 1
+            if res.reason != self._frame_reject_reason:  # each new reason once, not per frame
+                self._frame_reject_reason = res.reason
+                log.warning("depth frame refused: %s", res.reason)
             return True
+        self._frame_reject_reason = ""
         self.counters["frames"] += 1
         stamp = float(frame.stamp_s)
         if math.isfinite(self._last_frame_stamp):
