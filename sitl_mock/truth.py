@@ -264,7 +264,7 @@ class DepthStreamer:
                         "max_depth_m",
                     )
                 },
-                render_step=int(getattr(frame, "render_step", 1)),
+                render_step=frame.render_step,
             )
             for sink in self.sinks:
                 sink.publish_depth(img)

@@ -67,7 +67,7 @@ class LocalMapper:
             self.rejected += 1
             return IngestResult(False, "frame older than the last accepted one")
         cast = self.params.skip_pixel if step is None else int(step)
-        render = int(getattr(frame, "render_step", 1))
+        render = frame.render_step
         if render > 1 and cast % render:
             # the pixels between the rendered ones read 0: cast, they would clear free space
             self.rejected += 1
@@ -84,7 +84,7 @@ class LocalMapper:
         period = self.params.no_return_period_s
         no_return = t >= self._next_no_return_s - 0.1 * period
         res = self.map.ingest_depth(
-            depth, frame.intrinsics, frame.position, frame.rotation, step, no_return
+            depth, frame.intrinsics, frame.position, frame.rotation, cast, no_return
         )
         if res.accepted:
             self.last_stamp_s = t

@@ -241,6 +241,8 @@ class FlightService:
             "frames_rejected": 0,
             "frames_missed": 0,
             "esdf_builds": 0,
+            "esdf_skipped": 0,  # refreshes that kept the field (nothing it reads changed)
+            "esdf_new_buffer_sets": 0,
             "commands": 0,
             "commands_rejected": 0,
             "setpoints_sampled": 0,
@@ -501,7 +503,7 @@ class FlightService:
             # reads (and the window did not move): the field is current either way
             self._field = self.mapper.planning_field()
             if self._field is before:
-                self.counters["esdf_skipped"] = self.counters.get("esdf_skipped", 0) + 1
+                self.counters["esdf_skipped"] += 1
             # deadlines a period apart, each refresh at the first frame at or after one: the
             # refreshes keep esdf_rate_hz on average whatever the frames' jitter (a period
             # measured from the last refresh lost a whole frame interval to a frame that came
