@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 
 from gcs.certs import make_demo_pki
 from onboard.comm.security import SwarmAccessControl, TlsConfig, drone_common_name
@@ -72,6 +73,10 @@ class Victim:
             self.got.append(str(sample.key_expr))
 
     def _on_alive(self, sample: Any) -> None:
+        # Only appearances: a token undeclared at the end of a `with` block
+        # also arrives, as a DELETE, and may land before the assertions.
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
         with self._lock:
             self.alive.append(str(sample.key_expr))
 
