@@ -31,7 +31,7 @@ from onboard.comm.wire import (
 from onboard.comm.zenoh_bus import BusConfig, SwarmNode, ZenohBus
 from onboard.comm.zenoh_session import open_session, peer_mesh
 from onboard.planner.trajectory import Trajectory
-from onboard.service.adapters import SwarmBusAdapter
+from onboard.service.adapters import SwarmBusAdapter, _status_counters
 
 SWARM = "t/swarm"
 DEADLINE_S = 30.0  # a deadline on a loaded machine, not a timed assert
@@ -360,3 +360,37 @@ def test_planner_thread_reads_whole_messages_while_they_arrive(
     assert cnt["error.internal"] == 0 and cnt["error.callback"] == 0
     # Received in order or refused as out of order: never an older one after a newer one.
     assert cnt["rx.traj"] + cnt["reject.out_of_order"] + cnt["reject.duplicate"] <= n
+
+
+def test_peer_trajectories_entering_the_inbox_are_latency_samples(
+    mesh: Callable[..., list[SwarmNode]],
+) -> None:
+    """The flight service's inbox (``SwarmBusAdapter.peers()``, what the planner reads) takes a
+    latency sample per peer trajectory: its clock after the update minus the sender's stamp. A
+    trajectory the gate refuses (stale) is no sample. The service's clock is injected here so
+    that each sample is known to the microsecond."""
+    a, b = mesh([0, 1])
+    stamp = time.time()
+    inbox_time = stamp + 0.0123
+    port = SwarmBusAdapter(b, clock=lambda: inbox_time)
+    assert port.peer_latency().count == 0
+    a.publish_trajectory(traj(0, stamp, traj_id=0), stamp)
+    wait_for(lambda: 0 in port.peers(), "the first trajectory in the inbox")
+    first = port.peer_latency()
+    assert first.count == 1 and abs(first.max_us - 12300) <= 1 and first.below_zero == 0
+    # refused by the gate (stale: stamped 60 s ago, valid 3 s), then a good one
+    a.publish_trajectory(traj(0, stamp, traj_id=1), time.time() - 60.0)
+    a.publish_trajectory(traj(0, stamp, traj_id=2), inbox_time - 0.0045)
+    wait_for(lambda: port.peers()[0].traj_id == 2, "the good trajectory after the stale one")
+    assert b.counters()["reject.stale"] == 1 and b.counters()["rx.traj"] == 2
+    fig = port.peer_latency()
+    assert fig.count == 2 and fig.below_zero == 0
+    assert abs(fig.min_us - 4500) <= 1 and abs(fig.max_us - 12300) <= 1
+    # in the counters (the flight record's /counters; the status gets the summary only)
+    c = port.counters()
+    assert c["peer_latency.count"] == 2 and c["rx.traj"] == 2
+    bins = {k: v for k, v in c.items() if k.startswith("peer_latency.bin_us.")}
+    assert sum(bins.values()) == 2
+    status = _status_counters({f"bus.{k}": v for k, v in c.items()})
+    assert status["bus.peer_latency.count"] == 2 and status["bus.peer_latency.p99_us"] > 0
+    assert not [k for k in status if ".bin_us." in k] and len(status) <= 128

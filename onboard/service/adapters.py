@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from onboard.comm.latency import BIN_KEY, LatencyFigures, LatencyRecorder
 from onboard.service.config import OnboardConfig
 from onboard.service.ports import (
     CommandFailed,
@@ -237,7 +238,15 @@ def command_from_wire(action: Any) -> Any:
 
 
 class SwarmBusAdapter:
-    """``SwarmBusPort`` over ``onboard.comm.zenoh_bus.SwarmNode`` (one drone's node)."""
+    """``SwarmBusPort`` over ``onboard.comm.zenoh_bus.SwarmNode`` (one drone's node).
+
+    Its ``peers()`` is the inbox the planner reads (``onboard.service.planning.PortPeerBus``).
+    Every peer trajectory that enters it is a latency sample: ``clock()`` right after the
+    inbox was updated minus the sender's publish stamp (``onboard.comm.latency``, which says
+    what the figure means across two clocks); the gate's refusals never get here.
+    ``peer_latency()`` is the histogram so far; ``counters()`` carries it as
+    ``peer_latency.*`` (the service's status and flight record add ``bus.``), the status only
+    its summary (count, extremes, p50, p99), the flight record every bin too."""
 
     def __init__(self, node: Any, clock: Callable[[], float] = time.time) -> None:
         import threading
@@ -246,6 +255,7 @@ class SwarmBusAdapter:
         self.clock = clock
         self._lock = threading.Lock()
         self._peers: dict[int, PeerInfo] = {}
+        self._latency = LatencyRecorder()
         self._states: dict[int, PeerState] = {}
         self._commands: list[IncomingCommand] = []
         self._last_cmd_s: float | None = None
@@ -268,8 +278,10 @@ class SwarmBusAdapter:
             traj_id=m.traj_id,
             incarnation=int(env.incarnation),
         )
+        stamp = float(env.stamp_s)
         with self._lock:
             self._peers[m.drone_id] = info
+            self._latency.add(self.clock() - stamp)
 
     def _on_state(self, env: Any, receive_s: float) -> None:
         """A peer's 10 Hz state (the node subscribes to them: ``open_bus``): its newest by
@@ -345,7 +357,7 @@ class SwarmBusAdapter:
                 battery_v=None if batt is None or not 0.0 <= batt <= 100.0 else float(batt),
                 battery_remaining=None,
                 clock_offset_max_s=max(offsets) if offsets else None,
-                counters={k: max(int(v), 0) for k, v in list(fields["counters"].items())[:128]},
+                counters=_status_counters(fields["counters"]),
                 message=str(fields.get("message", ""))[:200],
             )
         )
@@ -375,13 +387,26 @@ class SwarmBusAdapter:
     def clock_exceeded(self) -> dict[int, float]:
         return {k: c.offset_s for k, c in self.node.clock_report().items() if c.exceeded}
 
+    def peer_latency(self) -> LatencyFigures:
+        """``LatencyFigures``: every peer trajectory's publish -> inbox latency so far."""
+        with self._lock:
+            return self._latency.snapshot()
+
     def counters(self) -> dict[str, int]:
         out = {k: int(v) for k, v in self.node.counters().items()}
         out["commands_undecodable"] = self._bad_commands
+        out.update(self.peer_latency().to_counters("peer_latency."))
         return out
 
     def close(self) -> None:
         self.node.close()
+
+
+def _status_counters(counters: dict[str, Any], limit: int = 128) -> dict[str, int]:
+    """The counters a status carries (at most ``limit``, the wire's bound): all but the
+    latency histogram's bins (they go to the flight record only)."""
+    kept = [(k, v) for k, v in counters.items() if f"peer_latency.{BIN_KEY}" not in k]
+    return {k: max(int(v), 0) for k, v in kept[:limit]}
 
 
 def open_bus(cfg: OnboardConfig, clock: Callable[[], float] = time.time) -> SwarmBusAdapter:
