@@ -5,9 +5,13 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. A failed attempt is retried from an A* path with the formation term
-(``astar_keeps_formation``), then from an A* path without it (A* keeps the largest of the
-clearances ``astar_ladder_m`` at which it finds a path); failing that the previous
-trajectory is kept if it is still safe, else an emergency stop is returned. A drone ahead of
+(``astar_keeps_formation``), then from an A* path without it (A* paths keep the optimiser's
+clearance, else the check's: ``astar_ladder_m``). When every attempt was refused and the A*
+path kept only the check's distance, one rescue attempt without the formation term starts
+from an A* path at the largest of the clearances in between that finds one
+(``astar_rescue_ladder_m``): the roomier way around a gap that the check refuses every plan
+through. Failing that the previous trajectory is kept if it is still safe, else an emergency
+stop is returned. A drone ahead of
 its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so the
 swarm waits for a drone left behind rather than stretching the shape for the rest of the
 flight. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
@@ -62,9 +66,10 @@ class PlanStatus(str, enum.Enum):
     OK = "ok"
     """New optimised trajectory, formation term on, passed the safety check."""
     OK_NO_FORMATION = "ok-no-formation"
-    """The formation attempts failed the check; the A* retry without formation passed."""
+    """The formation attempts failed the check; the A* retry (or rescue) without formation
+    passed."""
     KEPT_PREVIOUS = "kept-previous"
-    """Both attempts failed; the previous trajectory is still safe and is kept."""
+    """Every attempt failed; the previous trajectory is still safe and is kept."""
     EMERGENCY = "emergency"
     """Nothing safe was found: the trajectory is a braking stop; the service should hover/land."""
 
@@ -136,6 +141,8 @@ class Problem:
         self.cancel_flag = np.zeros(1, dtype=np.int64)
         self.iterations = 0
         self.evaluations = 0
+        self.astar_clearance_m = math.nan
+        """The clearance [m] of the A* path the initial guess follows (NaN: no A* path)."""
 
     def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """(f, df/dx) at x."""
@@ -349,10 +356,12 @@ class FormationPlanner:
         previous: Trajectory | None,
         force_astar: bool,
         astar_margin_m: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(local target, solver start x0). The initial path is the previous trajectory (the
-        warm start keeps its timing), else a straight line, else an A* path when the line is
-        blocked; it is resampled into MINCO pieces of about ``piece_length_m``."""
+        ladder: tuple[float, ...],
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        """(local target, solver start x0, clearance of the A* path or NaN). The initial path
+        is the previous trajectory (the warm start keeps its timing), else a straight line,
+        else an A* path (at the largest of the clearances ``ladder`` that finds one) when the
+        line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``."""
         p = self.params
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
@@ -378,8 +387,9 @@ class FormationPlanner:
             p.max_pieces,
             p.tau_scale,
         )
+        clearance = math.nan
         if code == kn.GUESS_NEEDS_ASTAR:
-            path = self._astar(sp, target, field, astar_margin_m)
+            path, clearance = self._astar(sp, target, field, astar_margin_m, ladder)
             path[0] = sp
             x0 = kn.path_guess(
                 path,
@@ -392,27 +402,31 @@ class FormationPlanner:
                 p.max_pieces,
                 p.tau_scale,
             )
-        return target, x0
+        return target, x0, clearance
 
     def _astar(
-        self, start: np.ndarray, target: np.ndarray, field: DistanceField, margin_m: float
-    ) -> np.ndarray:
-        """An A* path start-target at the optimiser's clearance, else at the next lower of
-        ``params.astar_ladder_m`` that finds one (the check's last), else the straight line,
-        (K, 3)."""
+        self,
+        start: np.ndarray,
+        target: np.ndarray,
+        field: DistanceField,
+        margin_m: float,
+        ladder: tuple[float, ...],
+    ) -> tuple[np.ndarray, float]:
+        """(path (K, 3), its clearance): an A* path start-target at the first of the
+        clearances ``ladder`` that finds one, else the straight line and NaN."""
         p = self.params
-        path, _ = astar_path_levels(
+        path, clearance = astar_path_levels(
             field,
             start,
             target,
-            p.astar_ladder_m,
+            ladder,
             resolution_m=p.astar_resolution_m,
             margin_m=margin_m,
             z_limits=p.altitude_band_inner_m,
         )
         if path is None:
-            return np.vstack([start, target])
-        return np.ascontiguousarray(path, dtype=np.float64)
+            return np.vstack([start, target]), math.nan
+        return np.ascontiguousarray(path, dtype=np.float64), clearance
 
     def _lead(
         self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
@@ -479,9 +493,16 @@ class FormationPlanner:
         use_formation: bool = True,
         force_astar: bool = False,
         astar_margin_m: float = 3.0,
+        astar_ladder_m: Sequence[float] | None = None,
     ) -> Problem:
-        """Build the optimisation problem of one replan (validated inputs, initial guess)."""
+        """Build the optimisation problem of one replan (validated inputs, initial guess).
+        An A* initial path tries the clearances ``astar_ladder_m`` (default
+        ``params.astar_ladder_m``; the rescue attempt's are ``params.astar_rescue_ladder_m``)."""
         self._check_time_and_peers(t_start_s, peers)
+        ladder = self.params.astar_ladder_m if astar_ladder_m is None else astar_ladder_m
+        levels = tuple(float(c) for c in ladder)
+        if not levels or not all(math.isfinite(c) and c > 0.0 for c in levels):
+            raise ValueError(f"astar_ladder_m must hold positive numbers, got {ladder!r}")
         return self._prepare(
             t_start_s,
             *self._vectors_in_band(start_p, start_v, start_a, goal),
@@ -493,6 +514,7 @@ class FormationPlanner:
             use_formation,
             force_astar,
             astar_margin_m,
+            levels,
         )
 
     def _prepare(
@@ -510,11 +532,12 @@ class FormationPlanner:
         use_formation: bool,
         force_astar: bool,
         astar_margin_m: float,
+        ladder: tuple[float, ...],
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
         p = self.params
-        target, x0 = self._initial_x(
-            t_start_s, sp, sv, gl, field, fld, previous, force_astar, astar_margin_m
+        target, x0, astar_clearance = self._initial_x(
+            t_start_s, sp, sv, gl, field, fld, previous, force_astar, astar_margin_m, ladder
         )
         head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
@@ -533,7 +556,9 @@ class FormationPlanner:
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
         pt0 = pack.t0 - t_start_s
         prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts)
-        return Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
+        problem = Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
+        problem.astar_clearance_m = astar_clearance
+        return problem
 
     # --- acceptance -------------------------------------------------------------------------
 
@@ -734,9 +759,14 @@ class FormationPlanner:
         pack = _pack_peers(peers)
         view = self._field_view(field)
         iters = evals = 0
+        messages: list[str] = []
+        last_status: LbfgsStatus | None = None
 
         def solve(
-            use_formation: bool, force_astar: bool, astar_margin_m: float = 3.0
+            use_formation: bool,
+            force_astar: bool,
+            astar_margin_m: float = 3.0,
+            ladder: tuple[float, ...] = self.params.astar_ladder_m,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
             """Prepare and solve one attempt (cancellable meanwhile), counting its work."""
             nonlocal iters, evals
@@ -754,6 +784,7 @@ class FormationPlanner:
                 use_formation,
                 force_astar,
                 astar_margin_m,
+                ladder,
             )
             self._active = problem
             x, status = problem.solve()
@@ -762,21 +793,24 @@ class FormationPlanner:
             evals += problem.evaluations
             return problem, x, status
 
-        messages = []
-        last_status: LbfgsStatus | None = None
-        attempts = [(True, False, PlanStatus.OK)]
-        if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
-            attempts.append((True, True, PlanStatus.OK))
-        attempts.append((False, True, PlanStatus.OK_NO_FORMATION))
-        for use_formation, force_astar, ok_status in attempts:
-            problem, x, last_status = solve(use_formation, force_astar)
+        def attempt(
+            use_formation: bool,
+            force_astar: bool,
+            ok_status: PlanStatus,
+            what: str,
+            ladder: tuple[float, ...] = self.params.astar_ladder_m,
+        ) -> tuple[PlanResult | None, Problem, bool]:
+            """One attempt: (its result when the check accepts it, else None with the reason
+            in ``messages``; its problem; whether it was canceled)."""
+            nonlocal last_status
+            problem, x, last_status = solve(use_formation, force_astar, ladder=ladder)
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
-                break
+                return None, problem, True
             traj, safe, why, clearance, ahead = self._finish(problem, x, field, view, peers, pack)
             if traj is None:
                 messages.append(why)
-                continue
+                return None, problem, False
             if not safe:
                 x2, st2 = problem.solve(x, self._lb_prm_refine)
                 if st2 != LbfgsStatus.CANCELED:
@@ -803,7 +837,7 @@ class FormationPlanner:
                             messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
             if safe:
                 assert traj is not None
-                return PlanResult(
+                result = PlanResult(
                     ok_status,
                     traj,
                     iters,
@@ -812,8 +846,33 @@ class FormationPlanner:
                     "; ".join(messages),
                     functools.partial(problem.cost_terms, x),
                 )
-            what = "a* retry" if force_astar else "formation"
+                return result, problem, False
             messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
+            return None, problem, False
+
+        attempts = [(True, False, PlanStatus.OK, "formation")]
+        if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
+            attempts.append((True, True, PlanStatus.OK, "a* retry"))
+        attempts.append((False, True, PlanStatus.OK_NO_FORMATION, "a* retry"))
+        canceled = False
+        for use_formation, force_astar, ok_status, what in attempts:
+            result, problem, canceled = attempt(use_formation, force_astar, ok_status, what)
+            if result is not None:
+                return result
+            if canceled:
+                break
+        # Every attempt was refused. When the A* retry's path kept only the check's distance,
+        # the way it offered may be a gap the check refuses every plan through (a mapped gap
+        # is narrower than the true one): one more attempt starts from the roomiest path at
+        # the rescue levels. It comes before keeping the previous trajectory: a drone stuck in
+        # front of such a gap keeps a hover that the check accepts, replan after replan.
+        rescue = self.params.astar_rescue_ladder_m
+        if not canceled and rescue and problem.astar_clearance_m < min(rescue):
+            result, _, canceled = attempt(
+                False, True, PlanStatus.OK_NO_FORMATION, "a* rescue", ladder=rescue
+            )
+            if result is not None:
+                return result
         if previous is not None:
             safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
             if safe:

@@ -1,0 +1,235 @@
+"""The A* fallback's clearance levels: ordinary replans use the two-step ladder (the optimiser's
+clearance, then the check's); the intermediate levels only rescue a replan whose every attempt
+was refused, before the previous trajectory would be kept."""
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from onboard.planner import planner as planner_module
+from onboard.planner.astar import astar_path_levels
+from onboard.planner.field import AnalyticField, DistanceField, GridField
+from onboard.planner.lbfgs import LbfgsStatus
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PlanResult, PlanStatus, Problem
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+LINE3 = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+ZERO = np.zeros(3)
+TWO_STEP = (0.6, 0.22)
+RESCUE = (0.5, 0.4, 0.3)
+
+
+def _wall(narrow_half_gap_m: float, trunk_ahead: bool) -> World:
+    """A wall of 0.3 m trunks across x = 4 whose gaps are all narrower than the optimiser's
+    0.6 m clearance needs: one 2 * ``narrow_half_gap_m`` wide on the straight way (y = 0), one
+    0.95-1.0 m wide about 2.2 m aside, the rest 0.25-0.3 m; optionally a trunk on the straight
+    way at x = 1.8."""
+    c = narrow_half_gap_m + 0.3
+    ys = [-c - 0.9 * k for k in range(11)] + [c, c + 0.85] + [3.0 + 0.9 * k for k in range(8)]
+    cyl = [[4.0, y, 0.3, 0.0, 3.0] for y in ys]
+    if trunk_ahead:
+        cyl.append([1.8, 0.0, 0.25, 0.0, 3.0])
+    return World(
+        cylinders=np.array(cyl, dtype=float),
+        rings=np.zeros((0, 7)),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+
+
+def _gap_unobserved(world: World) -> GridField:
+    """The world's distances on a 0.1 m grid whose cells inside the narrow gap (and 0.35 m
+    either side of the wall) were never observed: like a drone's own map, on which every plan
+    through that gap is refused while A* at the check's distance still finds the way through
+    it (mapped forest-medium seed 3, where the map's gap was narrower than the check needs)."""
+    exact = AnalyticField(world)
+    grid = GridField.from_function(exact.distance, [-1.0, -5.0, 0.0], [10.0, 6.0, 3.0], 0.1)
+    c = grid.cell_centres()
+    gap = (np.abs(c[..., 0] - 4.0) < 0.35) & (np.abs(c[..., 1]) < 0.3)
+    return GridField(grid.values, grid.origin, grid.res, known=~gap)
+
+
+@pytest.fixture
+def ladders(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[tuple[tuple[float, ...], float]]]:
+    """Every A* search of the planner: (the clearances it was given, the one that found)."""
+    seen: list[tuple[tuple[float, ...], float]] = []
+
+    def spy(
+        field: DistanceField,
+        start: np.ndarray,
+        goal: np.ndarray,
+        clearances_m: tuple[float, ...],
+        **kw: Any,
+    ) -> tuple[np.ndarray | None, float]:
+        path, found = astar_path_levels(field, start, goal, clearances_m, **kw)
+        seen.append((tuple(clearances_m), found))
+        return path, found
+
+    monkeypatch.setattr(planner_module, "astar_path_levels", spy)
+    yield seen
+
+
+def _crossing(res: PlanResult, world: World) -> tuple[float, float]:
+    """(y where the plan crosses the wall at x = 4, closest approach of the whole plan to a
+    trunk of the exact world); y is NaN when the plan does not reach the wall."""
+    tr = res.trajectory
+    pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 800))
+    d = AnalyticField(world).distance(pts)[0]
+    if pts[:, 0].max() < 4.0:
+        return float("nan"), float(d.min())
+    return float(pts[int(np.argmin(np.abs(pts[:, 0] - 4.0))), 1]), float(d.min())
+
+
+def test_the_ladders_of_the_defaults_and_their_validation() -> None:
+    p = PlannerParams()
+    assert p.astar_ladder_m == TWO_STEP
+    assert p.astar_rescue_ladder_m == RESCUE
+    assert PlannerParams(astar_clearances_m=()).astar_rescue_ladder_m == ()
+    # levels outside (check, optimiser) are left out; the ordinary ladder never changes
+    odd = PlannerParams(astar_clearances_m=(0.7, 0.45, 0.1))
+    assert odd.astar_rescue_ladder_m == (0.45,)
+    assert odd.astar_ladder_m == TWO_STEP
+    single = PlannerParams(obstacle_clearance_m=0.22)
+    assert single.astar_ladder_m == (0.22,) and single.astar_rescue_ladder_m == ()
+    with pytest.raises(ValueError, match="astar_clearances_m must hold positive"):
+        PlannerParams(astar_clearances_m=(0.5, -0.1))
+    with pytest.raises(ValueError, match="astar_clearances_m must hold positive"):
+        PlannerParams(astar_clearances_m=(0.5, float("nan")))
+    with pytest.raises(ValueError, match="astar_clearances_m must be strictly decreasing"):
+        PlannerParams(astar_clearances_m=(0.3, 0.4))
+    with pytest.raises(ValueError, match="astar_clearances_m must be strictly decreasing"):
+        PlannerParams(astar_clearances_m=(0.4, 0.4))
+
+
+def test_prepare_takes_a_ladder_and_says_which_clearance_its_path_keeps() -> None:
+    field = _gap_unobserved(_wall(0.3, False))
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    two = planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, force_astar=True)
+    assert two.astar_clearance_m == 0.22  # no path at 0.6 m: the narrow gap at the check's
+    rescue = planner.prepare(
+        0.0, start, ZERO, ZERO, goal, [], field, force_astar=True, astar_ladder_m=RESCUE
+    )
+    assert rescue.astar_clearance_m == 0.4  # the wide gap
+    straight = planner.prepare(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([2.0, 0, 1]),
+                               [], field)  # fmt: skip
+    assert np.isnan(straight.astar_clearance_m)  # a free straight line: no A*
+    for bad in ((), (0.5, -0.2), (float("inf"),)):
+        with pytest.raises(ValueError, match="astar_ladder_m"):
+            planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, astar_ladder_m=bad)
+
+
+def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """A hovering drone 0.15 m short of a gap it may not plan through (every plan enters the
+    unobserved gap within the first second); A* at the check's distance only offers that gap.
+    The old two-step fallback keeps the hover, replan after replan (158 kept hovers in mapped
+    forest-medium seed 3); the rescue, tried before keeping it, flies the wide gap."""
+    world = _wall(0.3, False)
+    field = _gap_unobserved(world)
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    hover = Trajectory.hover(start, 0.0, 3.0)
+
+    def plan(levels: tuple[float, ...], previous: Trajectory | None) -> PlanResult:
+        params = PlannerParams(v_max_m_s=1.0, astar_clearances_m=levels)
+        planner = FormationPlanner(params, LINE3, slot=1)
+        res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, previous)
+        if res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
+            assert planner.check(res.trajectory, 0.0, field, [])[0]
+        return res
+
+    res = plan(RESCUE, hover)
+    assert res.status == PlanStatus.OK_NO_FORMATION, res.message
+    # the formation attempt (from the hover) and the A* retry were refused for the gap; only
+    # then the rescue searched the intermediate levels, and found the wide gap at 0.4 m
+    assert res.message.count("enters unobserved space") == 2
+    assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
+    assert [found for _, found in ladders] == [0.22, 0.4]
+    y, clearance = _crossing(res, world)
+    assert y == pytest.approx(2.2, abs=0.25)  # through the wide gap
+    assert clearance >= 0.35
+    # the two-step fallback alone keeps the hover (the check accepts it), or stops without it
+    ladders.clear()
+    assert plan((), hover).status == PlanStatus.KEPT_PREVIOUS
+    assert plan((), None).status == PlanStatus.EMERGENCY
+    assert [ladder for ladder, _ in ladders] == [TWO_STEP, TWO_STEP]  # the two A* retries
+    # without a previous trajectory the rescue still comes before the stop
+    assert plan(RESCUE, None).status == PlanStatus.OK_NO_FORMATION
+
+
+def test_an_ordinary_replan_never_searches_the_intermediate_levels(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """A trunk on the straight way, then the wall with a 0.5 m gap ahead (0.25 m from each
+    trunk, the check allows 0.22 m) and a 1.0 m gap aside. A* at 0.6 m finds no way; at the
+    check's distance it takes the narrow gap, and the plan through it is accepted: the
+    intermediate levels (which would take the wide gap) are not searched, and the plan is bit
+    for bit the one without them."""
+    world = _wall(0.25, True)
+    field = AnalyticField(world)
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([8.0, 0.0, 1.0])
+
+    def plan(levels: tuple[float, ...]) -> PlanResult:
+        params = PlannerParams(v_max_m_s=1.0, astar_clearances_m=levels)
+        return FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
+
+    res = plan(RESCUE)
+    assert res.status == PlanStatus.OK, res.message
+    assert ladders == [(TWO_STEP, 0.22)]  # the first attempt's A* guess (the line is blocked)
+    y, clearance = _crossing(res, world)
+    assert y == pytest.approx(0.0, abs=0.2)  # through the narrow gap
+    assert 0.22 <= clearance < 0.3
+    old = plan(())
+    assert old.status == res.status
+    np.testing.assert_array_equal(old.trajectory.coeffs, res.trajectory.coeffs)
+    np.testing.assert_array_equal(old.trajectory.durations_s, res.trajectory.durations_s)
+    assert (old.iterations, old.evaluations) == (res.iterations, res.evaluations)
+
+
+def test_no_rescue_when_the_a_star_path_kept_the_optimisers_clearance(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """Every plan is refused for unobserved space 0.1 m ahead, but the A* path keeps the full
+    0.6 m (open space): the intermediate levels would offer nothing roomier, so no rescue."""
+    exact = AnalyticField(World.empty(0.0))
+    grid = GridField.from_function(exact.distance, [-2.0, -2.0, 0.0], [8.0, 2.0, 2.0], 0.1)
+    field = GridField(grid.values, grid.origin, grid.res, known=grid.cell_centres()[..., 0] < 0.1)
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    res = planner.plan(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([6.0, 0, 1]), [], field)
+    assert res.status == PlanStatus.EMERGENCY
+    assert "rescue" not in res.message
+    assert ladders == [(TWO_STEP, 0.6)]
+
+
+def test_a_canceled_replan_makes_no_rescue_attempt(
+    ladders: list[tuple[tuple[float, ...], float]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rescue scenario with the A* retry's solve canceled (as ``cancel()`` from another
+    thread does): the replan ends there, keeping the hover, and searches no rescue path."""
+    field = _gap_unobserved(_wall(0.3, False))
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    solve = Problem.solve
+    calls = [0]
+
+    def cancel_second(
+        self: Problem, x_start: np.ndarray | None = None, lb_prm: np.ndarray | None = None
+    ) -> tuple[np.ndarray, LbfgsStatus]:
+        calls[0] += 1
+        if calls[0] == 3:  # 1: formation, 2: its refinement, 3: the A* retry
+            self.cancel_flag[0] = 1
+        return solve(self, x_start, lb_prm)
+
+    monkeypatch.setattr(Problem, "solve", cancel_second)
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    hover = Trajectory.hover(start, 0.0, 3.0)
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, hover)
+    assert res.status == PlanStatus.KEPT_PREVIOUS
+    assert res.solver_status == LbfgsStatus.CANCELED
+    assert res.message.endswith("canceled")
+    assert calls[0] == 3
+    assert [ladder for ladder, _ in ladders] == [TWO_STEP]
