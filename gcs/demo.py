@@ -342,6 +342,14 @@ def _refused(endpoints: Any) -> bool:
     return False
 
 
+PEER_PREFIX = "bus.peer_latency."
+"""Where a service's flight record keeps its peer latency histogram (``/counters``)."""
+PEER_LATENCY_TARGET_MS = {"median": 5.0, "p99": 20.0}
+"""Issue #9: peer trajectory latency, publish to the planner's inbox, on loopback."""
+PEER_LATENCY_DEFINITION = "peer trajectory, publish -> the planner's inbox (the target's)"
+GCS_LATENCY_DEFINITION = "drone trajectory, publish -> the ground station's inbox"
+
+
 def _percentiles(ms: Sequence[float]) -> dict[str, float | int | None]:
     a = np.asarray(ms, dtype=np.float64)
     if a.size == 0:
@@ -489,6 +497,7 @@ class Demo:
         # receive time minus the sender's stamp taken just before publishing)
         self._traj_lock = threading.Lock()
         self.traj_latency: list[tuple[int, float, float]] = []
+        self._records: list[Any] | None = None
 
     # -- lifecycle --
 
@@ -616,15 +625,69 @@ class Demo:
 
     def bus_latency(self) -> dict[str, Any]:
         """Trajectory latency (ms), publish -> this station's inbox, while the swarm flew (from
-        the take-off command to the landing command)."""
+        the take-off command to the landing command). Not the target's definition (peer to
+        peer, into the planner's inbox: ``peer_latency``), and few samples (one per drone and
+        replan)."""
         t0 = getattr(self, "t_takeoff", math.inf)
         t1 = getattr(self, "t_land_cmd", math.inf)
         with self._traj_lock:
             kept = [(d, lat) for d, t, lat in self.traj_latency if t0 <= t <= t1]
-        out: dict[str, Any] = _percentiles([lat * 1e3 for _, lat in kept])
+        out: dict[str, Any] = {"definition": GCS_LATENCY_DEFINITION}
+        out.update(_percentiles([lat * 1e3 for _, lat in kept]))
         out["per_drone"] = {
             str(d): sum(1 for s, _ in kept if s == d) for d in range(self.cfg.drones)
         }
+        return out
+
+    def records(self) -> list[Any]:
+        """The services' flight records in the flight directory (read once, after the flight)."""
+        if self._records is None:
+            from onboard.record import read_record
+
+            self._records = [read_record(p) for p in sorted(self.out.glob("*.mcap"))]
+        return self._records
+
+    def peer_latency(self) -> dict[str, Any]:
+        """Peer trajectory latency (ms), the target's definition (issue #9): publish -> the
+        planner's inbox of every other service, over all services, from the take-off command
+        to the landing command. Each service keeps a cumulative histogram of its samples
+        (``onboard.comm.latency``; all processes share this machine's clock) in the 1 Hz
+        ``/counters`` of its flight record; the window is the first snapshot at or after the
+        landing command (the last one if there is none) minus the last one at or before the
+        take-off command (none: a record opens at take-off, and no trajectory is published on
+        the ground). Percentiles come from the merged histogram, within half a bin (1.6 %);
+        count exact; max exact when ``max_exact``. The target: median < 5 ms, p99 < 20 ms."""
+        from onboard.comm.latency import LatencyFigures
+
+        out: dict[str, Any] = {"definition": PEER_LATENCY_DEFINITION}
+        t0 = getattr(self, "t_takeoff", None)
+        t1 = getattr(self, "t_land_cmd", math.inf)
+        per_drone: dict[int, LatencyFigures] = {}
+        if t0 is not None:
+            for rec in self.records():
+                snaps = [
+                    (t, f)
+                    for t, m in rec.topics.get("/counters", [])
+                    if (f := LatencyFigures.from_counters(m.get("counters", {}), PEER_PREFIX))
+                    is not None
+                ]
+                if not snaps:
+                    continue
+                before = [f for t, f in snaps if t <= t0]
+                after = [f for t, f in snaps if t >= t1]
+                end = after[0] if after else snaps[-1][1]
+                window = end.minus(before[-1] if before else LatencyFigures())
+                d = rec.drone_id
+                per_drone[d] = LatencyFigures.merge([per_drone.get(d, LatencyFigures()), window])
+        fig = LatencyFigures.merge(per_drone.values())
+        out.update(fig.summary_ms())
+        out["per_drone"] = {str(d): f.count for d, f in sorted(per_drone.items())}
+        out["target_ms"] = dict(PEER_LATENCY_TARGET_MS)
+        med, p99 = out["median"], out["p99"]
+        tgt = PEER_LATENCY_TARGET_MS
+        out["meets_target"] = (
+            None if med is None or p99 is None else bool(med < tgt["median"] and p99 < tgt["p99"])
+        )
         return out
 
     def _check_bus_security(self) -> None:
@@ -925,11 +988,8 @@ class Demo:
         of its flight record: frames received, unsigned refused, bad signatures, unsigned let
         through) and each mock vehicle's (messages accepted, unsigned refused). With signing
         required on both ends, every frame accepted was signed with the drone's key."""
-        from onboard.record import read_record
-
         services: dict[str, dict[str, int]] = {}
-        for path in sorted(self.out.glob("*.mcap")):
-            rec = read_record(path)
+        for rec in self.records():
             last = rec.messages("/counters")
             if not last:
                 continue
@@ -1027,6 +1087,7 @@ class Demo:
                 and all(v is not False for v in bus.values())
             )
         latency = self.bus_latency()
+        peer_latency = self.peer_latency()
         result = {
             "success": bool(arrived and collisions == 0 and services_ok and secure_ok),
             "arrived": arrived,
@@ -1043,6 +1104,7 @@ class Demo:
             "crossing_time_s": (self.t_arrived - self.t_goal) if arrived else None,
             "formation_change_reached_s": getattr(self, "change_reached_s", None),
             "setpoint_period_ms": {k: sp.get(k) for k in ("median", "p99", "max", "count")},
+            "peer_latency_ms": peer_latency,
             "bus_latency_ms": latency,
             "security": security,
             "plan_ms": {k: summary.get("plan_ms", {}).get(k) for k in ("median", "p90", "max")},
@@ -1240,12 +1302,25 @@ def result_text(r: dict[str, Any]) -> str:
         f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
         f"p99 {f(sp.get('p99'), '.1f')} ms, max {f(sp.get('max'), '.1f')} ms",
     ]
+    peer = r.get("peer_latency_ms") or {}
+    if peer:
+        tgt = peer.get("target_ms", PEER_LATENCY_TARGET_MS)
+        met = peer.get("meets_target")
+        lines.append(
+            f"peer trajectory latency (the target's definition: publish -> each planner's "
+            f"inbox, {peer.get('count', 0)} samples on {len(peer.get('per_drone', {}))} "
+            f"services): median {f(peer.get('median'), '.2f')} ms, p99 "
+            f"{f(peer.get('p99'), '.2f')} ms, max {f(peer.get('max'), '.2f')} ms; target median "
+            f"< {tgt['median']:g} ms, p99 < {tgt['p99']:g} ms: "
+            + ("-" if met is None else "met" if met else "NOT met")
+        )
     lat = r.get("bus_latency_ms") or {}
     if lat:
         lines.append(
-            f"bus latency (drone trajectory -> ground station inbox, {lat.get('count', 0)} "
-            f"messages): median {f(lat.get('median'), '.2f')} ms, p99 {f(lat.get('p99'), '.2f')} "
-            f"ms, max {f(lat.get('max'), '.2f')} ms"
+            f"ground station latency (drone trajectory -> ground station inbox, not the "
+            f"target's definition, {lat.get('count', 0)} messages): median "
+            f"{f(lat.get('median'), '.2f')} ms, p99 {f(lat.get('p99'), '.2f')} ms, max "
+            f"{f(lat.get('max'), '.2f')} ms"
         )
     sec = r.get("security") or {}
     if sec.get("signing"):

@@ -34,6 +34,7 @@ import numpy as np
 
 from gcs.formations import formation_errors
 from gcs.metrics import summary
+from onboard.comm.latency import BIN_KEY, LatencyFigures
 from onboard.record import FlightRecord, read_record
 
 if TYPE_CHECKING:
@@ -48,6 +49,9 @@ COLLISION_OBSTACLE_M = 0.2
 COLLISION_DRONE_M = 0.4
 GOAL_TOLERANCE_M = 0.5
 GROUND_STATES = ("idle", "landed")
+PEER_LATENCY_PREFIX = "bus.peer_latency."
+"""The service's peer trajectory latency histogram in its ``/counters`` (publish -> the
+planner's inbox, ``onboard.comm.latency``)."""
 
 
 class ReportError(ValueError):
@@ -144,6 +148,12 @@ class DroneFlight:
             else (float(self.t[-1]) if self.t.size else start)
         )
         return float(end - start)
+
+    def peer_latency(self) -> LatencyFigures | None:
+        """Peer trajectory latency, publish -> this service's planner inbox, from the start of
+        the service to its last ``/counters`` (a service publishes no trajectory on the ground,
+        so for its first flight: that flight); None in a record without it."""
+        return LatencyFigures.from_counters(self.counters, PEER_LATENCY_PREFIX)
 
     def path_length_m(self) -> float:
         air = self.airborne()
@@ -473,7 +483,9 @@ def summarise(a: Analysis) -> dict[str, Any]:
                 "plan_statuses": statuses,
                 "transitions": [list(x) for x in f.transitions],
                 "warnings": [m for _, lvl, m in f.events if lvl >= 3][:20],
-                "counters": dict(f.counters),
+                "peer_latency_ms": _latency_ms(f.peer_latency()),
+                # the latency histogram's bins stay in the record (peer_latency_ms sums them up)
+                "counters": {k: v for k, v in f.counters.items() if f".{BIN_KEY}" not in k},
             }
         )
     periods = np.concatenate(all_periods) if all_periods else np.zeros(0)
@@ -498,12 +510,20 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "cluttered": _cluttered(a),
         "setpoint_period_ms": _stat_ms(periods),
         "plan_ms": _stat(np.concatenate([f.plan_ms for f in a.flights]) if a.flights else []),
+        "peer_latency_ms": _latency_ms(
+            LatencyFigures.merge(x for f in a.flights if (x := f.peer_latency()) is not None)
+        ),
         "assignments": [
             {k: x.get(k) for k in ("name", "epoch", "effective_s")}
             for x in a.mission.get("assignments", [])
         ],
     }
     return out
+
+
+def _latency_ms(fig: LatencyFigures | None) -> dict[str, Any]:
+    """median, p90, p99, max, mean (ms) and count of a latency histogram (None: count 0)."""
+    return (fig or LatencyFigures()).summary_ms()
 
 
 def _cluttered(a: Analysis) -> dict[str, Any] | None:
@@ -569,6 +589,13 @@ def summary_text(s: Mapping[str, Any]) -> str:
         f"p90 {f(s['plan_ms']['p90'], '.0f')} ms, max {f(s['plan_ms']['max'], '.0f')} ms "
         f"({s['plan_ms']['count']} plans)",
     ]
+    peer = s.get("peer_latency_ms") or {}
+    if peer.get("count"):
+        lines.append(
+            f"peer trajectory latency (publish -> the planner's inbox): median "
+            f"{f(peer['median'])} ms, p99 {f(peer['p99'])} ms, max {f(peer['max'])} ms "
+            f"({peer['count']} trajectories)"
+        )
     for d in s["drones"]:
         lines.append(
             f"  drone {d['id']}: {d['final_state']}, goal miss {f(d['goal_miss_xy_m'])} m, "

@@ -12,9 +12,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
-from gcs.demo import Demo, DemoConfig, DemoError, parse_change, run_demo
+from gcs.demo import Demo, DemoConfig, DemoError, parse_change, result_text, run_demo
+from gcs.report import DroneFlight
+from onboard.comm.latency import LatencyFigures, LatencyRecorder
+from onboard.record import FlightRecorder
 
 DEMO = "import sys; from gcs.demo import demo; sys.argv[0] = 'swarm-gcs demo'; demo()"
 
@@ -89,6 +93,57 @@ def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path)
     assert onboard["reactions"]["depth_lost"]["timeout_s"] == pytest.approx(2.0)
     with pytest.raises(DemoError, match="depth_rate_hz"):
         Demo(DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=0.5, out_dir=tmp_path))
+
+
+def test_peer_latency_from_the_services_records(tmp_path: Path) -> None:
+    """The target's figure (peer trajectory, publish -> the planner's inbox) as the demo reads
+    it after a flight: each service's cumulative histogram in the 1 Hz ``/counters`` of its
+    record, cut to take-off .. landing command and merged over the services, against numpy on
+    the samples of that window; the printed result says which figure is the target's."""
+    rng = np.random.default_rng(7)
+    demo = Demo(DemoConfig(drones=3, formation="triangle-3", out_dir=tmp_path / "f"))
+    t_off, t_land = 1000.0, 1020.0
+    demo.t_takeoff, demo.t_land_cmd = t_off, t_land
+    kept: list[float] = []
+    for drone in range(3):
+        lat = LatencyRecorder()
+        with FlightRecorder(demo.out / f"drone{drone}-x.mcap", drone) as rec:
+            for t in np.arange(t_off + 0.5, t_land + 3.0, 1.0):  # take-off to after landing
+                for s in rng.lognormal(np.log(3e-3), 0.7, 6):
+                    lat.add(float(s))
+                    if t <= t_land + 0.5:  # up to the first snapshot at/after landing
+                        kept.append(float(s) * 1e3)
+                c = {f"bus.{k}": v for k, v in lat.snapshot().to_counters().items()}
+                rec.counters(float(t), {"bus.rx.traj": lat.count, **c})
+                rec.flush()
+    got = demo.peer_latency()
+    want = np.asarray(kept)
+    assert got["count"] == want.size and got["per_drone"] == {"0": 126, "1": 126, "2": 126}
+    for q, key in ((50, "median"), (90, "p90"), (99, "p99")):
+        assert got[key] == pytest.approx(np.percentile(want, q), rel=0.017, abs=1e-3)
+    # the maximum is exact (nothing before take-off), the extremes of the truncated samples
+    assert got["max"] == pytest.approx(want.max(), abs=1e-3) and got["max_exact"]
+    assert got["meets_target"] == bool(got["median"] < 5.0 and got["p99"] < 20.0)
+    assert "planner's inbox" in got["definition"]
+    text = result_text(
+        {
+            "success": True, "arrived": True, "collisions": 0, "e_dist_m": 0.1, "e_sim": 0.01,
+            "min_obstacle_clearance_m": 0.3, "min_drone_distance_m": 1.0, "flight_time_s": 40.0,
+            "crossing_time_s": 30.0, "setpoint_period_ms": {}, "peer_latency_ms": got,
+            "bus_latency_ms": demo.bus_latency(), "security": {}, "flight_dir": "x",
+        }
+    )  # fmt: skip
+    assert f"the target's definition: publish -> each planner's inbox, {want.size} " in text
+    assert "ground station latency (drone trajectory -> ground station inbox, not the " in text
+    # the flight report's figure: each record's last snapshot (the whole record)
+    flight = DroneFlight.from_record(demo.records()[0])
+    assert flight.peer_latency() == LatencyFigures.from_counters(
+        {k[4:]: v for k, v in flight.counters.items() if k.startswith("bus.")}
+    )
+    assert flight.peer_latency().count == 23 * 6  # type: ignore[union-attr]
+    # no take-off: no figure
+    idle = Demo(DemoConfig(drones=3, formation="triangle-3", out_dir=tmp_path / "g"))
+    assert idle.peer_latency()["count"] == 0 and idle.peer_latency()["meets_target"] is None
 
 
 def _force_stop(info: dict[str, Any]) -> None:
@@ -194,3 +249,8 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     summary = json.loads((out / "report" / "summary.json").read_text())
     assert summary["n_drones"] == 3 and summary["arrived"]
     assert summary["setpoint_period_ms"]["count"] > 1000
+    # the target's latency figure: every service heard its peers' trajectories
+    peer = result["peer_latency_ms"]
+    assert sorted(peer["per_drone"]) == ["0", "1", "2"], peer
+    assert all(n > 0 for n in peer["per_drone"].values()) and peer["median"] > 0.0
+    assert sum(d["peer_latency_ms"]["count"] for d in summary["drones"]) >= peer["count"]

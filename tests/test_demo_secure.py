@@ -167,6 +167,8 @@ def test_secure_demo_flies_two_drones(tmp_path: Path) -> None:
     assert sec["bus_checks"]["link_locators_tls_only"]
     assert sec["bus_checks"]["every_drone_authenticated"]
     assert result["bus_latency_ms"]["count"] > 0
+    peer = result["peer_latency_ms"]  # the target's definition: into each planner's inbox
+    assert sorted(peer["per_drone"]) == ["0", "1"] and min(peer["per_drone"].values()) > 0
     keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
     assert len(keys) == 2
     for p in out.rglob("*"):
