@@ -53,13 +53,16 @@ p_hit 0.65, p_miss 0.35, p_min 0.12, p_max 0.90, p_occ 0.80 (log-odds 0.619, -0.
 2.197, 1.386), skip 2 pixels, inflation 0.1 m, depth 0.2-5 m; its rays were cut at 4.5 m, ours
 at 5 m (the sensing horizon), and its local update range was 5.5, 5.5, 4.5 m where ours is a
 window of 11 x 11 x 4 m, as the issue asks, centred on the drone in x and y and in z held from
-0.5 m below the ground up while the drone flies below 2.5 m (``floor_z_m``). A cell
-starts unknown; its first update starts from probability 0.5 (log-odds 0), so a surface is
+0.5 m below the ground up while the drone flies below 2.5 m (``floor_z_m``). ``for_band``
+fits the window's vertical extent to the planner's altitude band instead (the flight service
+does: the band 0.3-3.1 m plus 0.4 m each side is 3.6 m, the same top, without the four layers
+under the ground that hold nothing on flat ground). A cell starts unknown; its first update starts from probability 0.5 (log-odds 0), so a surface is
 occupied after 3 hits (three frames, 0.1 s at 30 Hz).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -93,8 +96,10 @@ class OccupancyParams:
     """Lowest z the window keeps while the drone flies low: the window's bottom is
     ``max(floor_z_m, z + headroom_m - size_z)``, so it holds the ground and everything on it
     until the drone climbs within ``headroom_m`` of its top, then rises with the drone (a drone
-    that climbs and comes down again does not forget the trunks below it). None: centred on the
-    drone in z too."""
+    that climbs and comes down again does not forget the trunks below it). A camera below the
+    floor (a drone standing lower than the map's ground) takes the window down with it, a cell
+    above its bottom. None: centred on the drone in z too. ``for_band`` sets this, the z
+    extent and ``headroom_m`` from an altitude band."""
     headroom_m: float = 1.0
     """Space kept above the drone (with ``floor_z_m``)."""
     p_hit: float = 0.65
@@ -157,6 +162,32 @@ class OccupancyParams:
             raise ValueError("no_return_margin_m must be >= 0")
         if not 0.0 <= self.no_return_min_valid <= 1.0:
             raise ValueError("no_return_min_valid must lie in [0, 1]")
+
+    def for_band(self, z_lo: float, z_hi: float, margin_m: float) -> OccupancyParams:
+        """These parameters with the window's vertical extent fitted to the altitude band
+        [z_lo, z_hi] (the planner's ``z_limits_m``): from ``margin_m`` below the band to
+        ``margin_m`` above it, rounded out to whole cells, held there while the camera flies in
+        the band (``floor_z_m``, ``headroom_m`` and the z of ``size_m`` are replaced; above the
+        band the window rises with the camera, below the floor it goes down with it, as
+        ``floor_z_m`` says).
+
+        Points of the band are then at least ``margin_m`` from anything outside the window,
+        so a planner that only flies the band and only acts on distances below ``margin_m``
+        (less half a cell for the interpolation between cell centres) sees what a taller
+        window would show it."""
+        if not (math.isfinite(z_lo) and math.isfinite(z_hi) and z_lo < z_hi):
+            raise ValueError(f"for_band: need finite z_lo < z_hi, got {z_lo!r}, {z_hi!r}")
+        if not (math.isfinite(margin_m) and margin_m > 0.0):
+            raise ValueError(f"for_band: margin_m must be > 0, got {margin_m!r}")
+        res = self.resolution_m
+        bottom = math.floor((z_lo - margin_m) / res + 1e-9)
+        top = math.ceil((z_hi + margin_m) / res - 1e-9)
+        return dataclasses.replace(
+            self,
+            size_m=(self.size_m[0], self.size_m[1], (top - bottom) * res),
+            floor_z_m=bottom * res,
+            headroom_m=top * res - z_hi,
+        )
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -852,7 +883,11 @@ class OccupancyMap:
         lo = g - np.array(self.shape, dtype=np.int64) // 2
         p = self.params
         if p.floor_z_m is not None:
-            bottom = max(p.floor_z_m, float(c[2]) + p.headroom_m - self.shape[2] * self.res)
+            z = float(c[2])
+            bottom = max(p.floor_z_m, z + p.headroom_m - self.shape[2] * self.res)
+            # a camera below the floor: the window goes down with it (else every frame would
+            # be refused as taken outside the window)
+            bottom = min(bottom, z - self.res)
             lo[2] = int(math.floor(bottom / self.res + 1e-9))
         return lo
 
