@@ -271,6 +271,18 @@ class MappingSection:
     esdf_rate_hz: float = 10.0
     """The planner's field is rebuilt at least this often while frames arrive."""
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
+    window_band_margin_m: float | None = 0.4
+    """The window's vertical extent follows the planner's altitude band (``planner.z_limits_m``
+    after the geofence cut): from this far below the band to this far above it (whole cells),
+    held there while the drone flies in the band (``OccupancyParams.for_band``; the map the
+    service uses is ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives -0.1 to
+    3.5 m: the top of the 4 m window from 0.5 m below the ground (``occupancy.floor_z_m``),
+    without its four layers under the ground, which hold nothing (ESDF refresh -5 to -7 %), and
+    a window that no longer rises off the ground when the drone climbs above 2.5 m. At least
+    ``planner.check_obstacle_m + occupancy.inflation_m + occupancy.resolution_m / 2`` (0.37 m):
+    no obstacle outside the window can then fail the safety check from inside the band.
+    ``occupancy.size_m``'s z is then the most the window may take; ``occupancy.floor_z_m`` and
+    ``headroom_m`` must be left at their defaults. null: the window as ``occupancy`` places it."""
     thread_nice: int = 0
     """Niceness added to the mapping thread (Linux, per thread): when the CPU is short, the
     setpoint stream and the planner go first and frames are dropped instead (0: as the rest)."""
@@ -278,6 +290,16 @@ class MappingSection:
     def __post_init__(self) -> None:
         _in_range("esdf_rate_hz", self.esdf_rate_hz, 10.0, 100.0)
         _in_range("thread_nice", self.thread_nice, 0, 19)
+        if self.window_band_margin_m is not None:
+            _in_range("window_band_margin_m", self.window_band_margin_m, 0.05, 5.0)
+            default = OccupancyParams()
+            for key in ("floor_z_m", "headroom_m"):
+                if getattr(self.occupancy, key) != getattr(default, key):
+                    raise ValueError(
+                        f"occupancy.{key}: the window's vertical placement follows the "
+                        "planner's altitude band while window_band_margin_m is set (null: "
+                        "placed by occupancy.floor_z_m and headroom_m)"
+                    )
 
 
 @dataclass(frozen=True)
@@ -529,6 +551,7 @@ class OnboardConfig:
                     f"too narrow ({e})"
                 ) from None
             object.__setattr__(self, "planner", planner)
+        self._check_map_window()
         silence = self.reactions.peer_lost.peer_silence_s
         if not silence >= 2.0 / self.bus.state_rate_hz:
             raise ValueError(
@@ -540,6 +563,39 @@ class OnboardConfig:
             raise ValueError(
                 "flight.takeoff_altitude_m: the take-off altitude must lie inside the geofence "
                 f"(max z {g.max_enu_m[2]:g})"
+            )
+
+    @property
+    def map_params(self) -> OccupancyParams:
+        """What the service maps with: ``mapping.occupancy``, its window fitted to the planner's
+        altitude band when ``mapping.window_band_margin_m`` is set."""
+        m = self.mapping
+        if m.window_band_margin_m is None:
+            return m.occupancy
+        lo, hi = self.planner.z_limits_m
+        return m.occupancy.for_band(lo, hi, m.window_band_margin_m)
+
+    def _check_map_window(self) -> None:
+        m = self.mapping
+        margin = m.window_band_margin_m
+        if margin is None:
+            return
+        occ = m.occupancy
+        need = self.planner.check_obstacle_m + occ.inflation_m + occ.resolution_m / 2
+        if margin < need - 1e-9:
+            raise ValueError(
+                f"mapping.window_band_margin_m: {margin:g} m is less than "
+                f"planner.check_obstacle_m + mapping.occupancy.inflation_m + half a cell "
+                f"({need:g} m): an obstacle just outside the map window could fail the safety "
+                "check from inside the altitude band unseen"
+            )
+        tall = self.map_params.size_m[2]
+        if tall > occ.size_m[2] + 1e-9:
+            lo, hi = self.planner.z_limits_m
+            raise ValueError(
+                f"mapping.occupancy.size_m: the window fitted to the altitude band "
+                f"[{lo:g}, {hi:g}] plus {margin:g} m each side is {tall:g} m tall, more than "
+                f"size_m's z ({occ.size_m[2]:g} m), the most it may take"
             )
 
 

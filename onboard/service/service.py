@@ -466,7 +466,7 @@ class FlightService:
     def _make_mapper(self) -> Any:
         from onboard.mapping import LocalMapper
 
-        return LocalMapper(self.cfg.mapping.occupancy)
+        return LocalMapper(self.cfg.map_params)
 
     def depth_step(self) -> bool:
         """Read and ingest one frame if there is one; refresh the ESDF when due."""
