@@ -11,7 +11,16 @@ yaw along the path), feeds every frame to a ``LocalMapper`` and measures:
   of the mapper agree run to run better than the wall time);
 - ``esdf_ms``: one ESDF refresh of the whole window (every ``--esdf-every`` frames);
 - ``esdf_error_m``: ESDF value minus exact distance at the cell centres of observed space (see
-  ``onboard.mapping.evaluate``), at snapshots every ``--error-every-s`` seconds.
+  ``onboard.mapping.evaluate``), at snapshots every ``--error-every-s`` seconds;
+  ``esdf_error_band_m`` the same for the cells whose centres lie in the planner's altitude band
+  (the only space it plans in).
+
+``--window`` places the window vertically: ``floor`` (the mapper's default: 4 m from 0.5 m below
+the ground) or ``band`` (the planner's altitude band plus ``--band-margin`` each side, what the
+flight service maps). ``--compare-windows`` feeds every frame to both, in alternating order,
+and reports each one's CPU per frame and per ESDF refresh (``time.thread_time``, in one process,
+so both see the same machine), its map quality, and how far their planning fields differ at
+the cell centres of the band (``band_field_diff_m``).
 
 Timings use ``time.perf_counter`` around single calls after one untimed warm-up frame.
 """
@@ -109,6 +118,12 @@ class MappingBenchConfig:
     error_band_m: float = 2.0
     max_frames: int = 0
     """0: the whole path."""
+    window: str = "floor"
+    """'floor': the ``OccupancyParams`` default window; 'band': fitted to ``band_m`` plus
+    ``band_margin_m`` (``OccupancyParams.for_band``)."""
+    band_m: tuple[float, float] = (0.3, 3.1)
+    """The planner's altitude band (``PlannerParams.z_limits_m``' default)."""
+    band_margin_m: float = 0.4
 
 
 def flight_path(
@@ -163,14 +178,83 @@ def _error_stats(err: np.ndarray) -> dict[str, float | None]:
     }
 
 
-def run_mapping_bench(
-    cfg: MappingBenchConfig,
-    progress: Callable[[int, int], None] | None = None,
-    ply_path: Path | None = None,
-) -> dict[str, Any]:
-    """Run the benchmark; returns the JSON-able report."""
-    from onboard.mapping import LocalMapper, OccupancyParams, SimCameraParams, look_rotation
-    from onboard.mapping.evaluate import esdf_errors
+WINDOWS = ("floor", "band")
+
+
+def window_params(cfg: MappingBenchConfig, window: str | None = None) -> Any:
+    """The ``OccupancyParams`` of the run (``window``: 'floor' or 'band', default
+    ``cfg.window``)."""
+    from onboard.mapping import OccupancyParams
+
+    occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
+    if cfg.no_return_m is not None:
+        occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
+    w = cfg.window if window is None else window
+    if w == "band":
+        return occ.for_band(cfg.band_m[0], cfg.band_m[1], cfg.band_margin_m)
+    if w != "floor":
+        raise ConfigError(f"window: expected one of {', '.join(WINDOWS)}, got {w!r}")
+    return occ
+
+
+def band_crop(field: Any, band: tuple[float, float]) -> Any:
+    """The field's cells whose centres lie in ``band`` (z), as an ``EsdfField`` of their own (the
+    same values and masks), for measuring the map where the planner flies."""
+    from onboard.mapping.esdf import EsdfField
+
+    k = _band_cells(field, band)
+    if k.size == 0:
+        raise ValueError(f"no cell of the window lies in the band {band}")
+    sl = slice(int(k[0]), int(k[-1]) + 1)
+    origin = field.origin + np.array([0.0, 0.0, k[0] * field.res])
+    return EsdfField(
+        field.values[:, :, sl],
+        origin,
+        field.res,
+        field.known[:, :, sl],
+        field.occupied[:, :, sl],
+        field.inflation_m,
+        field.stamp_s,
+    )
+
+
+def _window_summary(occ: Any) -> dict[str, Any]:
+    lo = occ.floor_z_m
+    return {
+        "window_cells": list(occ.shape),
+        "floor_z_m": lo,
+        "headroom_m": occ.headroom_m,
+        "z_range_m": None if lo is None else [lo, lo + occ.shape[2] * occ.resolution_m],
+    }
+
+
+def _planning_diff(a: Any, b: Any, band: tuple[float, float]) -> tuple[float, int, int, int]:
+    """(max |a - b|, cells compared, cells differing by more than 1e-6 m, cells whose known
+    flag differs) over the cell centres in ``band`` that both fields hold (the same cell grid,
+    shifted in z)."""
+    res = a.res
+    ka = np.rint(a.origin / res).astype(np.int64)
+    kb = np.rint(b.origin / res).astype(np.int64)
+    if np.any(ka[:2] != kb[:2]):
+        raise ValueError("the two windows differ in x or y")
+    lo_k = max(ka[2], kb[2], int(math.floor(band[0] / res)))
+    hi_k = min(ka[2] + a.shape[2], kb[2] + b.shape[2], int(math.ceil(band[1] / res)))
+    va = a.values[:, :, lo_k - ka[2] : hi_k - ka[2]]
+    vb = b.values[:, :, lo_k - kb[2] : hi_k - kb[2]]
+    kna = a.known[:, :, lo_k - ka[2] : hi_k - ka[2]]
+    knb = b.known[:, :, lo_k - kb[2] : hi_k - kb[2]]
+    d = np.abs(va - vb)
+    return (
+        float(d.max()) if d.size else 0.0,
+        int(d.size),
+        int(np.count_nonzero(d > 1e-6)),
+        int(np.count_nonzero(kna != knb)),
+    )
+
+
+def _flight(cfg: MappingBenchConfig) -> tuple[Any, np.ndarray, np.ndarray, Any]:
+    """World, camera positions and yaws, and the simulated camera of a run."""
+    from onboard.mapping import SimCameraParams
     from onboard.mapping.simcam import SimulatedDepthCamera
 
     spec = load_world_spec(cfg.world)
@@ -189,9 +273,138 @@ def run_mapping_bench(
         ),
         seed=cfg.seed,
     )
-    occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
-    if cfg.no_return_m is not None:
-        occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
+    return world, pos, yaw, cam
+
+
+def run_window_comparison(
+    cfg: MappingBenchConfig, progress: Callable[[int, int], None] | None = None
+) -> dict[str, Any]:
+    """Both windows (``WINDOWS``) on the same frames of one flight, fed in alternating order
+    (frame k: 'floor' first when k is even), each refreshing its ESDF every ``esdf_every``
+    frames: CPU per frame and per refresh (thread time), map quality (as
+    ``run_mapping_bench``) and the difference of their planning fields in the band."""
+    from onboard.mapping import LocalMapper, look_rotation
+    from onboard.mapping.evaluate import esdf_errors
+
+    world, pos, yaw, cam = _flight(cfg)
+    occs = {w: window_params(cfg, w) for w in WINDOWS}
+    mappers = {w: LocalMapper(occs[w]) for w in WINDOWS}
+    for w in WINDOWS:  # warm-up: load the kernels outside the timings
+        LocalMapper(occs[w]).ingest(cam.capture(pos[0], look_rotation(yaw[0]), -1.0))
+        LocalMapper(occs[w]).field()
+    ingest_cpu: dict[str, list[float]] = {w: [] for w in WINDOWS}
+    esdf_cpu: dict[str, list[float]] = {w: [] for w in WINDOWS}
+    err: dict[str, list[np.ndarray]] = {w: [] for w in WINDOWS}
+    err_band: dict[str, list[np.ndarray]] = {w: [] for w in WINDOWS}
+    diffs: list[tuple[float, int, int, int]] = []
+    recent: list[Any] = []
+    keep = int(round(5.0 * cfg.rate_hz))
+    error_every = max(1, int(round(cfg.error_every_s * cfg.rate_hz)))
+    n = pos.shape[0]
+    for k in range(n):
+        frame = cam.capture(pos[k], look_rotation(float(yaw[k])), k / cfg.rate_hz)
+        recent.append(frame)
+        if len(recent) > keep:
+            recent.pop(0)
+        order = WINDOWS if k % 2 == 0 else WINDOWS[::-1]
+        for w in order:
+            c0 = time.thread_time()
+            mappers[w].ingest(frame)
+            ingest_cpu[w].append((time.thread_time() - c0) * 1e3)
+        if (k + 1) % cfg.esdf_every == 0:
+            fields = {}
+            for w in order:
+                c0 = time.thread_time()
+                mappers[w].field()
+                esdf_cpu[w].append((time.thread_time() - c0) * 1e3)
+                fields[w] = mappers[w].planning_field()
+            diffs.append(_planning_diff(fields["floor"], fields["band"], cfg.band_m))
+            if (k + 1) % error_every == 0:
+                for w in WINDOWS:
+                    f = mappers[w].field()
+                    for acc, g in ((err, f), (err_band, band_crop(f, cfg.band_m))):
+                        ee = esdf_errors(
+                            g,
+                            world,
+                            recent[::3],
+                            cfg.skip_pixel,
+                            band_m=cfg.error_band_m,
+                            max_range_m=occs[w].max_ray_m,
+                        )
+                        acc[w].append(ee.all)
+        if progress is not None:
+            progress(k + 1, n)
+    from gcs.bench import machine_info
+
+    out: dict[str, Any] = {
+        "scenario": {
+            **dataclasses.asdict(cfg),
+            "world_name": world.name,
+            "frames": int(n),
+            "alternation": "frame k: floor first when k is even, band first when odd",
+        },
+        "windows": {},
+        "band_field_diff_m": {
+            "max": max((d[0] for d in diffs), default=0.0),
+            "cells_compared_per_refresh": diffs[0][1] if diffs else 0,
+            "cells_differing_over_1e-6": int(sum(d[2] for d in diffs)),
+            "known_flags_differing": int(sum(d[3] for d in diffs)),
+            "refreshes": len(diffs),
+        },
+        "machine": machine_info(),
+    }
+    for w in WINDOWS:
+        m = mappers[w]
+        f = m.field()
+        band_k = _band_cells(f, cfg.band_m)
+        ea = np.concatenate(err[w]) if err[w] else np.zeros(0)
+        eb = np.concatenate(err_band[w]) if err_band[w] else np.zeros(0)
+        known = _known(f)
+        out["windows"][w] = {
+            **_window_summary(occs[w]),
+            "ingest_cpu_ms": _stats(ingest_cpu[w]),
+            "esdf_cpu_ms": _stats(esdf_cpu[w]),
+            "esdf_error_m": _error_stats(ea),
+            "esdf_error_band_m": _error_stats(eb),
+            "known_cells_final": int(np.count_nonzero(known)),
+            "known_cells_band_final": int(np.count_nonzero(known[:, :, band_k])),
+            "occupied_cells_final": int(np.count_nonzero(f.occupied)),
+        }
+    a, b = esdf_cpu["floor"], esdf_cpu["band"]
+    ratios = np.asarray(b) / np.maximum(np.asarray(a), 1e-9)
+    ia, ib = ingest_cpu["floor"], ingest_cpu["band"]
+    out["band_over_floor"] = {
+        "esdf_cpu_median_pair_ratio": float(np.median(ratios)) if ratios.size else None,
+        "esdf_cpu_mean_ratio": float(np.mean(b) / np.mean(a)) if a else None,
+        "ingest_cpu_mean_ratio": float(np.mean(ib) / np.mean(ia)) if ia else None,
+    }
+    return out
+
+
+def _known(field: Any) -> np.ndarray:
+    known = field.known
+    if known is None:  # an EsdfField always has its mask
+        raise ValueError("the field has no known mask")
+    return np.asarray(known)
+
+
+def _band_cells(field: Any, band: tuple[float, float]) -> np.ndarray:
+    """z indices of the field's cells whose centres lie in the band."""
+    zc = field.origin[2] + (np.arange(field.shape[2]) + 0.5) * field.res
+    return np.flatnonzero((zc >= band[0]) & (zc <= band[1]))
+
+
+def run_mapping_bench(
+    cfg: MappingBenchConfig,
+    progress: Callable[[int, int], None] | None = None,
+    ply_path: Path | None = None,
+) -> dict[str, Any]:
+    """Run the benchmark; returns the JSON-able report."""
+    from onboard.mapping import LocalMapper, look_rotation
+    from onboard.mapping.evaluate import esdf_errors
+
+    world, pos, yaw, cam = _flight(cfg)
+    occ = window_params(cfg)
     mapper = LocalMapper(occ)
     # warm-up: compile / load the kernels outside the timings
     LocalMapper(occ).ingest(cam.capture(pos[0], look_rotation(yaw[0]), -1.0))
@@ -202,9 +415,11 @@ def run_mapping_bench(
     ingest_cpu_ms: list[float] = []
     clear_rays: list[float] = []
     esdf_ms: list[float] = []
+    esdf_cpu_ms: list[float] = []
     rejected = 0
     errors_free: list[np.ndarray] = []
     errors_occ: list[np.ndarray] = []
+    errors_band: list[np.ndarray] = []
     recent: list[Any] = []
     keep = int(round(5.0 * cfg.rate_hz))  # frames of the last 5 s define "observed"
     error_every = max(1, int(round(cfg.error_every_s * cfg.rate_hz)))
@@ -228,7 +443,9 @@ def run_mapping_bench(
             recent.pop(0)
         if (k + 1) % cfg.esdf_every == 0:
             t3 = time.perf_counter()
+            c3 = time.thread_time()
             field = mapper.field()
+            esdf_cpu_ms.append((time.thread_time() - c3) * 1e3)
             esdf_ms.append((time.perf_counter() - t3) * 1e3)
             if (k + 1) % error_every == 0:
                 e = esdf_errors(
@@ -241,6 +458,15 @@ def run_mapping_bench(
                 )
                 errors_free.append(e.free)
                 errors_occ.append(e.occupied)
+                eb = esdf_errors(
+                    band_crop(field, cfg.band_m),
+                    world,
+                    recent[::3],
+                    cfg.skip_pixel,
+                    band_m=cfg.error_band_m,
+                    max_range_m=occ.max_ray_m,
+                )
+                errors_band.append(eb.all)
         if progress is not None:
             progress(k + 1, n)
     from gcs.bench import machine_info
@@ -253,7 +479,7 @@ def run_mapping_bench(
             "world_name": world.name,
             "path_length_m": float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1))),
             "frames": int(n),
-            "window_cells": list(occ.shape),
+            **_window_summary(occ),
             "resolution_m": occ.resolution_m,
             "no_return_m": occ.no_return_m,
         },
@@ -262,8 +488,15 @@ def run_mapping_bench(
         "ingest_cpu_ms": _stats(ingest_cpu_ms),
         "no_return_rays": _stats(clear_rays),
         "known_cells_final": int(np.count_nonzero(mapper.map.known())),
+        "known_cells_band_final": int(
+            np.count_nonzero(_known(mapper.field())[:, :, _band_cells(mapper.field(), cfg.band_m)])
+        ),
         "esdf_ms": _stats(esdf_ms),
+        "esdf_cpu_ms": _stats(esdf_cpu_ms),
         "esdf_error_m": _error_stats(np.concatenate([err_f, err_o])),
+        "esdf_error_band_m": _error_stats(
+            np.concatenate(errors_band) if errors_band else np.zeros(0)
+        ),
         "esdf_error_free_m": _error_stats(err_f),
         "esdf_error_occupied_m": _error_stats(err_o),
         "rejected_frames": rejected,
@@ -352,6 +585,37 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     help="Stop after this many frames (0: the whole crossing).",
 )
 @click.option(
+    "--window",
+    type=click.Choice(WINDOWS),
+    default="floor",
+    show_default=True,
+    help="Vertical placement of the window: the mapper's default (4 m from 0.5 m below the "
+    "ground) or the planner's altitude band plus --band-margin each side (the service's).",
+)
+@click.option(
+    "--band",
+    "band_m",
+    nargs=2,
+    type=float,
+    default=(0.3, 3.1),
+    show_default=True,
+    help="The planner's altitude band [m] (--window band, errors in the band).",
+)
+@click.option(
+    "--band-margin",
+    "band_margin_m",
+    default=0.4,
+    show_default=True,
+    type=click.FloatRange(min=0.0, min_open=True),
+    help="Window margin below and above the band [m] (--window band).",
+)
+@click.option(
+    "--compare-windows",
+    is_flag=True,
+    help="Map every frame into both windows (alternating which goes first) and compare "
+    "their CPU per frame and per ESDF refresh, quality, and planning fields in the band.",
+)
+@click.option(
     "--ply",
     "ply_path",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -371,6 +635,10 @@ def bench_mapping(
     esdf_every: int,
     no_return_m: float | None,
     max_frames: int,
+    window: str,
+    band_m: tuple[float, float],
+    band_margin_m: float,
+    compare_windows: bool,
     ply_path: Path | None,
     json_path: Path | None,
     quiet: bool,
@@ -392,7 +660,12 @@ def bench_mapping(
         esdf_every=esdf_every,
         no_return_m=no_return_m,
         max_frames=max_frames,
+        window=window,
+        band_m=(float(band_m[0]), float(band_m[1])),
+        band_margin_m=band_margin_m,
     )
+    if not cfg.band_m[0] < cfg.band_m[1]:
+        raise click.BadParameter("need low < high", param_hint="--band")
     with Progress(
         TextColumn("frames"),
         BarColumn(),
@@ -408,9 +681,16 @@ def bench_mapping(
             bar.update(task, completed=done, total=total)
 
         try:
-            report = run_mapping_bench(cfg, progress=cb, ply_path=ply_path)
+            if compare_windows:
+                report = run_window_comparison(cfg, progress=cb)
+            else:
+                report = run_mapping_bench(cfg, progress=cb, ply_path=ply_path)
         except ConfigError as e:
             raise click.ClickException(str(e)) from e
+    if compare_windows:
+        _print_comparison(console, report)
+        _write_json(console, json_path, report)
+        return
 
     sc = report["scenario"]
     t = Table(
@@ -472,7 +752,57 @@ def bench_mapping(
     console.print(f"{m['cpu']} x{m['cpu_count']}, Python {m['python']}, numba {m['numba']}")
     if ply_path is not None:
         console.print(f"wrote {ply_path} ({report['ply_points']} points)")
+    _write_json(console, json_path, report)
+
+
+def _write_json(console: Any, json_path: Path | None, report: dict[str, Any]) -> None:
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
         console.print(f"wrote {json_path}")
+
+
+def _print_comparison(console: Any, report: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    sc = report["scenario"]
+    t = Table(title=f"windows compared: {sc['frames']} frames through {sc['world_name']}")
+    t.add_column("quantity")
+    for w in WINDOWS:
+        t.add_column(w, justify="right")
+    ws = report["windows"]
+
+    def row(name: str, get: Callable[[dict[str, Any]], Any], spec: str = ".2f") -> None:
+        t.add_row(name, *(_fmt(get(ws[w]), spec) for w in WINDOWS))
+
+    t.add_row("cells", *("x".join(str(c) for c in ws[w]["window_cells"]) for w in WINDOWS))
+    t.add_row(
+        "z range (m)",
+        *(
+            "-" if ws[w]["z_range_m"] is None else "{:.2f}..{:.2f}".format(*ws[w]["z_range_m"])
+            for w in WINDOWS
+        ),
+    )
+    row("ingest CPU per frame, mean [ms]", lambda r: r["ingest_cpu_ms"]["mean"])
+    row("ESDF CPU per refresh, median [ms]", lambda r: r["esdf_cpu_ms"]["median"])
+    row("ESDF CPU per refresh, mean [ms]", lambda r: r["esdf_cpu_ms"]["mean"])
+    row("ESDF error p95, all observed [m]", lambda r: r["esdf_error_m"]["p95"], ".3f")
+    row("ESDF error p99, all observed [m]", lambda r: r["esdf_error_m"]["p99"], ".3f")
+    row("ESDF error p95, in the band [m]", lambda r: r["esdf_error_band_m"]["p95"], ".3f")
+    row("ESDF error p99, in the band [m]", lambda r: r["esdf_error_band_m"]["p99"], ".3f")
+    row("known cells at the end", lambda r: r["known_cells_final"], ".0f")
+    row("  of them in the band", lambda r: r["known_cells_band_final"], ".0f")
+    console.print(t)
+    r = report["band_over_floor"]
+    d = report["band_field_diff_m"]
+    console.print(
+        f"band / floor: ESDF CPU median pair ratio {_fmt(r['esdf_cpu_median_pair_ratio'], '.3f')}"
+        f", mean ratio {_fmt(r['esdf_cpu_mean_ratio'], '.3f')}; ingest CPU mean ratio "
+        f"{_fmt(r['ingest_cpu_mean_ratio'], '.3f')}"
+    )
+    console.print(
+        f"planning fields in the band, {d['refreshes']} refreshes x "
+        f"{d['cells_compared_per_refresh']} cells: max |difference| {d['max']:.3g} m, "
+        f"{d['cells_differing_over_1e-6']} cell values differ by more than 1e-6 m, "
+        f"{d['known_flags_differing']} known flags differ"
+    )
