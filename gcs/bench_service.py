@@ -584,8 +584,14 @@ class ServiceBenchConfig:
     nice: int = 0
     """Niceness of the benchmark and everything it starts (negative: priority over the rest of
     a shared machine, as a drone's systemd unit may give the service; needs privileges)."""
+    window: str = "band"
+    """The map window's vertical placement: 'band' (the service's default,
+    ``mapping.window_band_margin_m``) or 'floor' (4 m from 0.5 m below the ground, the window
+    before it: ``window_band_margin_m: null``), for comparing the two."""
 
     def __post_init__(self) -> None:
+        if self.window not in ("band", "floor"):
+            raise ValueError(f"window must be 'band' or 'floor', got {self.window!r}")
         if not self.seconds > 0.0:
             raise ValueError("seconds must be > 0")
         if not (self.depth_rate_hz == 0.0 or 1.0 <= self.depth_rate_hz <= 90.0):
@@ -670,6 +676,7 @@ def run_service_bench(
             "autopilot": {"setpoint_rate_hz": cfg.setpoint_rate_hz},
             "flight": {"takeoff_speed_m_s": 1.0},
             "geofence": {"min_enu_m": [-5.0, -5.0, 0.0], "max_enu_m": [14.0, 5.0, 3.0]},
+            **({"mapping": {"window_band_margin_m": None}} if cfg.window == "floor" else {}),
         },
     )
     report: dict[str, Any] = {"benchmark": "service", "config": dataclasses.asdict(cfg)}
@@ -886,6 +893,15 @@ def _fmt(x: Any, spec: str = ".1f") -> str:
     help="Run the benchmark, the mock and the service at this niceness (negative: ahead of the "
     "rest of a shared machine; needs privileges).",
 )
+@click.option(
+    "--window",
+    type=click.Choice(["band", "floor"]),
+    default="band",
+    show_default=True,
+    help="The map window's vertical placement: the planner's altitude band plus "
+    "mapping.window_band_margin_m each side (the service's default), or 4 m from 0.5 m below "
+    "the ground (the window before it).",
+)
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def bench_service(
     seconds: float,
@@ -895,6 +911,7 @@ def bench_service(
     json_path: Path | None,
     workdir: Path | None,
     nice: int,
+    window: str,
     quiet: bool,
 ) -> None:
     """One flight service against the SITL mock with depth frames: setpoint period at the mock,
@@ -909,6 +926,7 @@ def bench_service(
         depth_step=depth_step,
         implementation=implementation,
         nice=nice,
+        window=window,
     )
     tmp = None
     if workdir is None:
@@ -928,7 +946,8 @@ def bench_service(
         json_path.write_text(json.dumps(report, indent=2) + "\n")
     sp = report["setpoint_period_ms"]
     t = Table(title=f"flight service: {implementation}, {depth_rate:g} depth frames/s "
-              f"(step {depth_step}), {report['window_s']:.0f} s window, nice {nice}")  # fmt: skip
+              f"(step {depth_step}), {report['window_s']:.0f} s window, nice {nice}, "
+              f"map window {window}")  # fmt: skip
     t.add_column("measure")
     t.add_column("value", justify="right")
     t.add_column("target", justify="right")
