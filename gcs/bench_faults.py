@@ -6,12 +6,16 @@ seeded by the trial) in ``gcs.fastsim`` with faults drawn from the trial's seed,
 combined:
 
 - a **killed** drone (its onboard process dies: it publishes nothing from then on and its
-  vehicle holds its position, PX4's offboard-loss failsafe);
+  vehicle flies PX4's offboard-loss failsafe: the last setpoint for COM_OF_LOSS_T, then a
+  braking stop to a hold, ``SimConfig.kill_model`` 'px4'; ``--kill-model instant`` stops it
+  dead instead);
 - a **stuck** drone (its vehicle stops and hovers where it is, still publishing that hover);
 - **bus faults** on every trajectory message: 20 % loss, a uniform delay up to 300 ms,
   duplication and reordering (each present or not).
 
-Every drone whose process runs also broadcasts its state at 10 Hz through the same faults.
+Every drone whose process runs also broadcasts its state at 10 Hz through the same faults, and
+checks the plan it flies against its peers between replans as the flight service's monitor
+does (``--monitor-hz``, 100 by default; 0 leaves it out).
 A peer heard of nothing newer (trajectory or state) for ``SimConfig.peer_silence_s`` (0.5 s) is
 quiet: its peers avoid it both along its last trajectory and at hovers 0.25 m apart where it
 may have stopped, and replan at once if those lie on their path; once unheard longer than its
@@ -162,7 +166,13 @@ def draw_trial(
     )
 
 
-def trial_config(trial: FaultTrial, v_max_m_s: float, time_limit_s: float | None) -> Any:
+def trial_config(
+    trial: FaultTrial,
+    v_max_m_s: float,
+    time_limit_s: float | None,
+    kill_model: str = "px4",
+    monitor_hz: float = 100.0,
+) -> Any:
     """The ``SimConfig`` of a trial (hexagon-7, its world and seed, its faults)."""
     from gcs.fastsim import SimConfig
     from onboard.config import load_formation, load_world_spec
@@ -179,6 +189,8 @@ def trial_config(trial: FaultTrial, v_max_m_s: float, time_limit_s: float | None
         stuck_drones=dict(trial.stuck),
         validity_s=VALIDITY_S,
         peer_forget_s=AVOID_FOR_S,
+        kill_model=kill_model,
+        monitor_rate_hz=monitor_hz,
     )
 
 
@@ -225,6 +237,8 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
         "replans": int(sum(result.status_counts.values())),
         "status_counts": dict(result.status_counts),
         "refused_older": int(f["refused_older"]) + int(f.get("agents", {}).get("refused_older", 0)),
+        "monitor_replans": int(f.get("monitor_replans", 0)),
+        "monitor_brakes": int(f.get("monitor_brakes", 0)),
         "peer_uses_audited": int(f["peer_uses_audited"]),
         "bus_counters": dict(f.get("bus", {})),
         "state_bus_counters": dict(f.get("state_bus", {})),
@@ -302,11 +316,11 @@ class ReactionLog:
         return out
 
 
-def _run_one(args: tuple[FaultTrial, float, float | None]) -> dict[str, Any]:
+def _run_one(args: tuple[FaultTrial, float, float | None, str, float]) -> dict[str, Any]:
     from gcs.fastsim import run_sim
 
-    trial, v_max, limit = args
-    cfg = trial_config(trial, v_max, limit)
+    trial, v_max, limit, kill_model, monitor_hz = args
+    cfg = trial_config(trial, v_max, limit, kill_model, monitor_hz)
     log = ReactionLog(
         cfg.formation.n, cfg.plan_ahead_s, sorted(set(trial.killed) | set(trial.stuck))
     )
@@ -329,18 +343,30 @@ def run_bench(
     fault_window_s: tuple[float, float] = (3.0, 25.0),
     worlds: Sequence[str] = WORLDS,
     on_trial: Any = None,
+    first: int = 0,
+    kill_model: str = "px4",
+    monitor_hz: float = 100.0,
 ) -> dict[str, Any]:
-    """Fly ``trials`` trials on ``jobs`` processes; the whole report (see ``summarise``)."""
+    """Fly ``trials`` trials (indices ``first`` ... ``first + trials - 1``) on ``jobs``
+    processes; the whole report (see ``summarise``)."""
     from onboard.config import load_formation
 
     if trials < 1:
         raise ValueError(f"trials must be >= 1, got {trials}")
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if first < 0:
+        raise ValueError(f"first must be >= 0, got {first}")
     n = load_formation(FORMATION).n
     todo = [
-        (draw_trial(seed, k, n, fault_window_s, worlds), v_max_m_s, time_limit_s)
-        for k in range(trials)
+        (
+            draw_trial(seed, k, n, fault_window_s, worlds),
+            v_max_m_s,
+            time_limit_s,
+            kill_model,
+            monitor_hz,
+        )
+        for k in range(first, first + trials)
     ]
     wall0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
@@ -365,6 +391,9 @@ def run_bench(
             "seed": seed,
             "v_max_m_s": v_max_m_s,
             "time_limit_s": time_limit_s,
+            "first": first,
+            "kill_model": kill_model,
+            "monitor_hz": monitor_hz,
             "fault_window_s": list(fault_window_s),
             "validity_s": VALIDITY_S,
             "avoid_for_s": AVOID_FOR_S,
@@ -402,6 +431,8 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "ghost_uses": int(sum(r.get("ghost_uses", 0) for r in rows)),
         "silent_replans": int(sum(r.get("silent_replans", 0) for r in rows)),
         "refused_older": int(sum(r.get("refused_older", 0) for r in rows)),
+        "monitor_replans": int(sum(r.get("monitor_replans", 0) for r in rows)),
+        "monitor_brakes": int(sum(r.get("monitor_brakes", 0) for r in rows)),
         "silent_replans_no_kill": int(
             sum(r.get("silent_replans", 0) for r in rows if not r["killed"])
         ),
@@ -453,6 +484,25 @@ def _reaction_summary(rows: Sequence[dict[str, Any]], kind: str) -> dict[str, An
 @click.option("--trials", default=100, show_default=True, help="Number of trials.")
 @click.option("--jobs", default=2, show_default=True, help="Worker processes.")
 @click.option("--seed", default=0, show_default=True, help="Base seed (trial k: seed + k).")
+@click.option(
+    "--first",
+    default=0,
+    show_default=True,
+    help="Index of the first trial (to fly one trial of a run again: --first K --trials 1).",
+)
+@click.option(
+    "--kill-model",
+    type=click.Choice(["px4", "instant"]),
+    default="px4",
+    show_default=True,
+    help="How a killed drone's vehicle moves on: PX4's offboard-loss failsafe, or stopping dead.",
+)
+@click.option(
+    "--monitor-hz",
+    default=100.0,
+    show_default=True,
+    help="Rate of the flight service's safety monitor between replans (0: off).",
+)
 @click.option("--v-max", "v_max", default=1.0, show_default=True, help="Speed limit, m/s.")
 @click.option(
     "--time-limit",
@@ -469,6 +519,9 @@ def bench_faults(
     trials: int,
     jobs: int,
     seed: int,
+    first: int,
+    kill_model: str,
+    monitor_hz: float,
     v_max: float,
     time_limit_s: float,
     json_path: Path | None,
@@ -481,6 +534,10 @@ def bench_faults(
         raise click.BadParameter("must be >= 1", param_hint="--trials")
     if jobs < 1:
         raise click.BadParameter("must be >= 1", param_hint="--jobs")
+    if first < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--first")
+    if not (math.isfinite(monitor_hz) and monitor_hz >= 0.0):
+        raise click.BadParameter("must be >= 0", param_hint="--monitor-hz")
     if not (math.isfinite(v_max) and v_max > 0.0):
         raise click.BadParameter("must be > 0", param_hint="--v-max")
     if not time_limit_s >= 0.0:
@@ -498,7 +555,17 @@ def bench_faults(
             err=False,
         )
 
-    rep = run_bench(trials, jobs, seed, v_max, time_limit_s or None, on_trial=line)
+    rep = run_bench(
+        trials,
+        jobs,
+        seed,
+        v_max,
+        time_limit_s or None,
+        on_trial=line,
+        first=first,
+        kill_model=kill_model,
+        monitor_hz=monitor_hz,
+    )
     es = rep["e_sim_remaining_mean"]
     click.echo(
         f"{rep['n_trials']} trials in {rep['wall_s']:.0f} s ({jobs} jobs), faults "
@@ -510,7 +577,8 @@ def bench_faults(
         f"{rep['min_drone_distance_m']:.3f} m, stale formation uses "
         f"{rep['stale_formation_uses']}, expired peers avoided {rep['expired_avoided_uses']}, "
         f"replans with a silent peer {rep['silent_replans']} (ghost hovers avoided "
-        f"{rep['ghost_uses']}), older trajectories refused {rep['refused_older']}"
+        f"{rep['ghost_uses']}), older trajectories refused {rep['refused_older']}, monitor "
+        f"replans / brakes {rep['monitor_replans']} / {rep['monitor_brakes']}"
     )
     click.echo(
         f"false alarms: replans with a silent peer in the {rep['trials_no_kill']} trials "

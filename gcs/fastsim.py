@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     from onboard.planner.planner import PeerTrajectory
 
 PERCEPTIONS = ("ground-truth", "mapped")
+KILL_MODELS = ("px4", "instant")
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,27 @@ class SimConfig:
     drone keeps publishing that hover every ``replan_period_s``."""
     killed_drones: dict[int, float] = field(default_factory=dict)
     """Drone id -> time: its onboard process dies; it publishes nothing more and its vehicle
-    holds its position (PX4's offboard-loss failsafe)."""
+    fails safe as ``kill_model`` says."""
+    kill_model: str = "px4"
+    """How a killed drone's vehicle moves on. 'px4': as PX4 v1.16 does when the setpoint stream
+    stops (REFERENCE_NOTES; the SITL mock does the same): its position controller keeps the
+    last setpoint (position and velocity feed-forward) for ``offboard_loss_s`` (COM_OF_LOSS_T),
+    so the vehicle carries on and slows (``p = p0 + v0 (1 - exp(-k t)) / k`` with ``k`` =
+    ``px4_position_gain``, MPC_XY_P), then the failsafe brakes it to a hold. 'instant': it
+    stops dead where it is (no vehicle can; the harshest case, kept for comparison)."""
+    offboard_loss_s: float = 1.0
+    """PX4's COM_OF_LOSS_T (v1.16 default 1.0 s), for ``kill_model`` 'px4'."""
+    px4_position_gain: float = 0.95
+    """PX4's MPC_XY_P (v1.16 default 0.95 1/s), for ``kill_model`` 'px4'."""
+    monitor_rate_hz: float = 0.0
+    """The safety monitor of the flight service between replans (0: off): at this rate every
+    flying drone checks the plan it will fly over ``monitor_horizon_s`` against its peers as it
+    avoids them (``DroneAgent.peer_view``: their trajectories, ghosts, reported positions;
+    refreshed every half state period, as the service does); a conflict closer than the
+    planner's ``check_drone_m`` asks for a replan at once, and if it is still there within
+    ``monitor_brake_after_s`` of a plan, the drone brakes (the service's braking stop)."""
+    monitor_horizon_s: float = 2.0
+    monitor_brake_after_s: float = 0.3
     validity_s: float = math.inf
     """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
@@ -182,6 +203,16 @@ class SimConfig:
                 if not (math.isfinite(at) and at >= 0.0):
                     raise ValueError(f"{name}[{i}]: time must be finite and >= 0, got {at!r}")
             object.__setattr__(self, name, {int(i): float(t) for i, t in faults.items()})
+        if self.kill_model not in KILL_MODELS:
+            raise ValueError(f"kill_model must be one of {KILL_MODELS}, got {self.kill_model!r}")
+        for name in ("offboard_loss_s", "px4_position_gain", "monitor_horizon_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        for name in ("monitor_rate_hz", "monitor_brake_after_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be >= 0, got {v!r}")
         both = set(self.stuck_drones) & set(self.killed_drones)
         if both:
             raise ValueError(f"drones {sorted(both)} are both stuck_drones and killed_drones")
@@ -544,6 +575,110 @@ def _warm_up(planner: Any, starts: np.ndarray, peer_type: Any) -> float:
     return time.perf_counter() - t0
 
 
+def _piece(
+    start: tuple[np.ndarray, np.ndarray, np.ndarray],
+    end: tuple[np.ndarray, np.ndarray, np.ndarray],
+    duration_s: float,
+) -> np.ndarray:
+    """The quintic from (p, v, a) ``start`` to ``end`` in ``duration_s``: coeffs (6, 3)."""
+    from onboard.planner.minco import Minco
+
+    m = Minco(1)
+    m.set_conditions(np.stack(start), np.stack(end))
+    m.set_parameters(np.zeros((0, 3)), np.array([duration_s]))
+    return np.asarray(m.coeffs, dtype=np.float64).reshape(-1, 6, 3)[0]
+
+
+def offboard_loss_trajectory(
+    t0_s: float,
+    p: np.ndarray,
+    v: np.ndarray,
+    a: np.ndarray,
+    loss_s: float,
+    gain: float,
+    a_max_m_s2: float,
+    hold_s: float,
+) -> Trajectory:
+    """How a PX4 vehicle moves on once its setpoint stream stops at ``t0_s`` in state
+    (``p``, ``v``, ``a``): for ``loss_s`` its position controller keeps the last setpoint, a
+    position with velocity feed-forward, so (velocity tracked, gain ``gain``) it carries on
+    along ``p + v (1 - exp(-gain t)) / gain``, slowing; then the failsafe brakes it to rest
+    (the service's braking stop, about a third of ``a_max_m_s2``) and it holds there for
+    ``hold_s``. Each phase is one quintic matching position, velocity and acceleration at its
+    ends (the first one starts with the vehicle's own acceleration: within ~2 cm of the
+    exponential at 1 m/s, within millimetres when that acceleration is the loop's)."""
+    from onboard.service.ports import braking_trajectory
+
+    p, v, a = (np.asarray(x, dtype=np.float64).reshape(3) for x in (p, v, a))
+    decay = math.exp(-gain * loss_s)
+    p1 = p + v * (1.0 - decay) / gain
+    v1 = v * decay
+    a1 = -gain * v1
+    first = _piece((p, v, a), (p1, v1, a1), loss_s)
+    brake = braking_trajectory(t0_s + loss_s, p1, v1, a1, a_max_m_s2)
+    rest = brake.sample(brake.t_end_s)
+    hold = np.zeros((6, 3))
+    hold[0] = rest
+    coeffs = np.stack([first, brake.coeffs[0], hold])
+    durations = np.array([loss_s, float(brake.durations_s[0]), max(hold_s, 1.0)])
+    return Trajectory(t0_s, coeffs, durations)
+
+
+class SafetyMonitor:
+    """The flight service's monitor between replans, in fast time (``SimConfig.monitor_*``):
+    one per drone; ``look`` checks the plan the drone will fly over the horizon against its
+    peers as it avoids them and reacts as the service does (a replan at once; a braking stop
+    if a plan made a moment ago did not clear it)."""
+
+    def __init__(self, cfg: SimConfig, state_period_s: float) -> None:
+        self.horizon_s = cfg.monitor_horizon_s
+        self.brake_after_s = cfg.monitor_brake_after_s
+        self.limit_m = cfg.params.check_drone_m
+        self.a_max = cfg.params.a_max_m_s2
+        self.view_age_s = 0.5 * state_period_s
+        self.view: Any = None
+        self._key: tuple[Any, ...] = ()
+        self._problem = ""
+        self.last_plan_s = -math.inf
+        self.brake_at_s = -math.inf
+        self.replans = 0
+        self.brakes = 0
+
+    def look(self, agent: DroneAgent, t: float) -> str:
+        """'' when clear, else what was done ('replan: ...' or 'brake: ...')."""
+        from onboard.agent import peer_conflict
+        from onboard.service.ports import braking_trajectory
+
+        view = self.view
+        if view is None or not 0.0 <= t - view.t_s < self.view_age_s - EPS_T:
+            view = self.view = agent.peer_view(t)
+        if not view.trajectories and not view.hover_ids:
+            return ""
+        # sampled on a fixed 0.1 s grid, so that a look with the same view, the same plan
+        # and the same grid step finds what the previous one found (it is not computed again)
+        g = math.ceil(t / 0.1 - 1e-6)
+        key = (view, agent.plan_token, g)
+        if key != self._key:
+            ts = np.arange(g, g + round(self.horizon_s / 0.1) + 1) * 0.1
+            self._key = key
+            self._problem = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)
+        problem = self._problem
+        if not problem:
+            return ""
+        if t - self.last_plan_s > self.brake_after_s:
+            self.replans += 1
+            agent.request_replan()
+            return f"replan: {problem}"
+        if t - self.brake_at_s < 1.0:
+            return f"braking: {problem}"
+        self.brake_at_s = t
+        self.brakes += 1
+        pp, vv, aa = agent.state(t)
+        agent.reset(braking_trajectory(t, pp, vv, aa, self.a_max))
+        agent.announce(t)
+        return f"brake: {problem}"
+
+
 def run_sim(
     cfg: SimConfig,
     recorder: Callable[[PlanCall], None] | None = None,
@@ -631,6 +766,12 @@ def run_sim(
         )
         for i in range(n)
     ]
+    monitors = (
+        [SafetyMonitor(cfg, cfg.state_period_s) for _ in range(n)]
+        if cfg.monitor_rate_hz > 0.0
+        else []
+    )
+    monitor_every = max(1, round(1.0 / (cfg.monitor_rate_hz * cfg.dt_s))) if monitors else 1
     warmup_s = _warm_up(agents[0].planner, starts, PeerTrajectory) if cfg.warmup else 0.0
     for ag in agents:
         ag.announce(0.0)
@@ -695,8 +836,25 @@ def run_sim(
             pos[i] = ag.advance(t).sample(t)
             at = killed.get(i, stuck.get(i, math.inf))
             if i not in stopped and t >= at - EPS_T:
-                # the vehicle holds where it is; queued plans are dropped with the process
-                ag.reset(Trajectory.hover(pos[i], t, t_limit - t + 1.0))
+                # queued plans are dropped with the process (or the stuck airframe's plans);
+                # the vehicle stops dead (stuck; a killed one with kill_model 'instant') or
+                # carries on along PX4's offboard-loss failsafe (killed, 'px4')
+                if i in killed and cfg.kill_model == "px4":
+                    p_k, v_k, a_k = ag.state(t)
+                    ag.reset(
+                        offboard_loss_trajectory(
+                            t,
+                            p_k,
+                            v_k,
+                            a_k,
+                            cfg.offboard_loss_s,
+                            cfg.px4_position_gain,
+                            params.a_max_m_s2,
+                            t_limit - t + 1.0,
+                        )
+                    )
+                else:
+                    ag.reset(Trajectory.hover(pos[i], t, t_limit - t + 1.0))
                 stopped[i] = (t, pos[i].tolist())
                 if i in stuck:
                     stuck_next[i] = t
@@ -720,9 +878,15 @@ def run_sim(
             for i, ag in enumerate(agents):
                 eyes[i].observe(t, pos[i], ag.current.sample(t, order=1), ag.goal)
             next_frame_s += 1.0 / cfg.camera_rate_hz
+        if monitors and k % monitor_every == 0:
+            for i, ag in enumerate(agents):
+                if i not in stopped:
+                    monitors[i].look(ag, t)
         for i, ag in sorted(enumerate(agents), key=lambda q: q[1].next_replan_s):
             if i not in stopped and ag.due(t):
                 replan(ag, t, pos[i].copy())
+                if monitors:
+                    monitors[i].last_plan_s = t
                 pos[i] = ag.advance(t).sample(t)
         done = mon.step(k, t, pos, velocities)
         if not done and stopped and k % mon.sample_every == 0:  # the healthy ones are enough
@@ -756,6 +920,8 @@ def run_sim(
             **bus.counters,
             "killed": {str(i): stopped[i] for i in sorted(killed) if i in stopped},
             "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
+            "monitor_replans": sum(m.replans for m in monitors),
+            "monitor_brakes": sum(m.brakes for m in monitors),
             "bus": {} if faulty is None else dict(faulty.counters),
             "state_bus": {} if state_faulty is None else dict(state_faulty.counters),
             "agents": {

@@ -222,6 +222,34 @@ class PeerView:
     (``PlanReport.quiet_peers``)."""
 
 
+def peer_conflict(
+    view: PeerView, now_s: float, ts: np.ndarray, pos: np.ndarray, limit_m: float
+) -> str:
+    """The first peer of ``view`` closer than ``limit_m`` to ``pos`` (our positions at times
+    ``ts``, (K, 3)): its trajectories sampled at the same times, then the quiet and silent
+    peers' ghosts and where deviating peers reported themselves (hovers); '' when none. What a
+    safety monitor checks between replans (the flight service's and the fast-time one)."""
+    for pt in view.trajectories:
+        dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
+        k = int(np.argmin(dd))
+        if dd[k] < limit_m:
+            return f"drone {pt.drone_id} {dd[k]:.2f} m in {ts[k] - now_s:.1f} s"
+    if view.hover_ids:
+        d = np.linalg.norm(pos[:, None, :] - view.hover_points[None, :, :], axis=2)
+        flat = int(np.argmin(d))
+        k, j = divmod(flat, d.shape[1])
+        if d[k, j] < limit_m:
+            pid = view.hover_ids[j]
+            if pid in view.silent:
+                what = "a ghost of silent"
+            elif pid in view.quiet:
+                what = "a ghost of quiet"
+            else:
+                what = "where it reported itself:"
+            return f"{what} drone {pid} {d[k, j]:.2f} m in {ts[k] - now_s:.1f} s"
+    return ""
+
+
 @dataclass(frozen=True)
 class _Plan:
     """The trajectory in control and the ones queued after it (increasing start times)."""
@@ -442,6 +470,8 @@ class DroneAgent:
         self._in_way: dict[int, float] = {}  # peer -> heard time its quiet ghosts were in the way
         self._looked: dict[int, float] = {}  # peer -> its newest heard time at the last look
         self._spells: dict[int, deque[tuple[float, float]]] = {}  # peer -> (look, spell)
+        self._spell_max: dict[int, float] = {}  # peer -> longest spell kept (None: recompute)
+        self._spell_stale: set[int] = set()  # peers whose longest spell left the window
         self._look_s = -math.inf  # the latest look's time
         self._refused: dict[int, TrajectoryMsg] = {}  # peer -> the last message refused
         self.refused_older = 0
@@ -474,6 +504,26 @@ class DroneAgent:
         for q in plan.queue:
             if t_s >= q.t0_s - EPS_T:
                 out = q
+        return out
+
+    @property
+    def plan_token(self) -> object:
+        """An object that changes whenever the trajectory in control or the queue does (for
+        callers that cache what they computed from ``planned``)."""
+        return self._plan
+
+    def planned(self, ts: np.ndarray) -> np.ndarray:
+        """Where the drone will be commanded at the increasing times ``ts`` (at or after the
+        last advance), (K, 3): the trajectory in control, then each queued one from its start
+        (a plan made a moment ago takes control ``plan_ahead_s`` later; a monitor that sampled
+        only the trajectory in control would judge the plan it replaces)."""
+        ts = np.asarray(ts, dtype=np.float64).reshape(-1)
+        plan = self._plan  # one immutable snapshot
+        out = plan.current.sample(ts)
+        for q in plan.queue:
+            k = int(np.searchsorted(ts, q.t0_s - EPS_T))
+            if k < ts.shape[0]:
+                out[k:] = q.sample(ts[k:])
         return out
 
     def state(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -652,8 +702,7 @@ class DroneAgent:
 
     def _silent_limit(self, pid: int) -> float:
         base = self._silence_limit(pid)
-        spells = self._spells.get(pid)
-        longest = max((d for _, d in spells), default=0.0) if spells else 0.0
+        longest = self._longest_spell(pid)
         longest = self.spell_factor * longest + self.spell_margin_s
         return max(base, min(self.peer_silence_max_s, longest))
 
@@ -674,9 +723,31 @@ class DroneAgent:
             if prev is not None and h > prev and math.isfinite(prev) and last >= prev:
                 if spells is None:
                     spells = self._spells[pid] = deque(maxlen=1024)
-                spells.append((now, min(last, now) - prev))
+                spell = min(last, now) - prev
+                if len(spells) == spells.maxlen:
+                    self._drop_spell(pid, spells[0][1])  # append evicts the oldest
+                spells.append((now, spell))
+                if pid not in self._spell_stale:
+                    self._spell_max[pid] = max(self._spell_max.get(pid, spell), spell)
             while spells and spells[0][0] < cut:
-                spells.popleft()
+                self._drop_spell(pid, spells.popleft()[1])
+
+    def _drop_spell(self, pid: int, spell: float) -> None:
+        """A spell left ``pid``'s window: if it may have been the longest, recompute that
+        when next asked (``_longest_spell``). Under ``_peer_lock``."""
+        if spell >= self._spell_max.get(pid, -math.inf):
+            self._spell_stale.add(pid)
+
+    def _longest_spell(self, pid: int) -> float:
+        """The longest quiet spell kept for ``pid`` (0 if none): the max over its window,
+        kept up to date as spells come and go. Under ``_peer_lock``."""
+        spells = self._spells.get(pid)
+        if not spells:
+            return 0.0
+        if pid in self._spell_stale or pid not in self._spell_max:
+            self._spell_max[pid] = max(d for _, d in spells)
+            self._spell_stale.discard(pid)
+        return self._spell_max[pid]
 
     def watch(self, now_s: float) -> tuple[int, ...]:
         """Peers that fell silent, fell quiet with a ghost on our path (the trajectory we fly

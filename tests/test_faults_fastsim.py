@@ -25,6 +25,9 @@ from onboard.world import World
 
 
 def _config(formation: str, **kw: object) -> SimConfig:
+    """A killed drone stops dead here (``kill_model`` 'instant', the harshest case: no vehicle
+    can, PX4's failsafe carries it on, see the px4 tests below), unless a test says otherwise."""
+    kw.setdefault("kill_model", "instant")
     return SimConfig(
         load_formation(formation),
         load_world_spec("forest-small"),
