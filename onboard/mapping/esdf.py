@@ -17,6 +17,11 @@ direction of its observed free neighbours (it may be positive: a cell can be occ
 centre lies just outside the surface). Deeper occupied cells, and every cell without
 ``sub_cell``, read occupied cells as solid cubes: centre distance minus ``surface_offset_m``
 (half a cell by default). Values are capped at +-``UNKNOWN_DISTANCE``.
+
+With ``OccupancyParams.esdf_z_m`` (the planner's altitude band) only the layers a point of
+that range interpolates from get values (``esdf_layers``): the scan along z still runs over the
+whole window, so obstacles in the layers above and below count, and the passes after it work
+layer by layer, so each layer computed is bit for bit that of the whole window's transform.
 """
 
 from __future__ import annotations
@@ -187,14 +192,21 @@ def _envelope_line(
 
 @njit(cache=True, nogil=True)
 def _envelope_pass(
-    f: np.ndarray, axis: int, skip_value: float, feat: np.ndarray, with_feat: bool
+    f: np.ndarray,
+    axis: int,
+    skip_value: float,
+    feat: np.ndarray,
+    with_feat: bool,
+    k0: int = 0,
+    k1: int = -1,
 ) -> None:
     """Squared distance transform of f (nx, ny, nz) along axis 0 or 1, in place, carrying the
-    feature indices feat along when with_feat. Lines whose values all equal ``skip_value`` are
-    left as they are (nothing to propagate)."""
+    feature indices feat along when with_feat, on the layers k0 <= k < k1 (k1 < 0: nz; the
+    others are left as they are: the passes after the one along z work layer by layer). Lines
+    whose values all equal ``skip_value`` are left as they are (nothing to propagate)."""
     nx = f.shape[0]
     ny = f.shape[1]
-    nz = f.shape[2]
+    nz = k1 if k1 >= 0 else f.shape[2]
     n = nx if axis == 0 else ny
     line = np.empty(n)
     out = np.empty(n)
@@ -205,7 +217,7 @@ def _envelope_pass(
     big = 1e30
     if axis == 1:
         for i in range(nx):
-            for k in range(nz):
+            for k in range(k0, nz):
                 same = True
                 for j in range(ny):
                     x = f[i, j, k]
@@ -225,7 +237,7 @@ def _envelope_pass(
                         feat[i, j, k] = fo[j]
     else:
         for j in range(ny):
-            for k in range(nz):
+            for k in range(k0, nz):
                 same = True
                 for i in range(nx):
                     x = f[i, j, k]
@@ -246,12 +258,20 @@ def _envelope_pass(
 
 
 @njit(cache=True, nogil=True)
-def _envelope_pass_x(f: np.ndarray, skip_value: float, feat: np.ndarray, with_feat: bool) -> None:
-    """``_envelope_pass`` along axis 0, one (x, z) plane at a time through a transposed copy
-    (the lines along x lie a plane apart in f)."""
+def _envelope_pass_x(
+    f: np.ndarray,
+    skip_value: float,
+    feat: np.ndarray,
+    with_feat: bool,
+    k0: int = 0,
+    k1: int = -1,
+) -> None:
+    """``_envelope_pass`` along axis 0 (layers k0 <= k < k1, k1 < 0: nz), one (x, z) plane
+    at a time through a transposed copy (the lines along x lie a plane apart in f)."""
     nx = f.shape[0]
     ny = f.shape[1]
-    nz = f.shape[2]
+    ka = k0
+    nz = (k1 if k1 >= 0 else f.shape[2]) - ka
     F = np.empty((nz, nx))
     FT = np.zeros((nz, nx), dtype=np.int32)
     out = np.empty(nx)
@@ -262,11 +282,11 @@ def _envelope_pass_x(f: np.ndarray, skip_value: float, feat: np.ndarray, with_fe
     for j in range(ny):
         for i in range(nx):
             for k in range(nz):
-                F[k, i] = f[i, j, k]
+                F[k, i] = f[i, j, ka + k]
         if with_feat:
             for i in range(nx):
                 for k in range(nz):
-                    FT[k, i] = feat[i, j, k]
+                    FT[k, i] = feat[i, j, ka + k]
         for k in range(nz):
             line = F[k]
             same = True
@@ -284,11 +304,11 @@ def _envelope_pass_x(f: np.ndarray, skip_value: float, feat: np.ndarray, with_fe
                     FT[k, i] = fo[i]
         for i in range(nx):
             for k in range(nz):
-                f[i, j, k] = F[k, i]
+                f[i, j, ka + k] = F[k, i]
         if with_feat:
             for i in range(nx):
                 for k in range(nz):
-                    feat[i, j, k] = FT[k, i]
+                    feat[i, j, ka + k] = FT[k, i]
 
 
 @njit(cache=True, nogil=True)
@@ -307,23 +327,27 @@ def _combine(
     margin: float,
     inflated: np.ndarray,
     with_inflated: bool,
+    k0: int = 0,
+    k1: int = -1,
 ) -> int:
     """Signed distance per cell from the two squared transforms (see the module docstring);
     with ``with_inflated``, also ``inflated`` = the value minus ``margin`` within +-cap (what
-    ``EsdfField.inflated(margin)`` computes, in the same pass). Returns the number of
+    ``EsdfField.inflated(margin)`` computes, in the same pass). Only the layers k0 <= k < k1
+    (k1 < 0: nz), into values[:, :, k - k0] (and inflated). Returns the number of
     non-finite values (none, unless an input was bad): the field's finiteness is checked here,
     not by another pass over the grid."""
     bad = 0
     nx = f_out.shape[0]
     ny = f_out.shape[1]
     nz = f_out.shape[2]
+    kend = k1 if k1 >= 0 else nz
     big = 1e29
     sp = spt.reshape(-1)
     for i in range(nx):
         x = (i + 0.5) * res
         for j in range(ny):
             y = (j + 0.5) * res
-            for k in range(nz):
+            for k in range(k0, kend):
                 z = (k + 0.5) * res
                 if not occ[i, j, k]:
                     a = f_out[i, j, k]
@@ -374,15 +398,17 @@ def _combine(
                         val = max(d, -cap)
                 if not math.isfinite(val):
                     bad += 1
-                values[i, j, k] = val
+                values[i, j, k - k0] = val
                 if with_inflated:
                     e = val - margin
-                    inflated[i, j, k] = -cap if e < -cap else (cap if e > cap else e)
+                    inflated[i, j, k - k0] = -cap if e < -cap else (cap if e > cap else e)
     return bad
 
 
 @njit(cache=True, nogil=True)
-def _inside_local(occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int) -> bool:
+def _inside_local(
+    occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int, k0: int = 0, k1: int = -1
+) -> bool:
     """The inside transform (``f_in`` at occupied cells: squared distance, in cells, to the
     nearest non-occupied cell of the window) by a search around each occupied cell, in place
     of the two envelope passes over every line that holds an occupied cell.
@@ -396,16 +422,18 @@ def _inside_local(occ: np.ndarray, f_in: np.ndarray, n_occ: int, r_max: int) -> 
     as the best found is at most that: the result is the exact minimum, as the envelope gives
     it (integers, exactly represented). Returns False, with ``f_in`` untouched, when some
     occupied cell has no non-occupied cell within ``r_max`` (large solid blocks): the caller
-    then runs the envelope passes."""
+    then runs the envelope passes. Only the occupied cells of the layers k0 <= k < k1 (k1 < 0:
+    nz) are searched for (their searches reach into every layer)."""
     nx = occ.shape[0]
     ny = occ.shape[1]
     nz = occ.shape[2]
+    kend = k1 if k1 >= 0 else nz
     out = np.empty(n_occ, dtype=np.float32)
     at = np.empty(n_occ, dtype=np.int64)  # where each result goes
     m = 0
     for i in range(nx):
         for j in range(ny):
-            for k in range(nz):
+            for k in range(k0, kend):
                 if not occ[i, j, k]:
                     continue
                 if (
@@ -480,21 +508,30 @@ def esdf_kernel(
     values: np.ndarray,
     margin: float = 0.0,
     inflated: np.ndarray | None = None,
+    k0: int = 0,
+    k1: int = -1,
 ) -> tuple[int, int]:
     """Signed distance of the ring-buffered window (see the module docstring) into values,
     occ and known (window order), and when ``inflated`` is given the values minus ``margin``
     (within +-cap) into it; returns the number of occupied cells and the number of
     non-finite values written (0 unless an input was bad). f_out, feat, f_in (nx, ny, nz) and
     spt (nx * ny * nz, 3) float32 are work buffers (feat: the number of each cell's nearest
-    occupied cell, whose surface point is that row of spt)."""
+    occupied cell, whose surface point is that row of spt).
+
+    Only the window's layers k0 <= k < k1 (k1 < 0: nz) get values, into values (nx, ny,
+    k1 - k0) (and inflated): the pass along z runs over the whole window, so every occupied
+    cell counts, and the passes after it work layer by layer, so each of these layers gets, bit
+    for bit, what it gets from the whole window's transform. occ and known cover the window."""
     n_occ = _column_pass(logodds, surf, lo, l_occ, res, f_out, feat, f_in, occ, known, spt)
+    ka = k0
+    kb = k1 if k1 >= 0 else logodds.shape[2]
     # the float32 the grids hold for "no occupied cell" (a float64 1e30 never equals it)
     big = np.float32(1e30)
-    _envelope_pass(f_out, 1, big, feat, sub_cell)
-    _envelope_pass_x(f_out, big, feat, sub_cell)
-    if n_occ > 0 and not _inside_local(occ, f_in, n_occ, _INSIDE_SEARCH_CELLS):
-        _envelope_pass(f_in, 1, np.float32(0.0), feat, False)
-        _envelope_pass(f_in, 0, np.float32(0.0), feat, False)
+    _envelope_pass(f_out, 1, big, feat, sub_cell, ka, kb)
+    _envelope_pass_x(f_out, big, feat, sub_cell, ka, kb)
+    if n_occ > 0 and not _inside_local(occ, f_in, n_occ, _INSIDE_SEARCH_CELLS, ka, kb):
+        _envelope_pass(f_in, 1, np.float32(0.0), feat, False, ka, kb)
+        _envelope_pass(f_in, 0, np.float32(0.0), feat, False, ka, kb)
     if inflated is None:
         bad = _combine(
             f_out,
@@ -511,6 +548,8 @@ def esdf_kernel(
             0.0,
             values,
             False,
+            ka,
+            kb,
         )
     else:
         bad = _combine(
@@ -528,6 +567,8 @@ def esdf_kernel(
             margin,
             inflated,
             True,
+            ka,
+            kb,
         )
     return n_occ, bad
 
@@ -606,6 +647,25 @@ class EsdfField(GridField):
         return self.values < self.inflation_m
 
 
+def esdf_layers(omap: OccupancyMap) -> tuple[int, int]:
+    """The window layers k0 <= k < k1 (window order) the ESDF covers: with
+    ``OccupancyParams.esdf_z_m`` = (z_lo, z_hi), those from the last cell centre at or below
+    z_lo to the first at or above z_hi (every centre a point of [z_lo, z_hi] interpolates from),
+    within the window (the whole window when fewer than two of them lie in it); else all."""
+    nz = omap.shape[2]
+    band = omap.params.esdf_z_m
+    if band is None:
+        return 0, nz
+    res = omap.res
+    lo = int(omap.lo[2])
+    k0 = int(math.floor(band[0] / res - 0.5 - 1e-6)) - lo
+    k1 = int(math.ceil(band[1] / res - 0.5 + 1e-6)) + 1 - lo
+    k0, k1 = max(k0, 0), min(k1, nz)
+    if k1 - k0 < 2:
+        return 0, nz
+    return k0, k1
+
+
 _POOL_SETS = 3
 """Output buffer sets an ``EsdfBuilder`` keeps for reuse (the latest field, one a planner may
 still hold, one spare)."""
@@ -678,6 +738,7 @@ class EsdfBuilder:
         self._shape: tuple[int, int, int] | None = None
         self._bufs: tuple[np.ndarray, ...] = ()
         self._pool: _OutputPool | None = None
+        self._masks: tuple[np.ndarray, ...] = ()
         self._new_sets_before = 0  # of pools replaced after a change of shape
 
     @property
@@ -688,10 +749,14 @@ class EsdfBuilder:
     def build(
         self, omap: OccupancyMap, stamp_s: float = math.nan, inflate_m: float | None = None
     ) -> EsdfField:
-        """The signed distance field of the map's current window; with ``inflate_m``, its
+        """The signed distance field of the map's current window (of its layers that
+        ``esdf_layers`` names: the field's box is those layers'); with ``inflate_m``, its
         ``inflated(inflate_m)`` is computed in the same pass (and returned by that call)."""
         shape = omap.shape
-        if self._shape != shape or self._pool is None:
+        k0, k1 = esdf_layers(omap)
+        partial = (k0, k1) != (0, shape[2])
+        out_shape = (shape[0], shape[1], k1 - k0)
+        if self._shape != shape or self._pool is None or self._pool.shape != out_shape:
             self._bufs = (
                 np.empty(shape, dtype=np.float32),
                 np.empty(shape, dtype=np.int32),
@@ -699,10 +764,17 @@ class EsdfBuilder:
                 np.empty((int(np.prod(shape)), 3), dtype=np.float32),
             )
             self._new_sets_before = self.new_sets
-            self._pool = _OutputPool(shape)
+            self._pool = _OutputPool(out_shape)
             self._shape = shape
+            # the whole window's masks, when the field covers only some of its layers
+            self._masks = (
+                (np.empty(shape, dtype=np.bool_), np.empty(shape, dtype=np.bool_))
+                if partial
+                else ()
+            )
         f_out, feat, f_in, spt = self._bufs
-        values, inflated, known, occ = self._pool.take()
+        values, inflated, known_out, occ_out = self._pool.take()
+        known, occ = self._masks if partial else (known_out, occ_out)
         res = omap.res
         offset = 0.5 * res if self.surface_offset_m is None else self.surface_offset_m
         _n_occ, bad = esdf_kernel(
@@ -723,14 +795,22 @@ class EsdfBuilder:
             values,
             0.0 if inflate_m is None else float(inflate_m),
             None if inflate_m is None else inflated,
+            k0,
+            k1,
         )
         if bad:
             raise ValueError(f"ESDF refresh produced {bad} non-finite values (a bad map input)")
-        known_v = _read_only_view(known)
-        occ_v = _read_only_view(occ)
+        if partial:
+            known_out[...] = known[:, :, k0:k1]
+            occ_out[...] = occ[:, :, k0:k1]
+        known_v = _read_only_view(known_out)
+        occ_v = _read_only_view(occ_out)
+        origin = omap.origin
+        if k0:
+            origin = origin + np.array([0.0, 0.0, k0 * res])
         field = EsdfField(
             _read_only_view(values),
-            omap.origin,
+            origin,
             res,
             known_v,
             occ_v,

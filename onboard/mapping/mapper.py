@@ -107,8 +107,9 @@ class LocalMapper:
         return self._builder.new_sets
 
     def field(self) -> EsdfField:
-        """The ESDF of the current window (recomputed only if the window moved or a frame
-        changed what it reads since: see ``IngestResult.esdf_changes``)."""
+        """The ESDF of the current window (of its layers in ``params.esdf_z_m`` when set;
+        recomputed only if the window moved or a frame changed what it reads since: see
+        ``IngestResult.esdf_changes``)."""
         if self._dirty or self._field is None:
             # the planning field (inflated by the drone's radius) in the same pass
             self._field = self._builder.build(

@@ -56,8 +56,9 @@ window of 11 x 11 x 4 m, as the issue asks, centred on the drone in x and y and 
 0.5 m below the ground up while the drone flies below 2.5 m (``floor_z_m``). ``for_band``
 fits the window's vertical extent to the planner's altitude band instead (the flight service
 does: the band 0.3-3.1 m plus 0.4 m each side is 3.6 m, the same top, without the four layers
-under the ground that hold nothing on flat ground). A cell starts unknown; its first update starts from probability 0.5 (log-odds 0), so a surface is
-occupied after 3 hits (three frames, 0.1 s at 30 Hz).
+under the ground that hold nothing on flat ground) and has the ESDF computed only for the band's
+layers (``esdf_z_m``). A cell starts unknown; its first update starts from probability 0.5
+(log-odds 0), so a surface is occupied after 3 hits (three frames, 0.1 s at 30 Hz).
 """
 
 from __future__ import annotations
@@ -102,6 +103,12 @@ class OccupancyParams:
     extent and ``headroom_m`` from an altitude band."""
     headroom_m: float = 1.0
     """Space kept above the drone (with ``floor_z_m``)."""
+    esdf_z_m: tuple[float, float] | None = None
+    """(z_lo, z_hi): the ESDF covers only the window's layers a point of this z range
+    interpolates from (their centres from the last at or below z_lo to the first at or above
+    z_hi); the rest of the window still holds the obstacles whose distances they carry, and
+    outside the field's box a planner reads unknown space. None: the whole window.
+    ``for_band`` sets it to the band."""
     p_hit: float = 0.65
     p_miss: float = 0.35
     p_min: float = 0.12
@@ -150,6 +157,10 @@ class OccupancyParams:
             raise ValueError("max_ray_m must be > 0 and inflation_m >= 0")
         if self.floor_z_m is not None and not 0.0 < self.headroom_m < self.size_m[2]:
             raise ValueError("headroom_m must lie in (0, size_z)")
+        if self.esdf_z_m is not None:
+            lo, hi = self.esdf_z_m
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"esdf_z_m must be finite (low, high), low < high, got {lo}, {hi}")
         if not 0.0 <= self.no_return_m <= self.max_ray_m:
             raise ValueError("no_return_m must lie in [0, max_ray_m]")
         if not self.no_return_period_s >= 0.0:
@@ -169,12 +180,14 @@ class OccupancyParams:
         ``margin_m`` above it, rounded out to whole cells, held there while the camera flies in
         the band (``floor_z_m``, ``headroom_m`` and the z of ``size_m`` are replaced; above the
         band the window rises with the camera, below the floor it goes down with it, as
-        ``floor_z_m`` says).
+        ``floor_z_m`` says), and the ESDF computed only for the band (``esdf_z_m``: the layers
+        in the margins only hold obstacles).
 
         Points of the band are then at least ``margin_m`` from anything outside the window,
         so a planner that only flies the band and only acts on distances below ``margin_m``
         (less half a cell for the interpolation between cell centres) sees what a taller
-        window would show it."""
+        window would show it; the field's cells in the band are bit for bit those of the
+        window's whole ESDF."""
         if not (math.isfinite(z_lo) and math.isfinite(z_hi) and z_lo < z_hi):
             raise ValueError(f"for_band: need finite z_lo < z_hi, got {z_lo!r}, {z_hi!r}")
         if not (math.isfinite(margin_m) and margin_m > 0.0):
@@ -187,6 +200,7 @@ class OccupancyParams:
             size_m=(self.size_m[0], self.size_m[1], (top - bottom) * res),
             floor_z_m=bottom * res,
             headroom_m=top * res - z_hi,
+            esdf_z_m=(float(z_lo), float(z_hi)),
         )
 
     @property

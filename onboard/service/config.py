@@ -274,15 +274,19 @@ class MappingSection:
     window_band_margin_m: float | None = 0.4
     """The window's vertical extent follows the planner's altitude band (``planner.z_limits_m``
     after the geofence cut): from this far below the band to this far above it (whole cells),
-    held there while the drone flies in the band (``OccupancyParams.for_band``; the map the
-    service uses is ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives -0.1 to
-    3.5 m: the top of the 4 m window from 0.5 m below the ground (``occupancy.floor_z_m``),
-    without its four layers under the ground, which hold nothing (ESDF refresh -5 to -7 %), and
-    a window that no longer rises off the ground when the drone climbs above 2.5 m. At least
+    held there while the drone flies in the band, and the ESDF computed only for the layers
+    the band interpolates from (``OccupancyParams.for_band``; the map the service uses is
+    ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives a window from -0.1 to
+    3.5 m (the top of the 4 m window from 0.5 m below the ground, ``occupancy.floor_z_m``,
+    without its four layers under the ground, which hold nothing) and a field from 0.2 to
+    3.2 m (30 of the old 40 layers; outside it the planner reads unknown space, as beyond the
+    window), whose cells are bit for bit the whole window's; and a window that no longer rises
+    off the ground when the drone climbs above 2.5 m. At least
     ``planner.check_obstacle_m + occupancy.inflation_m + occupancy.resolution_m / 2`` (0.37 m):
     no obstacle outside the window can then fail the safety check from inside the band.
-    ``occupancy.size_m``'s z is then the most the window may take; ``occupancy.floor_z_m`` and
-    ``headroom_m`` must be left at their defaults. null: the window as ``occupancy`` places it."""
+    ``occupancy.size_m``'s z is then the most the window may take; ``occupancy.floor_z_m``,
+    ``headroom_m`` and ``esdf_z_m`` must be left at their defaults. null: the window as
+    ``occupancy`` places it."""
     thread_nice: int = 0
     """Niceness added to the mapping thread (Linux, per thread): when the CPU is short, the
     setpoint stream and the planner go first and frames are dropped instead (0: as the rest)."""
@@ -293,7 +297,7 @@ class MappingSection:
         if self.window_band_margin_m is not None:
             _in_range("window_band_margin_m", self.window_band_margin_m, 0.05, 5.0)
             default = OccupancyParams()
-            for key in ("floor_z_m", "headroom_m"):
+            for key in ("floor_z_m", "headroom_m", "esdf_z_m"):
                 if getattr(self.occupancy, key) != getattr(default, key):
                     raise ValueError(
                         f"occupancy.{key}: the window's vertical placement follows the "
