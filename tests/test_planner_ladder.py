@@ -12,8 +12,16 @@ from onboard.planner import planner as planner_module
 from onboard.planner.astar import astar_path_levels
 from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.lbfgs import LbfgsStatus
+from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PlanResult, PlanStatus, Problem
+from onboard.planner.planner import (
+    KEEP_MOVING_M,
+    FormationPlanner,
+    PeerTrajectory,
+    PlanResult,
+    PlanStatus,
+    Problem,
+)
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -148,6 +156,7 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     # the formation attempt (from the hover) and the A* retry were refused for the gap; only
     # then the rescue searched the intermediate levels, and found the wide gap at 0.4 m
     assert res.message.count("enters unobserved space") == 2
+    assert res.message.endswith("a* rescue: path at 0.40 m")
     assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
     assert [found for _, found in ladders] == [0.22, 0.4]
     y, clearance = _crossing(res, world)
@@ -160,6 +169,45 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     assert [ladder for ladder, _ in ladders] == [TWO_STEP, TWO_STEP]  # the two A* retries
     # without a previous trajectory the rescue still comes before the stop
     assert plan(RESCUE, None).status == PlanStatus.OK_NO_FORMATION
+
+
+def _line(a: np.ndarray, b: np.ndarray, t0_s: float, duration_s: float) -> Trajectory:
+    """One MINCO piece from rest at a to rest at b."""
+    m = Minco(1)
+    m.set_conditions(np.stack([a, ZERO, ZERO]), np.stack([b, ZERO, ZERO]))
+    m.set_parameters(np.zeros((0, 3)), np.array([duration_s]))
+    return Trajectory(t0_s, m.coeffs, np.array([duration_s]))
+
+
+def test_a_previous_trajectory_that_still_moves_is_kept_before_the_rescue(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """A peer hovers in the narrow gap (true distances): every plan through it is refused and
+    A* at the check's distance only offers that gap. A safe previous trajectory that still
+    takes the drone somewhere (1 m back) is kept, as before the rescue existed, and no rescue
+    path is searched; a hover (or none) is not kept before the rescue, which flies the wide
+    gap."""
+    world = _wall(0.3, False)
+    field = AnalyticField(world)
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
+    assert np.linalg.norm(back.end_position - start) >= KEEP_MOVING_M
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
+    assert res.status == PlanStatus.KEPT_PREVIOUS
+    assert res.trajectory is back
+    assert res.message.count("drone 7 at") == 2 and "rescue" not in res.message
+    assert ladders == [(TWO_STEP, 0.22)]
+    for previous in (Trajectory.hover(start, 0.0, 3.0), None):
+        ladders.clear()
+        res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, previous)
+        assert res.status == PlanStatus.OK_NO_FORMATION, res.message
+        assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
+        assert planner.check(res.trajectory, 0.0, field, peers)[0]
+        y, clearance = _crossing(res, world)
+        assert y == pytest.approx(2.2, abs=0.25)
+        assert clearance >= 0.35
 
 
 def test_an_ordinary_replan_never_searches_the_intermediate_levels(

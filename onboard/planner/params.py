@@ -123,16 +123,17 @@ class PlannerParams:
     when every attempt of the replan was refused by the safety check and the A* retry's path
     keeps just the check's distance, one more attempt (without the formation term) starts from
     an A* path at the largest of these levels that lie between the two and find a path
-    (``astar_rescue_ladder_m``); it is flown if the check accepts it, before the previous
-    trajectory would be kept. A path at the check's own distance threads gaps that the
-    optimised trajectory cannot pass with the check's margin (its obstacle term trades
-    centimetres against the others; a mapped gap is narrower than the true one): in the mapped
-    flight of forest-medium seed 3, a drone in front of a 0.59 m gap (ESDF at most 0.19 m
-    inside it) was offered only the way through the gap for 150 s, refused every time (158
-    kept hovers), while A* at 0.5 m found the way around (issue #11). Tried in every A* attempt
-    instead, these levels folded three dense table forests (mean e_sim 0.0292 -> 0.0464): a
-    roomier way around, away from the slot, where the check-distance path was flown fine.
-    () disables the rescue."""
+    (``astar_rescue_ladder_m``); it is flown if the check accepts it. A safe previous
+    trajectory that still moves the drone is kept before trying it (as before the rescue
+    existed), one that holds the drone where it is (a hover) only after it failed too. A path
+    at the check's own distance threads gaps that the optimised trajectory cannot pass with
+    the check's margin (its obstacle term trades centimetres against the others; a mapped gap
+    is narrower than the true one): in the mapped flight of forest-medium seed 3, a drone in
+    front of a 0.59 m gap (ESDF at most 0.19 m inside it) was offered only the way through the
+    gap for 150 s, refused every time (158 kept hovers), while A* at 0.5 m found the way around
+    (issue #11). Tried in every A* attempt instead, these levels folded three dense table
+    forests (mean e_sim 0.0292 -> 0.0464): a roomier way around, away from the slot, where the
+    check-distance path was flown fine. () disables the rescue."""
     z_limits_m: tuple[float, float] = (0.3, 3.1)
     """Altitude band (z_min, z_max) [m] of every accepted trajectory: the safety check rejects a
     trajectory that leaves it (one that starts outside may fly back in, never farther out), the

@@ -6,16 +6,17 @@ optimises waypoints and durations of a MINCO trajectory with L-BFGS over the sev
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. A failed attempt is retried from an A* path with the formation term
 (``astar_keeps_formation``), then from an A* path without it (A* paths keep the optimiser's
-clearance, else the check's: ``astar_ladder_m``). When every attempt was refused and the A*
-path kept only the check's distance, one rescue attempt without the formation term starts
+clearance, else the check's: ``astar_ladder_m``). When every attempt was refused, a safe
+previous trajectory that still moves the drone (``KEEP_MOVING_M``) is kept. Otherwise, if the
+A* path kept only the check's distance, one rescue attempt without the formation term starts
 from an A* path at the largest of the clearances in between that finds one
 (``astar_rescue_ladder_m``): the roomier way around a gap that the check refuses every plan
-through. Failing that the previous trajectory is kept if it is still safe, else an emergency
-stop is returned. A drone ahead of
-its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so the
-swarm waits for a drone left behind rather than stretching the shape for the rest of the
-flight. The planner never replaces a safe trajectory with an unsafe one, reads no clock and
-does no I/O; failure is a status, never an exception (bad *inputs* raise ValueError).
+through. Failing that a safe previous trajectory (a hover) is kept, else an emergency stop is
+returned. A drone ahead of its slot relative to its peers plans with a lower speed limit
+(``lead_slowdown_m``), so the swarm waits for a drone left behind rather than stretching the
+shape for the rest of the flight. The planner never replaces a safe trajectory with an unsafe
+one, reads no clock and does no I/O; failure is a status, never an exception (bad *inputs*
+raise ValueError).
 
 The set-up (local target, initial guess), the solve and the safety check run in compiled code
 (``kernels``, ``objective``; the GIL is released there); this module validates the inputs,
@@ -50,7 +51,13 @@ period): an approach sooner than that is flown before another way could be taken
 COMFORT_ASTAR_MARGIN_M = 1.5
 """The A* box of the comfort alternative grows the start-target box by this much (3 m for the
 fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
-
+KEEP_MOVING_M = 0.1
+"""When every attempt of a replan was refused, a safe previous trajectory whose end lies at
+least this far from the replan's start is kept before the rescue attempt is tried (as before
+the rescue existed: the drone flies on and the next replan tries again); one that holds the
+drone where it is (a kept hover, a finished stop) is kept only if the rescue fails too."""
+_RESCUE = "a* rescue"
+"""How messages name the rescue attempt (``PlannerParams.astar_rescue_ladder_m``)."""
 
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
@@ -801,7 +808,8 @@ class FormationPlanner:
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
         ) -> tuple[PlanResult | None, Problem, bool]:
             """One attempt: (its result when the check accepts it, else None with the reason
-            in ``messages``; its problem; whether it was canceled)."""
+            in ``messages``; its problem; whether it was canceled). An accepted rescue says so
+            in the message, with the clearance of its A* path."""
             nonlocal last_status
             problem, x, last_status = solve(use_formation, force_astar, ladder=ladder)
             if last_status == LbfgsStatus.CANCELED:
@@ -837,6 +845,8 @@ class FormationPlanner:
                             messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
             if safe:
                 assert traj is not None
+                if what == _RESCUE:
+                    messages.append(f"{_RESCUE}: path at {problem.astar_clearance_m:.2f} m")
                 result = PlanResult(
                     ok_status,
                     traj,
@@ -861,30 +871,36 @@ class FormationPlanner:
                 return result
             if canceled:
                 break
-        # Every attempt was refused. When the A* retry's path kept only the check's distance,
-        # the way it offered may be a gap the check refuses every plan through (a mapped gap
-        # is narrower than the true one): one more attempt starts from the roomiest path at
-        # the rescue levels. It comes before keeping the previous trajectory: a drone stuck in
-        # front of such a gap keeps a hover that the check accepts, replan after replan.
-        rescue = self.params.astar_rescue_ladder_m
-        if not canceled and rescue and problem.astar_clearance_m < min(rescue):
-            result, _, canceled = attempt(
-                False, True, PlanStatus.OK_NO_FORMATION, "a* rescue", ladder=rescue
-            )
-            if result is not None:
-                return result
+        # Every attempt was refused. A safe previous trajectory that still takes the drone
+        # somewhere is kept, as before the rescue existed (the next replan tries again).
+        kept: Trajectory | None = None
         if previous is not None:
             safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
             if safe:
-                return PlanResult(
-                    PlanStatus.KEPT_PREVIOUS,
-                    previous,
-                    iters,
-                    evals,
-                    last_status,
-                    "; ".join(messages),
-                )
-            messages.append(f"previous: {why}")
+                kept = previous
+            else:
+                messages.append(f"previous: {why}")
+        if kept is not None and math.dist(kept.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M:
+            return PlanResult(
+                PlanStatus.KEPT_PREVIOUS, kept, iters, evals, last_status, "; ".join(messages)
+            )
+        # Otherwise the drone would hold where it is (a kept hover, a finished stop) or stop.
+        # When the A* retry's path kept only the check's distance, the way it offered may be a
+        # gap that the check refuses every plan through (a mapped gap is narrower than the true
+        # one): one more attempt starts from the roomiest A* path at the rescue levels. Before
+        # keeping a hover: the drone stuck in front of such a gap (mapped forest-medium seed 3)
+        # kept a hover the check accepted, replan after replan.
+        rescue = self.params.astar_rescue_ladder_m
+        if not canceled and rescue and problem.astar_clearance_m < min(rescue):
+            result, _, canceled = attempt(
+                False, True, PlanStatus.OK_NO_FORMATION, _RESCUE, ladder=rescue
+            )
+            if result is not None:
+                return result
+        if kept is not None:
+            return PlanResult(
+                PlanStatus.KEPT_PREVIOUS, kept, iters, evals, last_status, "; ".join(messages)
+            )
         return PlanResult(
             PlanStatus.EMERGENCY,
             self._stop(t_start_s, sp, sv, sa),
