@@ -29,7 +29,7 @@ import numpy as np
 
 from gcs.metrics import summary
 from gcs.monitor import CollisionEvent, FlightMonitor, MonitorConfig, Tracks
-from onboard.agent import EPS_T, DroneAgent, MapSource, PlanInputs
+from onboard.agent import EPS_T, GHOST_WINDOW_S, DroneAgent, MapSource, PlanInputs
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults, FaultyBus
 from onboard.comm.messages import TrajectoryMsg
@@ -131,10 +131,10 @@ class SimConfig:
     ghost_forget_s: float = 60.0
     """A silent peer's possible stop points (its vehicle holds there) are avoided this long
     after it fell silent; its last trajectory only ``peer_forget_s`` (``DroneAgent``)."""
-    ghost_window_s: float = 0.5
+    ghost_window_s: float = GHOST_WINDOW_S
     """A silent peer may have flown on this long after its newest message before it stopped
-    (``DroneAgent``): with 10 Hz states and 28 % of them missing (20 % loss, 10 % held back),
-    five in a row are missing with probability 0.2 %."""
+    (``DroneAgent``; ``onboard.agent.GHOST_WINDOW_S``: PX4's failsafe carries a killed drone's
+    vehicle on for about 0.65 s worth of its speed, see ``kill_model``)."""
     peer_deviation_m: float = 0.3
     """A peer reported further than this from its trajectory (a stuck drone whose new hover is
     late) is also avoided where it reported itself (``DroneAgent``; tracking here is perfect)."""
@@ -674,7 +674,7 @@ class SafetyMonitor:
         self.brake_at_s = t
         self.brakes += 1
         pp, vv, aa = agent.state(t)
-        agent.reset(braking_trajectory(t, pp, vv, aa, self.a_max))
+        agent.reset(braking_trajectory(t, pp, vv, aa, self.a_max, peak_fraction=1.0))
         agent.announce(t)
         return f"brake: {problem}"
 

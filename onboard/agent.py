@@ -106,8 +106,11 @@ SPELL_WINDOW_S = 30.0
 count."""
 PEER_DEVIATION_M = 0.3
 """A peer reported further than this from its trajectory is also avoided where it reported."""
-GHOST_WINDOW_S = 0.5
-"""A quiet peer may have flown on this long after its newest message before it stopped."""
+GHOST_WINDOW_S = 1.0
+"""A quiet peer may have flown on this long after its newest message before it stopped: a
+state period or two before it died, then PX4's offboard-loss failsafe, which keeps the last
+setpoint for COM_OF_LOSS_T (1 s) and so carries the vehicle on about 0.65 s worth of its speed
+(position gain MPC_XY_P 0.95: ``v (1 - exp(-0.95)) / 0.95``) before it brakes to a hold."""
 GHOST_FORGET_S = 60.0
 """A quiet peer's ghosts (where its vehicle may hold) are avoided this long."""
 HOVER_S = 3600.0

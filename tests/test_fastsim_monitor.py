@@ -86,9 +86,9 @@ def test_planned_follows_the_queue() -> None:
 
 
 def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way() -> None:
-    """Drone 0 flies +x at 1 m/s; peer 1 stops 1.0 m ahead and announces its hover: the monitor
-    asks for a replan at once; if a plan made a moment ago still runs into it, it brakes (and
-    peers hear the braking trajectory)."""
+    """Drone 0 flies +x at 1 m/s; peer 1 stops 0.7 m ahead and announces its hover: the monitor
+    asks for a replan at once; if a plan made a moment ago still runs into it, it brakes as hard
+    as the planner's acceleration limit allows (peers hear the braking trajectory)."""
     bus = InMemoryBus(0.0)
     cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
     agent = DroneAgent(
@@ -107,7 +107,7 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
     bus.publish(TrajectoryMsg(1, 1, 0, far), 0.0)
     assert mon.look(agent, 0.0) == ""
     assert not agent.due(0.0)
-    stop = Trajectory.hover(np.array([1.0, 0.0, 1.0]), 0.05, 600.0)
+    stop = Trajectory.hover(np.array([0.7, 0.0, 1.0]), 0.05, 600.0)
     bus.publish(TrajectoryMsg(1, 1, 1, stop), 0.05)
     what = mon.look(agent, 0.05)
     assert what.startswith("replan: drone 1"), what
@@ -118,11 +118,15 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
     assert mon.brakes == 1
     ts = np.linspace(0.06, 5.0, 200)
     path = agent.planned(ts)
-    assert float(np.min(np.linalg.norm(path - [1.0, 0.0, 1.0], axis=1))) > 0.3
+    # 1 m/s to rest in 0.25 m (peak deceleration a_max = 3 m/s^2), not the gentle stop's 0.5 m
+    gap = float(np.min(np.linalg.norm(path - [0.7, 0.0, 1.0], axis=1)))
+    assert gap == pytest.approx(0.7 - 0.06 - 0.25, abs=0.01)
+    acc = agent.flying(0.06).sample(np.linspace(0.06, 0.56, 51), order=2)
+    assert float(np.max(np.linalg.norm(acc, axis=1))) <= PARAMS.a_max_m_s2 + 1e-6
     np.testing.assert_allclose(agent.planned(np.array([5.0]))[0], path[-1])
     heard = bus.receive(1, 0.06)[0]
     assert heard.trajectory.t0_s == pytest.approx(0.06)  # the braking stop was announced
-    assert mon.look(agent, 0.07).startswith("braking")  # one brake per second at most
+    assert mon.look(agent, 0.07).startswith("braking")  # still in the way: one brake a second
     assert mon.brakes == 1
 
 
@@ -203,3 +207,21 @@ def test_bench_faults_flies_one_trial_of_a_run_again(tmp_path: Path) -> None:
     assert res.exit_code != 0 and "--monitor-hz" in res.output
     res = CliRunner().invoke(bench_faults, [*args, "--first", "-1"])
     assert res.exit_code != 0 and "--first" in res.output
+
+
+@pytest.mark.parametrize("fraction", [0.5, 1.0])
+def test_braking_stop_peaks_at_its_fraction_of_the_limit(fraction: float) -> None:
+    from onboard.service.ports import braking_trajectory
+
+    v = np.array([0.6, -0.8, 0.0])  # 1 m/s
+    tr = braking_trajectory(2.0, np.zeros(3), v, np.zeros(3), 3.0, peak_fraction=fraction)
+    ts = np.linspace(2.0, 2.0 + float(tr.durations_s[0]), 2001)
+    peak = float(np.max(np.linalg.norm(tr.sample(ts, order=2), axis=1)))
+    assert peak == pytest.approx(fraction * 3.0, rel=1e-3)
+    np.testing.assert_allclose(tr.sample(ts[-1], order=1), np.zeros(3), atol=1e-9)
+    along = tr.sample(ts) @ v
+    assert bool(np.all(np.diff(along) >= -1e-12))  # it never turns back
+    slow = braking_trajectory(0.0, np.zeros(3), 0.1 * v, np.zeros(3), 3.0, peak_fraction=fraction)
+    assert float(slow.durations_s[0]) == pytest.approx(0.5)  # never shorter than 0.5 s
+    with pytest.raises(ValueError, match="peak_fraction"):
+        braking_trajectory(0.0, np.zeros(3), v, np.zeros(3), 3.0, peak_fraction=1.5)

@@ -163,17 +163,27 @@ class SwarmBusPort(Protocol):
 
 
 def braking_trajectory(
-    t0_s: float, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_max_m_s2: float
+    t0_s: float,
+    p: np.ndarray,
+    v: np.ndarray,
+    a: np.ndarray,
+    a_max_m_s2: float,
+    peak_fraction: float = 0.5,
 ) -> Trajectory:
-    """One quintic piece from (p, v, a) to rest, then hovering there: a braking stop that
-    decelerates at about a third of ``a_max_m_s2``."""
+    """One quintic piece from (p, v, a) to rest, then hovering there: a braking stop whose
+    deceleration peaks at about ``peak_fraction`` of ``a_max_m_s2`` (from a steady speed; the
+    default, a gentle stop, averages a third of it; 1.0 is the hardest stop within the limit,
+    for a collision ahead), lasting at least 0.5 s."""
+    if not 0.0 < peak_fraction <= 1.0:
+        raise ValueError(f"peak_fraction must be in (0, 1], got {peak_fraction!r}")
     from onboard.planner.minco import Minco
 
     p = np.asarray(p, dtype=np.float64).reshape(3)
     v = np.asarray(v, dtype=np.float64).reshape(3)
     a = np.asarray(a, dtype=np.float64).reshape(3)
     speed = float(np.linalg.norm(v))
-    tb = max(0.5, 3.0 * speed / max(a_max_m_s2, 1e-3))
+    # a rest-to-rest-like quintic from speed v over tb peaks at 1.5 v / tb
+    tb = max(0.5, 1.5 * speed / (peak_fraction * max(a_max_m_s2, 1e-3)))
     m = Minco(1)
     z = np.zeros(3)
     m.set_conditions(np.stack([p, v, a]), np.stack([p + 0.5 * tb * v, z, z]))
