@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from onboard.agent import DroneAgent, PeerView, PlanReport
+from onboard.agent import DroneAgent, PeerView, PlanReport, peer_conflict
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
@@ -640,8 +640,8 @@ class FlightService:
 
     # ---- the safety monitor (the monitor thread) ---------------------------------------------
     def monitor_step(self) -> str:
-        """Check the trajectory in control over the horizon; '' when clear, else what was done
-        ('replan' or 'brake') and why."""
+        """Check the plan in flight (the trajectory in control, then the queued ones) over the
+        horizon; '' when clear, else what was done ('replan' or 'brake') and why."""
         it = self._intent
         if it.state not in (S.FORMATION_FLIGHT, S.HOVER, S.EMERGENCY):
             return ""
@@ -652,7 +652,9 @@ class FlightService:
             return ""
         p = self.cfg.planner
         ts = np.arange(now, now + self.cfg.planning.monitor_horizon_s + 1e-9, 0.1)
-        pos = traj.sample(ts)
+        # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
+        # later, and judging the trajectory it replaces would brake for what it already avoids
+        pos = self.agent.planned(ts)
         problem = ""
         if fld is not None:
             d, _ = fld.distance(pos)
@@ -660,7 +662,7 @@ class FlightService:
             if d[k] < p.check_obstacle_m:
                 problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
         if not problem:
-            problem = self._peer_conflict(now, ts, pos, p.check_drone_m)
+            problem = peer_conflict(self.peers_now(now), now, ts, pos, p.check_drone_m)
         if not problem:
             lo = np.asarray(self.cfg.geofence.min_enu_m)
             hi = np.asarray(self.cfg.geofence.max_enu_m)
@@ -677,34 +679,10 @@ class FlightService:
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
         pp, vv, aa = traj.state(now)
-        self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2))
+        # a conflict ahead: the hardest stop within the acceleration limit
+        self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2, peak_fraction=1.0))
         self._results.put(("monitor_brake", problem))
         return f"brake: {problem}"
-
-    def _peer_conflict(self, now: float, ts: np.ndarray, pos: np.ndarray, limit_m: float) -> str:
-        """The first peer closer than ``limit_m`` to ``pos`` (the trajectory in control at
-        ``ts``), as the agent avoids them: their trajectories (same times), the quiet and silent
-        peers' ghosts and where deviating peers reported themselves (hovers); '' when none."""
-        view = self.peers_now(now)
-        for pt in view.trajectories:
-            dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
-            k = int(np.argmin(dd))
-            if dd[k] < limit_m:
-                return f"drone {pt.drone_id} {dd[k]:.2f} m in {ts[k] - now:.1f} s"
-        if view.hover_ids:
-            d = np.linalg.norm(pos[:, None, :] - view.hover_points[None, :, :], axis=2)
-            flat = int(np.argmin(d))
-            k, j = divmod(flat, d.shape[1])
-            if d[k, j] < limit_m:
-                pid = view.hover_ids[j]
-                if pid in view.silent:
-                    what = "a ghost of silent"
-                elif pid in view.quiet:
-                    what = "a ghost of quiet"
-                else:
-                    what = "where it reported itself:"
-                return f"{what} drone {pid} {d[k, j]:.2f} m in {ts[k] - now:.1f} s"
-        return ""
 
     # ---- peers (the main loop; the monitor) --------------------------------------------------
     def peers_now(self, now: float, fresh: bool = False) -> PeerView:
