@@ -130,8 +130,7 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
     assert mon.brakes == 1
 
 
-@pytest.mark.parametrize("monitor_hz", [0.0, 100.0])
-def test_a_killed_drone_flies_px4s_failsafe_and_its_peers_keep_clear(monitor_hz: float) -> None:
+def test_a_killed_drone_flies_px4s_failsafe_and_its_peers_keep_clear() -> None:
     """Drone 1 of the hexagon is killed 4 s into the small forest, in front of a follower; its
     vehicle carries on along its last setpoint for COM_OF_LOSS_T, brakes and holds: the
     simulator's track is that path, and the healthy drones keep clear of it and arrive."""
@@ -143,7 +142,7 @@ def test_a_killed_drone_flies_px4s_failsafe_and_its_peers_keep_clear(monitor_hz:
         validity_s=3.0,
         peer_forget_s=10.0,
         killed_drones={1: 4.0},
-        monitor_rate_hz=monitor_hz,
+        monitor_rate_hz=100.0,
     )
     assert cfg.kill_model == "px4"
     r = run_sim(cfg)
@@ -174,8 +173,6 @@ def test_a_killed_drone_flies_px4s_failsafe_and_its_peers_keep_clear(monitor_hz:
     np.testing.assert_allclose(
         track[t >= t_kill + 4.0], [track[-1]] * int(np.sum(t >= t_kill + 4.0))
     )
-    if monitor_hz:
-        assert r.faults["monitor_replans"] >= 0 and "monitor_brakes" in r.faults
 
 
 def test_sim_config_refuses_bad_fault_models() -> None:
