@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from gcs.fastsim import REFUSAL_KEYS, count_refusals
 from onboard.planner import planner as planner_module
 from onboard.planner.astar import astar_path_levels
 from onboard.planner.field import AnalyticField, DistanceField, GridField
@@ -157,6 +158,9 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     # then the rescue searched the intermediate levels, and found the wide gap at 0.4 m
     assert res.message.count("enters unobserved space") == 2
     assert res.message.endswith("a* rescue: path at 0.40 m")
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    count_refusals(res.message, counts)
+    assert counts["attempts"] == counts["unobserved"] == 2  # the accepted rescue is no refusal
     assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
     assert [found for _, found in ladders] == [0.22, 0.4]
     y, clearance = _crossing(res, world)
@@ -169,6 +173,27 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     assert [ladder for ladder, _ in ladders] == [TWO_STEP, TWO_STEP]  # the two A* retries
     # without a previous trajectory the rescue still comes before the stop
     assert plan(RESCUE, None).status == PlanStatus.OK_NO_FORMATION
+
+
+def test_a_refused_rescue_keeps_the_hover_and_counts_as_a_refusal(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """The narrow gap unobserved and a peer hovering in the wide one: the rescue's plan through
+    the wide gap is refused too, so the hover is kept; the message names the three refused
+    attempts, as the simulator counts them."""
+    field = _gap_unobserved(_wall(0.3, False))
+    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.0, 2.2, 1.0]), 0.0, 30.0))]
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    hover = Trajectory.hover(start, 0.0, 3.0)
+    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, hover)
+    assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
+    assert res.trajectory is hover
+    assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
+    assert "a* retry at the rescue levels without formation: drone 7 at" in res.message
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    count_refusals(res.message, counts)
+    assert (counts["attempts"], counts["unobserved"], counts["drone"]) == (3, 2, 1)
 
 
 def _line(a: np.ndarray, b: np.ndarray, t0_s: float, duration_s: float) -> Trajectory:

@@ -56,8 +56,11 @@ KEEP_MOVING_M = 0.1
 least this far from the replan's start is kept before the rescue attempt is tried (as before
 the rescue existed: the drone flies on and the next replan tries again); one that holds the
 drone where it is (a kept hover, a finished stop) is kept only if the rescue fails too."""
-_RESCUE = "a* rescue"
-"""How messages name the rescue attempt (``PlannerParams.astar_rescue_ladder_m``)."""
+_RESCUE = "a* retry at the rescue levels"
+"""How messages name the rescue attempt (``PlannerParams.astar_rescue_ladder_m``) when the
+check refuses it: "<attempt>: <reason>" like the others (``gcs.fastsim.count_refusals`` counts
+the attempts named "formation..." and "a* retry..."). An accepted rescue adds "a* rescue: path
+at <clearance> m" to the message instead, which is no refusal."""
 
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
@@ -846,7 +849,7 @@ class FormationPlanner:
             if safe:
                 assert traj is not None
                 if what == _RESCUE:
-                    messages.append(f"{_RESCUE}: path at {problem.astar_clearance_m:.2f} m")
+                    messages.append(f"a* rescue: path at {problem.astar_clearance_m:.2f} m")
                 result = PlanResult(
                     ok_status,
                     traj,
