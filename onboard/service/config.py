@@ -280,8 +280,10 @@ class MappingSection:
     3.5 m (the top of the 4 m window from 0.5 m below the ground, ``occupancy.floor_z_m``,
     without its four layers under the ground, which hold nothing) and a field from 0.2 to
     3.2 m (30 of the old 40 layers; outside it the planner reads unknown space, as beyond the
-    window), whose cells are bit for bit the whole window's; and a window that no longer rises
-    off the ground when the drone climbs above 2.5 m. At least
+    window), whose cells are bit for bit the whole window's: 18 % less CPU per ESDF refresh
+    (``bench mapping --compare-windows``, forest-medium: 26.7-26.9 -> 22.0-22.2 ms, pair
+    ratio 0.82; the dropped layers alone gave 0.94); and a window that no longer rises off the
+    ground when the drone climbs above 2.5 m. At least
     ``planner.check_obstacle_m + occupancy.inflation_m + occupancy.resolution_m / 2`` (0.37 m):
     no obstacle outside the window can then fail the safety check from inside the band.
     ``occupancy.size_m``'s z is then the most the window may take; ``occupancy.floor_z_m``,
