@@ -658,7 +658,8 @@ class SafetyMonitor:
         # and the same grid step finds what the previous one found (it is not computed again)
         g = math.ceil(t / 0.1 - 1e-6)
         key = (view, agent.plan_token, g)
-        if key != self._key:
+        last = self._key  # the same objects (not equal ones: views hold arrays), same step
+        if not (last and last[0] is view and last[1] is key[1] and last[2] == g):
             ts = np.arange(g, g + round(self.horizon_s / 0.1) + 1) * 0.1
             self._key = key
             self._problem = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)

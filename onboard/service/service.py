@@ -226,6 +226,9 @@ class FlightService:
         self._last_plan_s = -math.inf
         self._last_map_record_s = -math.inf
         self._monitor_brake_at = -math.inf
+        # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
+        self._monitor_key: tuple[object, ...] = ()
+        self._monitor_problem = ""
         self._plan_ms: list[float] = []
         self._plan_status = ""
         self._plan_stamp: float | None = None
@@ -651,23 +654,35 @@ class FlightService:
         if traj is None:
             return ""
         p = self.cfg.planner
-        ts = np.arange(now, now + self.cfg.planning.monitor_horizon_s + 1e-9, 0.1)
-        # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
-        # later, and judging the trajectory it replaces would brake for what it already avoids
-        pos = self.agent.planned(ts)
-        problem = ""
-        if fld is not None:
-            d, _ = fld.distance(pos)
-            k = int(np.argmin(d))
-            if d[k] < p.check_obstacle_m:
-                problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
-        if not problem:
-            problem = peer_conflict(self.peers_now(now), now, ts, pos, p.check_drone_m)
-        if not problem:
-            lo = np.asarray(self.cfg.geofence.min_enu_m)
-            hi = np.asarray(self.cfg.geofence.max_enu_m)
-            if not np.all((pos >= lo) & (pos <= hi)):
-                problem = "geofence"
+        view = self.peers_now(now)
+        # sampled on a fixed 0.1 s grid: a look with the same map, peers view, plan and grid
+        # step would find what the last one found, so it is not computed again (the map
+        # changes at the ESDF rate, the view every half state period)
+        g = math.ceil(now / 0.1 - 1e-6)
+        plan = self.agent.plan_token
+        last = self._monitor_key  # the same objects (views hold arrays: not ==), same step
+        if not (last and last[0] is fld and last[1] is view and last[2] is plan and last[3] == g):
+            n = round(self.cfg.planning.monitor_horizon_s / 0.1) + 1
+            ts = np.arange(g, g + n) * 0.1
+            # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
+            # later, and judging the one it replaces would brake for what it already avoids
+            pos = self.agent.planned(ts)
+            problem = ""
+            if fld is not None:
+                d, _ = fld.distance(pos)
+                k = int(np.argmin(d))
+                if d[k] < p.check_obstacle_m:
+                    problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
+            if not problem:
+                problem = peer_conflict(view, now, ts, pos, p.check_drone_m)
+            if not problem:
+                lo = np.asarray(self.cfg.geofence.min_enu_m)
+                hi = np.asarray(self.cfg.geofence.max_enu_m)
+                if not np.all((pos >= lo) & (pos <= hi)):
+                    problem = "geofence"
+            self._monitor_key = (fld, view, plan, g)
+            self._monitor_problem = problem
+        problem = self._monitor_problem
         if not problem:
             return ""
         if it.state is S.FORMATION_FLIGHT and now - self._last_plan_s > 0.3:
