@@ -29,7 +29,14 @@ import numpy as np
 
 from gcs.metrics import summary
 from gcs.monitor import CollisionEvent, FlightMonitor, MonitorConfig, Tracks
-from onboard.agent import EPS_T, GHOST_WINDOW_S, DroneAgent, MapSource, PlanInputs
+from onboard.agent import (
+    EPS_T,
+    GHOST_WINDOW_S,
+    MONITOR_BRAKE_WITHIN_S,
+    DroneAgent,
+    MapSource,
+    PlanInputs,
+)
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults, FaultyBus
 from onboard.comm.messages import TrajectoryMsg
@@ -120,9 +127,13 @@ class SimConfig:
     avoids them (``DroneAgent.peer_view``: their trajectories, ghosts, reported positions;
     refreshed every half state period, as the service does); a conflict closer than the
     planner's ``check_drone_m`` asks for a replan at once, and if it is still there within
-    ``monitor_brake_after_s`` of a plan, the drone brakes (the service's braking stop)."""
+    ``monitor_brake_after_s`` of a plan and less than ``monitor_brake_within_s`` ahead, the
+    drone brakes (the service's conflict stop)."""
     monitor_horizon_s: float = 2.0
     monitor_brake_after_s: float = 0.3
+    monitor_brake_within_s: float = MONITOR_BRAKE_WITHIN_S
+    """A conflict further ahead than this that a fresh plan did not clear is left to the next
+    replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
     validity_s: float = math.inf
     """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
@@ -209,7 +220,7 @@ class SimConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be > 0, got {v!r}")
-        for name in ("monitor_rate_hz", "monitor_brake_after_s"):
+        for name in ("monitor_rate_hz", "monitor_brake_after_s", "monitor_brake_within_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be >= 0, got {v!r}")
@@ -639,6 +650,8 @@ class SafetyMonitor:
         self.view: Any = None
         self._key: tuple[Any, ...] = ()
         self._problem = ""
+        self._at = math.inf
+        self.brake_within_s = cfg.monitor_brake_within_s
         self.last_plan_s = -math.inf
         self.brake_at_s = -math.inf
         self.replans = 0
@@ -662,7 +675,7 @@ class SafetyMonitor:
         if not (last and last[0] is view and last[1] is key[1] and last[2] == g):
             ts = np.arange(g, g + round(self.horizon_s / 0.1) + 1) * 0.1
             self._key = key
-            self._problem = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)
+            self._problem, self._at = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)
         problem = self._problem
         if not problem:
             return ""
@@ -670,6 +683,8 @@ class SafetyMonitor:
             self.replans += 1
             agent.request_replan()
             return f"replan: {problem}"
+        if self._at - t > self.brake_within_s:
+            return f"watching: {problem}"  # far enough ahead for the next replan to clear it
         if t - self.brake_at_s < 1.0:
             return f"braking: {problem}"
         self.brake_at_s = t

@@ -113,6 +113,11 @@ setpoint for COM_OF_LOSS_T (1 s) and so carries the vehicle on about 0.65 s wort
 (position gain MPC_XY_P 0.95: ``v (1 - exp(-0.95)) / 0.95``) before it brakes to a hold."""
 GHOST_FORGET_S = 60.0
 """A quiet peer's ghosts (where its vehicle may hold) are avoided this long."""
+MONITOR_BRAKE_WITHIN_S = 1.0
+"""A safety monitor brakes for a conflict a fresh plan did not clear only when it lies less
+than this far ahead (a braking stop from 1 m/s takes 0.5 s, plus the look and the autopilot's
+reaction); further ahead it asks for another replan instead (a brake for a conflict 1.6 s
+ahead broke up a formation in bench faults seed 0 trial 7)."""
 HOVER_S = 3600.0
 """Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
 
@@ -227,21 +232,28 @@ class PeerView:
 
 def peer_conflict(
     view: PeerView, now_s: float, ts: np.ndarray, pos: np.ndarray, limit_m: float
-) -> str:
-    """The first peer of ``view`` closer than ``limit_m`` to ``pos`` (our positions at times
-    ``ts``, (K, 3)): its trajectories sampled at the same times, then the quiet and silent
-    peers' ghosts and where deviating peers reported themselves (hovers); '' when none. What a
-    safety monitor checks between replans (the flight service's and the fast-time one)."""
+) -> tuple[str, float]:
+    """The earliest conflict of ``pos`` (our positions at the increasing times ``ts``, (K, 3))
+    with ``view``: a peer trajectory (sampled at the same times), a quiet or silent peer's
+    ghost or where a deviating peer reported itself (hovers) closer than ``limit_m``, as (what,
+    the time of the first sample too close); ('', inf) when none. What a safety monitor checks
+    between replans (the flight service's and the fast-time one)."""
+    first = math.inf
+    problem = ""
     for pt in view.trajectories:
         dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
-        k = int(np.argmin(dd))
-        if dd[k] < limit_m:
-            return f"drone {pt.drone_id} {dd[k]:.2f} m in {ts[k] - now_s:.1f} s"
+        below = dd < limit_m
+        if below.any():
+            k = int(np.argmax(below))  # the first sample too close
+            if ts[k] < first:
+                first = float(ts[k])
+                problem = f"drone {pt.drone_id} {float(dd.min()):.2f} m in {ts[k] - now_s:.1f} s"
     if view.hover_ids:
         d = np.linalg.norm(pos[:, None, :] - view.hover_points[None, :, :], axis=2)
-        flat = int(np.argmin(d))
-        k, j = divmod(flat, d.shape[1])
-        if d[k, j] < limit_m:
+        below = d.min(axis=1) < limit_m
+        k = int(np.argmax(below))
+        if below.any() and ts[k] < first:
+            j = int(np.argmin(d[k]))
             pid = view.hover_ids[j]
             if pid in view.silent:
                 what = "a ghost of silent"
@@ -249,8 +261,9 @@ def peer_conflict(
                 what = "a ghost of quiet"
             else:
                 what = "where it reported itself:"
-            return f"{what} drone {pid} {d[k, j]:.2f} m in {ts[k] - now_s:.1f} s"
-    return ""
+            first = float(ts[k])
+            problem = f"{what} drone {pid} {float(d[:, j].min()):.2f} m in {ts[k] - now_s:.1f} s"
+    return problem, first
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,9 @@ Threads (each loop is a ``*_step`` method the tests call directly with an inject
 - ``monitor``: at ``planning.monitor_rate_hz`` the trajectory in control is checked against the
   map, the peers as the agent avoids them (``DroneAgent.peer_view``: their latest trajectories,
   the silent peers' ghosts, where deviating peers reported themselves) and the geofence over
-  ``monitor_horizon_s``; a predicted conflict asks for a replan at once, and if the conflict is
-  still there after it, brakes;
+  ``monitor_horizon_s``; a predicted conflict asks for a replan at once, and if a fresh plan
+  still meets it less than ``onboard.agent.MONITOR_BRAKE_WITHIN_S`` ahead, brakes (further
+  ahead, another replan 0.3 s later);
 - ``actions``: autopilot commands that wait for acknowledgements (offboard, arm, land), so the
   main loop never blocks;
 - the main loop (``main_step``): ground-station commands, the reactions, the peers' states
@@ -50,7 +51,13 @@ from typing import Any
 
 import numpy as np
 
-from onboard.agent import DroneAgent, PeerView, PlanReport, peer_conflict
+from onboard.agent import (
+    MONITOR_BRAKE_WITHIN_S,
+    DroneAgent,
+    PeerView,
+    PlanReport,
+    peer_conflict,
+)
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
@@ -228,7 +235,7 @@ class FlightService:
         self._monitor_brake_at = -math.inf
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
-        self._monitor_problem = ""
+        self._monitor_problem: tuple[str, float] = ("", math.inf)
         self._plan_ms: list[float] = []
         self._plan_status = ""
         self._plan_stamp: float | None = None
@@ -667,28 +674,33 @@ class FlightService:
             # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
             # later, and judging the one it replaces would brake for what it already avoids
             pos = self.agent.planned(ts)
-            problem = ""
+            problem, at = "", math.inf  # the earliest conflict and when
             if fld is not None:
                 d, _ = fld.distance(pos)
-                k = int(np.argmin(d))
-                if d[k] < p.check_obstacle_m:
-                    problem = f"obstacle {d[k]:.2f} m in {ts[k] - now:.1f} s"
-            if not problem:
-                problem = peer_conflict(view, now, ts, pos, p.check_drone_m)
-            if not problem:
-                lo = np.asarray(self.cfg.geofence.min_enu_m)
-                hi = np.asarray(self.cfg.geofence.max_enu_m)
-                if not np.all((pos >= lo) & (pos <= hi)):
-                    problem = "geofence"
+                close = d < p.check_obstacle_m
+                if close.any():
+                    k = int(np.argmax(close))
+                    problem, at = f"obstacle {float(d.min()):.2f} m in {ts[k] - now:.1f} s", ts[k]
+            peer, peer_at = peer_conflict(view, now, ts, pos, p.check_drone_m)
+            if peer_at < at:
+                problem, at = peer, peer_at
+            lo = np.asarray(self.cfg.geofence.min_enu_m)
+            hi = np.asarray(self.cfg.geofence.max_enu_m)
+            out = ~np.all((pos >= lo) & (pos <= hi), axis=1)
+            if out.any() and ts[int(np.argmax(out))] < at:
+                problem, at = "geofence", ts[int(np.argmax(out))]
             self._monitor_key = (fld, view, plan, g)
-            self._monitor_problem = problem
-        problem = self._monitor_problem
+            self._monitor_problem = (problem, float(at))
+        problem, at = self._monitor_problem
         if not problem:
             return ""
-        if it.state is S.FORMATION_FLIGHT and now - self._last_plan_s > 0.3:
+        flying = it.state is S.FORMATION_FLIGHT
+        if flying and now - self._last_plan_s > 0.3:
             self.counters["monitor_replans"] += 1
             self._ask_replan()
             return f"replan: {problem}"
+        if flying and at - now > MONITOR_BRAKE_WITHIN_S:
+            return f"watching: {problem}"  # far enough ahead for the next replan to clear it
         if now - self._monitor_brake_at < 1.0:
             return f"braking: {problem}"
         self._monitor_brake_at = now
