@@ -33,6 +33,7 @@ from onboard.agent import (
     EPS_T,
     GHOST_WINDOW_S,
     MONITOR_BRAKE_WITHIN_S,
+    MONITOR_REPLAN_AFTER_S,
     DroneAgent,
     MapSource,
     PlanInputs,
@@ -130,7 +131,7 @@ class SimConfig:
     ``monitor_brake_after_s`` of a plan and less than ``monitor_brake_within_s`` ahead, the
     drone brakes (the service's conflict stop)."""
     monitor_horizon_s: float = 2.0
-    monitor_brake_after_s: float = 0.3
+    monitor_brake_after_s: float = MONITOR_REPLAN_AFTER_S
     monitor_brake_within_s: float = MONITOR_BRAKE_WITHIN_S
     """A conflict further ahead than this that a fresh plan did not clear is left to the next
     replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
@@ -659,7 +660,12 @@ class SafetyMonitor:
 
     def look(self, agent: DroneAgent, t: float) -> str:
         """'' when clear, else what was done ('replan: ...' or 'brake: ...')."""
-        from onboard.agent import peer_conflict
+        from onboard.agent import (
+            monitor_action,
+            monitor_step_index,
+            monitor_times,
+            peer_conflict,
+        )
         from onboard.service.ports import braking_trajectory
 
         view = self.view
@@ -667,26 +673,32 @@ class SafetyMonitor:
             view = self.view = agent.peer_view(t)
         if not view.trajectories and not view.hover_ids:
             return ""
-        # sampled on a fixed 0.1 s grid, so that a look with the same view, the same plan
-        # and the same grid step finds what the previous one found (it is not computed again)
-        g = math.ceil(t / 0.1 - 1e-6)
+        # on a fixed grid: a look with the same view, plan and grid step finds what the
+        # previous one found, so it is not computed again
+        g = monitor_step_index(t)
         key = (view, agent.plan_token, g)
         last = self._key  # the same objects (not equal ones: views hold arrays), same step
         if not (last and last[0] is view and last[1] is key[1] and last[2] == g):
-            ts = np.arange(g, g + round(self.horizon_s / 0.1) + 1) * 0.1
             self._key = key
+            ts = monitor_times(g, self.horizon_s)
             self._problem, self._at = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)
         problem = self._problem
         if not problem:
             return ""
-        if t - self.last_plan_s > self.brake_after_s:
+        action = monitor_action(
+            t,
+            self._at,
+            self.last_plan_s,
+            self.brake_at_s,
+            True,
+            self.brake_after_s,
+            self.brake_within_s,
+        )
+        if action == "replan":
             self.replans += 1
             agent.request_replan()
-            return f"replan: {problem}"
-        if self._at - t > self.brake_within_s:
-            return f"watching: {problem}"  # far enough ahead for the next replan to clear it
-        if t - self.brake_at_s < 1.0:
-            return f"braking: {problem}"
+        if action != "brake":
+            return f"{action}: {problem}"
         self.brake_at_s = t
         self.brakes += 1
         pp, vv, aa = agent.state(t)

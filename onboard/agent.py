@@ -113,6 +113,9 @@ setpoint for COM_OF_LOSS_T (1 s) and so carries the vehicle on about 0.65 s wort
 (position gain MPC_XY_P 0.95: ``v (1 - exp(-0.95)) / 0.95``) before it brakes to a hold."""
 GHOST_FORGET_S = 60.0
 """A quiet peer's ghosts (where its vehicle may hold) are avoided this long."""
+MONITOR_REPLAN_AFTER_S = 0.3
+"""A safety monitor asks for a replan for a conflict only when the last plan is older than
+this (a younger one that still meets it leads to a brake or to waiting, see below)."""
 MONITOR_BRAKE_WITHIN_S = 1.0
 """A safety monitor brakes for a conflict a fresh plan did not clear only when it lies less
 than this far ahead (a braking stop from 1 m/s takes 0.5 s, plus the look and the autopilot's
@@ -264,6 +267,46 @@ def peer_conflict(
             first = float(ts[k])
             problem = f"{what} drone {pid} {float(d[:, j].min()):.2f} m in {ts[k] - now_s:.1f} s"
     return problem, first
+
+
+MONITOR_STEP_S = 0.1
+"""A safety monitor samples the plan on a fixed grid of this step (``monitor_times``)."""
+
+
+def monitor_step_index(now_s: float) -> int:
+    """The index of the first ``MONITOR_STEP_S`` grid step at or after ``now_s``: a safety
+    monitor samples the plan on that fixed grid (``monitor_times``), so that looks with the
+    same inputs and step index find the same thing (and may reuse it)."""
+    return math.ceil(now_s / MONITOR_STEP_S - 1e-6)
+
+
+def monitor_times(step_index: int, horizon_s: float) -> np.ndarray:
+    """The grid times from step ``step_index`` over ``horizon_s``."""
+    n = round(horizon_s / MONITOR_STEP_S) + 1
+    return np.arange(step_index, step_index + n) * MONITOR_STEP_S
+
+
+def monitor_action(
+    now_s: float,
+    conflict_s: float,
+    last_plan_s: float,
+    last_brake_s: float,
+    may_replan: bool,
+    replan_after_s: float = MONITOR_REPLAN_AFTER_S,
+    brake_within_s: float = MONITOR_BRAKE_WITHIN_S,
+) -> str:
+    """What a safety monitor does about a conflict first met at ``conflict_s``: 'replan' (the
+    last plan is older than ``replan_after_s``), 'watching' (a fresh plan still meets it, but
+    more than ``brake_within_s`` ahead: the next replan may clear it), 'braking' (a brake less
+    than a second ago is still on) or 'brake'. ``may_replan`` False (not in formation flight):
+    never 'replan' nor 'watching'."""
+    if may_replan and now_s - last_plan_s > replan_after_s:
+        return "replan"
+    if may_replan and conflict_s - now_s > brake_within_s:
+        return "watching"
+    if now_s - last_brake_s < 1.0:
+        return "braking"
+    return "brake"
 
 
 @dataclass(frozen=True)

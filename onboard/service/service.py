@@ -52,10 +52,12 @@ from typing import Any
 import numpy as np
 
 from onboard.agent import (
-    MONITOR_BRAKE_WITHIN_S,
     DroneAgent,
     PeerView,
     PlanReport,
+    monitor_action,
+    monitor_step_index,
+    monitor_times,
     peer_conflict,
 )
 from onboard.planner.planner import PlanStatus
@@ -665,12 +667,11 @@ class FlightService:
         # sampled on a fixed 0.1 s grid: a look with the same map, peers view, plan and grid
         # step would find what the last one found, so it is not computed again (the map
         # changes at the ESDF rate, the view every half state period)
-        g = math.ceil(now / 0.1 - 1e-6)
+        g = monitor_step_index(now)
         plan = self.agent.plan_token
         last = self._monitor_key  # the same objects (views hold arrays: not ==), same step
         if not (last and last[0] is fld and last[1] is view and last[2] is plan and last[3] == g):
-            n = round(self.cfg.planning.monitor_horizon_s / 0.1) + 1
-            ts = np.arange(g, g + n) * 0.1
+            ts = monitor_times(g, self.cfg.planning.monitor_horizon_s)
             # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
             # later, and judging the one it replaces would brake for what it already avoids
             pos = self.agent.planned(ts)
@@ -694,15 +695,14 @@ class FlightService:
         problem, at = self._monitor_problem
         if not problem:
             return ""
-        flying = it.state is S.FORMATION_FLIGHT
-        if flying and now - self._last_plan_s > 0.3:
+        action = monitor_action(
+            now, at, self._last_plan_s, self._monitor_brake_at, it.state is S.FORMATION_FLIGHT
+        )
+        if action == "replan":
             self.counters["monitor_replans"] += 1
             self._ask_replan()
-            return f"replan: {problem}"
-        if flying and at - now > MONITOR_BRAKE_WITHIN_S:
-            return f"watching: {problem}"  # far enough ahead for the next replan to clear it
-        if now - self._monitor_brake_at < 1.0:
-            return f"braking: {problem}"
+        if action != "brake":
+            return f"{action}: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
         pp, vv, aa = traj.state(now)
