@@ -56,6 +56,10 @@ KEEP_MOVING_M = 0.1
 least this far from the replan's start is kept before the rescue attempt is tried (as before
 the rescue existed: the drone flies on and the next replan tries again); one that holds the
 drone where it is (a kept hover, a finished stop) is kept only if the rescue fails too."""
+SWARM_TARGET_MIN_M = 1.0
+"""A swarm-consistent local target (``PlannerParams.swarm_target``) lies at least this far ahead
+of the drone along the shared path: a drone far ahead of the reference still plans a trajectory
+that moves on, rather than one that ends where it stands or turns back."""
 _RESCUE = "a* retry at the rescue levels"
 """How messages name the rescue attempt (``PlannerParams.astar_rescue_ladder_m``) when the
 check refuses it: "<attempt>: <reason>" like the others (``gcs.fastsim.count_refusals`` counts
@@ -367,11 +371,13 @@ class FormationPlanner:
         force_astar: bool,
         astar_margin_m: float,
         ladder: tuple[float, ...],
+        horizon_m: float,
     ) -> tuple[np.ndarray, np.ndarray, float]:
         """(local target, solver start x0, clearance of the A* path or NaN). The initial path
         is the previous trajectory (the warm start keeps its timing), else a straight line,
         else an A* path (at the largest of the clearances ``ladder`` that finds one) when the
-        line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``."""
+        line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``. The
+        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_goal``)."""
         p = self.params
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
@@ -380,7 +386,7 @@ class FormationPlanner:
             sp,
             sv,
             goal,
-            p.horizon_m,
+            horizon_m,
             p.obstacle_clearance_m,
             lo,
             hi,
@@ -438,12 +444,90 @@ class FormationPlanner:
             return np.vstack([start, target]), math.nan
         return np.ascontiguousarray(path, dtype=np.float64), clearance
 
-    def _lead(
+    def _members(
+        self, t_s: float, sp: np.ndarray, peers: Sequence[PeerTrajectory]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (K, 3), template points (K, 3)) of this drone (first) and its formation
+        peers (an edge to this drone's slot) at t_s."""
+        n = self.formation.shape[0]
+        pts = [sp]
+        slots = [self.slot]
+        for pt in peers:
+            if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0:
+                pts.append(pt.trajectory.sample(t_s))
+                slots.append(pt.slot)
+        return np.asarray(pts), self.formation[np.array(slots)]
+
+    def _reference(
         self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
+    ) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The swarm's reference origin of ``swarm_target`` (None when it is 'off', without
+        formation peers, or at the goal's origin): (origin r (3,), unit direction u (3,) of the
+        shared path from r to the goal's origin ``goal - F[slot]``, distance left along it).
+        Each member j estimates the origin as ``p_j - F[slot_j]``; r is their mean
+        ('centroid'), moved back along u to the member least advanced ('slowest')."""
+        mode = self.params.swarm_target
+        if mode == "off":
+            return None
+        P, F = self._members(t_s, sp, peers)
+        if P.shape[0] < 2:
+            return None
+        origins = P - F
+        r = origins.mean(axis=0)
+        g_o = goal - F[0]
+        d = g_o - r
+        dist = float(np.linalg.norm(d))
+        if dist < 1e-6:
+            return None
+        u = d / dist
+        if mode == "slowest":
+            back = float(np.min((origins - r) @ u))
+            r = r + back * u
+            dist -= back
+        return r, u, dist
+
+    def _swarm_goal(
+        self, sp: np.ndarray, goal: np.ndarray, ref: tuple[np.ndarray, np.ndarray, float] | None
+    ) -> tuple[np.ndarray, float]:
+        """(goal, horizon) that make the local target the swarm-consistent one of
+        ``swarm_target``: the reference origin advanced ``horizon_m`` along the shared path,
+        plus this drone's slot; its own goal when the origin is within ``horizon_m`` of the
+        goal's origin. Without a reference: (goal, ``horizon_m``)."""
+        h = self.params.horizon_m
+        if ref is None:
+            return goal, h
+        r, u, dist = ref
+        if dist <= h:
+            return goal, max(float(np.linalg.norm(goal - sp)), h)
+        target = r + h * u + self.formation[self.slot]
+        ahead = float((target - sp) @ u)
+        if ahead < SWARM_TARGET_MIN_M:
+            # far ahead of the reference: a target at or behind the drone would stop it dead
+            # or turn it back
+            target = target + (SWARM_TARGET_MIN_M - ahead) * u
+        w = target - sp
+        reach = float(np.linalg.norm(w))
+        w = w / reach
+        # the goal passed on lies beyond the target by the rest of the shared path, so the
+        # target's search for a clear point (``kernels.local_target``) may look ahead of it
+        return sp + (reach + (dist - h) + 1.0) * w, reach
+
+    def _lead(
+        self,
+        t_s: float,
+        sp: np.ndarray,
+        goal: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        ref: tuple[np.ndarray, np.ndarray, float] | None = None,
     ) -> float:
         """How far [m] this drone is ahead of its slot along its way to the goal: its offset
         from the centroid of itself and its peers (at t_s) minus its slot's offset from the
-        centroid of the same slots of the formation, projected on the direction to the goal."""
+        centroid of the same slots of the formation, projected on the direction to the goal.
+        With a swarm reference ``ref`` (``_reference``): its origin estimate ``sp - F[slot]``
+        ahead of the reference origin along the shared path."""
+        if ref is not None:
+            r, u, _ = ref
+            return float((sp - self.formation[self.slot] - r) @ u)
         d = goal - sp
         dist = float(np.linalg.norm(d))
         if dist < 1e-6:
@@ -546,8 +630,20 @@ class FormationPlanner:
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
         p = self.params
+        ref = self._reference(t_start_s, sp, gl, peers) if len(peers) > 0 else None
+        goal_t, horizon = self._swarm_goal(sp, gl, ref)
         target, x0, astar_clearance = self._initial_x(
-            t_start_s, sp, sv, gl, field, fld, previous, force_astar, astar_margin_m, ladder
+            t_start_s,
+            sp,
+            sv,
+            goal_t,
+            field,
+            fld,
+            previous,
+            force_astar,
+            astar_margin_m,
+            ladder,
+            horizon,
         )
         head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
@@ -560,7 +656,7 @@ class FormationPlanner:
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
         if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
-            lead = self._lead(t_start_s, sp, gl, peers)
+            lead = self._lead(t_start_s, sp, gl, peers, ref)
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)

@@ -1,0 +1,198 @@
+"""Swarm-consistent local target (``PlannerParams.swarm_target``, issue #11): the local target is
+the formation's reference origin advanced along the shared path plus the drone's slot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from onboard.agent import DroneAgent, StaticMap
+from onboard.comm import InMemoryBus
+from onboard.config import load_planner_params, parse_override
+from onboard.planner.field import AnalyticField
+from onboard.planner.params import PlannerParams
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+# a line across y, flying +x; slot 1 in the middle
+LINE3 = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+ZERO = np.zeros(3)
+EMPTY = AnalyticField(World.empty(0.0))
+GOAL_ORIGIN = np.array([40.0, 0.0, 1.0])
+
+
+def _peer(slot: int, p: list[float]) -> PeerTrajectory:
+    return PeerTrajectory(slot, slot, Trajectory.hover(np.array(p), 0.0, 30.0))
+
+
+def _target(mode: str, sp: np.ndarray, peers: list[PeerTrajectory], slot: int = 1) -> np.ndarray:
+    """The local target of one replan of the drone in ``slot`` (its goal: the goal origin plus
+    its slot)."""
+    planner = FormationPlanner(PlannerParams(swarm_target=mode), LINE3, slot=slot)
+    goal = GOAL_ORIGIN + LINE3[slot]
+    problem = planner.prepare(0.0, sp, ZERO, ZERO, goal, peers, EMPTY)
+    return np.asarray(problem.tail[0])
+
+
+def test_the_option_is_validated_and_settable_like_every_planner_limit() -> None:
+    assert PlannerParams().swarm_target == "off"
+    with pytest.raises(ValueError, match="swarm_target"):
+        PlannerParams(swarm_target="nearest")
+    assert load_planner_params(**parse_override("swarm_target=centroid")).swarm_target == (
+        "centroid"
+    )
+
+
+def test_a_drone_off_its_slot_is_pulled_back_to_it() -> None:
+    """The middle drone went round a trunk on the wrong side: 1 m to the left of its slot (its
+    peers in theirs). 'off' aims along its own line to the goal, keeping most of that 1 m; the
+    swarm target aims at its slot, horizon_m ahead of the formation's origin."""
+    h = PlannerParams().horizon_m
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [0.0, 1.5, 1.0])]
+    sp = np.array([0.0, 1.0, 1.0])
+    off = _target("off", sp, peers)
+    on = _target("centroid", sp, peers)
+    assert off[1] > 0.7  # 1 m * (1 - 7.5 / 40) from its own line
+    # the origin estimate (mean of p_j - F_j) is 1/3 m to the left; the target is its slot there
+    np.testing.assert_allclose(on, [h * np.cos(np.arctan2(-1 / 3, 40)), 1 / 3 * (1 - h / 40), 1.0],
+                               atol=1e-3)  # fmt: skip
+    assert abs(on[1]) < abs(off[1]) / 2
+
+
+def test_in_formation_the_targets_are_the_straight_line_ones_and_stay_a_formation() -> None:
+    """Every drone in its slot (any subset of them: drones that dropped out of the formation
+    change nothing): the swarm target is the one of 'off', and the three targets are the
+    formation translated."""
+    x0 = 3.0
+    pos = {s: np.array([x0, 0.0, 1.0]) + LINE3[s] for s in range(3)}
+    targets = []
+    for s in range(3):
+        peers = [_peer(q, pos[q].tolist()) for q in range(3) if q != s]
+        on = _target("centroid", pos[s], peers, slot=s)
+        np.testing.assert_allclose(on, _target("off", pos[s], peers, slot=s), atol=1e-9)
+        np.testing.assert_allclose(_target("slowest", pos[s], peers, slot=s), on, atol=1e-9)
+        targets.append(on)
+    np.testing.assert_allclose(np.asarray(targets) - targets[1], LINE3, atol=1e-9)
+    # one peer gone (dropped out): the same target from the remaining one
+    on = _target("centroid", pos[1], [_peer(2, pos[2].tolist())])
+    np.testing.assert_allclose(on, targets[1], atol=1e-9)
+
+
+def test_slowest_waits_for_the_member_behind() -> None:
+    """Peer 0 lags 3 m: 'centroid' moves the reference back by 1 m, 'slowest' by 3 m, so the
+    target of the drone ahead comes that much closer; with ``lead_slowdown_m`` its lead is
+    measured from that reference."""
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [3.0, 1.5, 1.0])]
+    off = _target("off", sp, peers)
+    cen = _target("centroid", sp, peers)
+    slow = _target("slowest", sp, peers)
+    h = PlannerParams().horizon_m
+    assert off[0] == pytest.approx(sp[0] + h, abs=1e-6)
+    assert cen[0] == pytest.approx(sp[0] + h - 1.0, abs=0.01)
+    assert slow[0] == pytest.approx(sp[0] + h - 3.0, abs=0.01)
+    params = PlannerParams(swarm_target="slowest", lead_slowdown_m=6.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    ref = planner._reference(0.0, sp, GOAL_ORIGIN + LINE3[1], peers)
+    assert ref is not None
+    assert planner._lead(0.0, sp, GOAL_ORIGIN, peers, ref) == pytest.approx(3.0, abs=1e-3)
+
+
+def test_near_the_goal_the_target_is_the_own_goal_and_a_far_leader_still_moves() -> None:
+    peers = [_peer(0, [36.0, -1.5, 1.0]), _peer(2, [36.0, 1.5, 1.0])]
+    sp = np.array([35.0, 0.0, 1.0])
+    np.testing.assert_allclose(_target("centroid", sp, peers), GOAL_ORIGIN, atol=1e-12)
+    # 12 m ahead of the slowest member: the reference's target lies behind it; it still aims
+    # ahead, at least SWARM_TARGET_MIN_M away
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [0.0, 1.5, 1.0])]
+    sp = np.array([12.0, 0.0, 1.0])
+    t = _target("slowest", sp, peers)
+    assert t[0] > sp[0] + 0.99
+
+
+def test_the_target_avoids_a_trunk_on_it() -> None:
+    """A trunk right on the swarm target: the target moves along the line to a clear point."""
+    sp = np.array([0.0, 1.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [0.0, 1.5, 1.0])]
+    on = _target("centroid", sp, peers)
+    world = World(
+        cylinders=np.array([[on[0], on[1], 0.4, 0.0, 3.0]]),
+        rings=np.zeros((0, 7)),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+    field = AnalyticField(world)
+    planner = FormationPlanner(PlannerParams(swarm_target="centroid"), LINE3, slot=1)
+    problem = planner.prepare(0.0, sp, ZERO, ZERO, GOAL_ORIGIN + LINE3[1], peers, field)
+    moved = np.asarray(problem.tail[0])
+    assert float(field.distance(moved[None, :])[0][0]) >= PlannerParams().obstacle_clearance_m
+    res = planner.plan(0.0, sp, ZERO, ZERO, GOAL_ORIGIN + LINE3[1], peers, field)
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+    tr = res.trajectory
+    pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 400))
+    assert float(field.distance(pts)[0].min()) >= PlannerParams().check_obstacle_m
+
+
+def _fly(
+    agents: list[DroneAgent], t0: float, t_end: float, dt: float = 0.05
+) -> tuple[np.ndarray, float]:
+    """Perfect tracking of every agent's trajectory from t0 until t_end: (positions (K, N, 3),
+    the smallest distance between two drones)."""
+    track = []
+    closest = np.inf
+    for k in range(int(round((t_end - t0) / dt)) + 1):
+        t = t0 + k * dt
+        for ag in agents:
+            if ag.due(t):
+                ag.replan(t)
+        p = np.array([ag.advance(t).sample(t) for ag in agents])
+        d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+        closest = min(closest, float(d[~np.eye(len(agents), dtype=bool)].min()))
+        track.append(p)
+    return np.asarray(track), closest
+
+
+def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
+    """Three agents with the swarm target fly a line, switch to a triangle mid-flight (new
+    template, slots, goals) and arrive in it; then one drops out (its peers told to ignore it)
+    and the other two fly on in their slots of the template."""
+    params = PlannerParams(v_max_m_s=1.0, swarm_target="centroid")
+    bus = InMemoryBus(0.02)
+    empty = StaticMap(EMPTY)
+    start = np.array([0.0, 0.0, 1.0])
+    agents = [
+        DroneAgent(
+            i,
+            params,
+            LINE3,
+            i,
+            Trajectory.hover(start + LINE3[i], 0.0),
+            bus,
+            empty,
+            goal=np.array([30.0, 0.0, 1.0]) + LINE3[i],
+            first_replan_s=i / 3,  # staggered, as the simulator and the swarm do
+        )
+        for i in range(3)
+    ]
+    for ag in agents:
+        ag.announce(0.0)
+    track, closest = _fly(agents, 0.0, 6.0)
+    tri = np.array([[1.0, 0.0, 0.0], [-0.5, 1.3, 0.0], [-0.5, -1.3, 0.0]])
+    goal_origin = np.array([14.0, 0.0, 1.0])
+    for i, ag in enumerate(agents):
+        ag.set_formation(tri, i, goal=goal_origin + tri[i])
+    track2, closest2 = _fly(agents, 6.05, 30.0)
+    end = track2[-1]
+    np.testing.assert_allclose(end, goal_origin + tri, atol=0.3)
+    assert min(closest, closest2) >= params.check_drone_m
+    # drone 2 drops out (stops where it is); the others ignore it and fly on in formation
+    agents[2].set_goal(None)
+    for ag in agents[:2]:
+        ag.set_peer_roles(ignore=[2])
+        ag.set_goal(np.array([14.0, 10.0, 1.0]) + tri[ag.slot])
+    track3, _ = _fly(agents[:2], 30.05, 60.0)
+    np.testing.assert_allclose(track3[-1], np.array([14.0, 10.0, 1.0]) + tri[:2], atol=0.3)
+    for ag in agents[:2]:
+        last = ag.last
+        assert last is not None and last.status in (PlanStatus.OK, PlanStatus.KEPT_PREVIOUS)
