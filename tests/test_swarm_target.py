@@ -36,7 +36,7 @@ def _target(mode: str, sp: np.ndarray, peers: list[PeerTrajectory], slot: int = 
 
 
 def test_the_option_is_validated_and_settable_like_every_planner_limit() -> None:
-    assert PlannerParams().swarm_target == "off"
+    assert PlannerParams().swarm_target == "own-goal"
     with pytest.raises(ValueError, match="swarm_target"):
         PlannerParams(swarm_target="nearest")
     assert load_planner_params(**parse_override("swarm_target=centroid")).swarm_target == (
@@ -46,12 +46,12 @@ def test_the_option_is_validated_and_settable_like_every_planner_limit() -> None
 
 def test_a_drone_off_its_slot_is_pulled_back_to_it() -> None:
     """The middle drone went round a trunk on the wrong side: 1 m to the left of its slot (its
-    peers in theirs). 'off' aims along its own line to the goal, keeping most of that 1 m; the
+    peers in theirs). 'own-goal' aims along its own line to the goal, keeping most of that 1 m; the
     swarm target aims at its slot, horizon_m ahead of the formation's origin."""
     h = PlannerParams().horizon_m
     peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [0.0, 1.5, 1.0])]
     sp = np.array([0.0, 1.0, 1.0])
-    off = _target("off", sp, peers)
+    off = _target("own-goal", sp, peers)
     on = _target("centroid", sp, peers)
     assert off[1] > 0.7  # 1 m * (1 - 7.5 / 40) from its own line
     # the origin estimate (mean of p_j - F_j) is 1/3 m to the left; the target is its slot there
@@ -62,7 +62,7 @@ def test_a_drone_off_its_slot_is_pulled_back_to_it() -> None:
 
 def test_in_formation_the_targets_are_the_straight_line_ones_and_stay_a_formation() -> None:
     """Every drone in its slot (any subset of them: drones that dropped out of the formation
-    change nothing): the swarm target is the one of 'off', and the three targets are the
+    change nothing): the swarm target is the one of 'own-goal', and the three targets are the
     formation translated."""
     x0 = 3.0
     pos = {s: np.array([x0, 0.0, 1.0]) + LINE3[s] for s in range(3)}
@@ -70,7 +70,7 @@ def test_in_formation_the_targets_are_the_straight_line_ones_and_stay_a_formatio
     for s in range(3):
         peers = [_peer(q, pos[q].tolist()) for q in range(3) if q != s]
         on = _target("centroid", pos[s], peers, slot=s)
-        np.testing.assert_allclose(on, _target("off", pos[s], peers, slot=s), atol=1e-9)
+        np.testing.assert_allclose(on, _target("own-goal", pos[s], peers, slot=s), atol=1e-9)
         np.testing.assert_allclose(_target("slowest", pos[s], peers, slot=s), on, atol=1e-9)
         targets.append(on)
     np.testing.assert_allclose(np.asarray(targets) - targets[1], LINE3, atol=1e-9)
@@ -85,7 +85,7 @@ def test_slowest_waits_for_the_member_behind() -> None:
     measured from that reference."""
     sp = np.array([3.0, 0.0, 1.0])
     peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [3.0, 1.5, 1.0])]
-    off = _target("off", sp, peers)
+    off = _target("own-goal", sp, peers)
     cen = _target("centroid", sp, peers)
     slow = _target("slowest", sp, peers)
     h = PlannerParams().horizon_m

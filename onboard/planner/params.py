@@ -9,7 +9,7 @@ import numpy as np
 from onboard.planner.lbfgs import LbfgsParams
 
 FORMATION_PENALTIES = ("linear", "cubic", "linear-unit", "relative")
-SWARM_TARGETS = ("off", "centroid", "slowest")
+SWARM_TARGETS = ("own-goal", "centroid", "slowest")
 
 
 @dataclass(frozen=True)
@@ -104,19 +104,20 @@ class PlannerParams:
     0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer (85-88 -> 93-98 s)."""
     lead_min_speed_frac: float = 0.3
     """Lower bound of that scale."""
-    swarm_target: str = "off"
-    """Swarm-consistent local target (issue #11). 'off': the local target lies ``horizon_m``
-    along the straight line to the drone's own goal. 'centroid': the swarm's reference origin
-    is estimated from the drone and its formation peers (at the replan's start) as the mean of
-    ``p_j - F[slot_j]``; the local target is that origin advanced ``horizon_m`` along the
-    shared path to the goal's origin (``goal - F[slot]``) plus the drone's slot ``F[slot]`` (then
-    moved along the line from the drone to the nearest point clear of obstacles, as the 'off'
-    target): a drone that went round a trunk the other way is pulled back towards its slot,
-    and the swarm's targets stay a formation. 'slowest': the reference origin is moved back
-    along the shared path to the member least advanced on it (time-consistent: the targets of
-    drones ahead come closer). With ``lead_slowdown_m`` > 0 and a swarm target, the lead is
-    measured from this reference (for 'slowest': ahead of the slowest member's pace). Within
-    ``horizon_m`` of the goal's origin the target is the drone's own goal."""
+    swarm_target: str = "own-goal"
+    """Swarm-consistent local target (issue #11). 'own-goal' (the option off; not 'off', which
+    YAML reads as false): the local target lies ``horizon_m`` along the straight line to the
+    drone's own goal. 'centroid': the swarm's reference origin is estimated from the drone and
+    its formation peers (at the replan's start) as the mean of ``p_j - F[slot_j]``; the local
+    target is that origin advanced ``horizon_m`` along the shared path to the goal's origin
+    (``goal - F[slot]``) plus the drone's slot ``F[slot]``, then moved along the line from the
+    drone to the nearest point clear of obstacles as the 'own-goal' target: a drone that went
+    round a trunk the other way is pulled back towards its slot, and the swarm's targets stay
+    a formation. 'slowest': the reference origin is moved back along the shared path to the
+    member least advanced on it (time-consistent: the targets of drones ahead come closer).
+    With ``lead_slowdown_m`` > 0 and a swarm target, the lead is measured from this reference
+    (for 'slowest': ahead of the slowest member's pace). Within ``horizon_m`` of the goal's
+    origin the target is the drone's own goal."""
     comfort_obstacle_m: float = 0.0
     """When the first attempt's trajectory passes closer than this to an obstacle (and closer
     than it starts), the planner also optimises from an A* path at ``obstacle_clearance_m``

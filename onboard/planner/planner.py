@@ -461,13 +461,13 @@ class FormationPlanner:
     def _reference(
         self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
     ) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The swarm's reference origin of ``swarm_target`` (None when it is 'off', without
+        """The swarm's reference origin of ``swarm_target`` (None when it is 'own-goal', without
         formation peers, or at the goal's origin): (origin r (3,), unit direction u (3,) of the
         shared path from r to the goal's origin ``goal - F[slot]``, distance left along it).
         Each member j estimates the origin as ``p_j - F[slot_j]``; r is their mean
         ('centroid'), moved back along u to the member least advanced ('slowest')."""
         mode = self.params.swarm_target
-        if mode == "off":
+        if mode == "own-goal":
             return None
         P, F = self._members(t_s, sp, peers)
         if P.shape[0] < 2:
