@@ -3,12 +3,20 @@ the formation's reference origin advanced along the shared path plus the drone's
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from gcs.fastsim import SimConfig, run_sim
 from onboard.agent import DroneAgent, StaticMap
 from onboard.comm import InMemoryBus
-from onboard.config import load_planner_params, parse_override
+from onboard.config import (
+    load_formation,
+    load_planner_params,
+    load_world_spec,
+    parse_override,
+)
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
@@ -196,3 +204,31 @@ def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
     for ag in agents[:2]:
         last = ag.last
         assert last is not None and last.status in (PlanStatus.OK, PlanStatus.KEPT_PREVIOUS)
+
+
+@pytest.mark.parametrize("mode", ["centroid", "slowest"])
+@pytest.mark.parametrize("kind", ["killed", "stuck"])
+def test_a_drone_that_stops_does_not_hold_back_or_drag_the_others(mode: str, kind: str) -> None:
+    """Drone 1 of the hexagon dies (or gets stuck) 4 s into the small forest. Its last position
+    enters the others' reference origin until it leaves their formation term ('slowest' holds
+    the reference at it): the healthy drones still all arrive, collide with nothing and keep
+    the check's distance from it."""
+    params = dataclasses.replace(load_planner_params(), v_max_m_s=1.0, swarm_target=mode)
+    cfg = SimConfig(
+        load_formation("hexagon-7"),
+        load_world_spec("forest-small"),
+        seed=1,
+        planner=params,
+        validity_s=3.0,
+        peer_forget_s=10.0,
+        fault_seed=1,
+        kill_model="instant",
+        **{f"{kind}_drones": {1: 4.0}},  # type: ignore[arg-type]
+    )
+    r = run_sim(cfg)
+    healthy = [0, 2, 3, 4, 5, 6]
+    assert r.collisions == 0, r.events
+    assert not r.timed_out and bool(np.all(r.arrived[healthy])), r.arrived
+    assert r.min_obstacle_clearance_m >= params.check_obstacle_m - 0.02
+    d = np.linalg.norm(r.tracks.pos[:, healthy] - r.tracks.pos[:, [1]], axis=2)
+    assert float(d.min()) >= params.check_drone_m - 0.02, float(d.min())
