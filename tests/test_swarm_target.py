@@ -17,6 +17,7 @@ from onboard.config import (
     load_world_spec,
     parse_override,
 )
+from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
@@ -232,3 +233,21 @@ def test_a_drone_that_stops_does_not_hold_back_or_drag_the_others(mode: str, kin
     assert r.min_obstacle_clearance_m >= params.check_obstacle_m - 0.02
     d = np.linalg.norm(r.tracks.pos[:, healthy] - r.tracks.pos[:, [1]], axis=2)
     assert float(d.min()) >= params.check_drone_m - 0.02, float(d.min())
+
+
+def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
+    """Peer 0 lags 3 m, the drone is 2 m ahead of its slot relative to peer 2: from the
+    centroid its lead is 5/3 m, from the slowest member 3 m; a dead band of 1 m leaves 2/3 m
+    and 2 m of it to slow down for, so the planned speed limit drops accordingly."""
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    base = PlannerParams(lead_slowdown_m=4.0, lead_deadband_m=1.0, lead_min_speed_frac=0.1)
+    for slowest, lead in ((False, 5.0 / 3.0), (True, 3.0)):
+        params = dataclasses.replace(base, lead_from_slowest=slowest)
+        planner = FormationPlanner(params, LINE3, slot=1)
+        problem = planner.prepare(0.0, sp, ZERO, ZERO, goal, peers, EMPTY)
+        v = float(problem.prob[3][obj.P_V_MAX])
+        assert v == pytest.approx(params.v_max_m_s * (1.0 - (lead - 1.0) / 4.0), rel=1e-9)
+    with pytest.raises(ValueError, match="lead_deadband_m"):
+        PlannerParams(lead_deadband_m=-1.0)

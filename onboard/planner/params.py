@@ -104,6 +104,14 @@ class PlannerParams:
     0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer (85-88 -> 93-98 s)."""
     lead_min_speed_frac: float = 0.3
     """Lower bound of that scale."""
+    lead_deadband_m: float = 0.0
+    """A lead up to this is not slowed: the scale of ``lead_slowdown_m`` is taken of the lead
+    minus this (the ordinary spread of a formation in a forest then costs no speed)."""
+    lead_from_slowest: bool = False
+    """With ``lead_slowdown_m``: measure the lead from the member least advanced along the
+    shared path (the 'slowest' reference of ``swarm_target``) instead of the centroid or the
+    swarm target's reference: a drone left behind slows every drone ahead of it, not only by
+    its share of the centroid."""
     swarm_target: str = "own-goal"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off; not 'off', which
     YAML reads as false): the local target lies ``horizon_m`` along the straight line to the
@@ -117,7 +125,14 @@ class PlannerParams:
     member least advanced on it (time-consistent: the targets of drones ahead come closer).
     With ``lead_slowdown_m`` > 0 and a swarm target, the lead is measured from this reference
     (for 'slowest': ahead of the slowest member's pace). Within ``horizon_m`` of the goal's
-    origin the target is the drone's own goal."""
+    origin the target is the drone's own goal. Measured (``bench table --method ours --jobs 1``,
+    the same 3 x 20 worlds, all 60 flights succeed, 0 collisions, min trunk clearance 0.220 m
+    in every run): mean e_sim 0.0107 / 0.0242 / 0.0292 (sparse / medium / dense; max 0.038 /
+    0.112 / 0.096) -> 'centroid' 0.0080 / 0.0127 / 0.0182 (max 0.020 / 0.027 / 0.039) with
+    flights 3-7 s longer; 'slowest' 0.0080 / 0.0155 / 0.0271 (one dense fold, 0.111);
+    'centroid' with ``lead_slowdown_m`` 1.5 0.0088 / 0.0152 / 0.0206 and flights 11-21 s
+    longer. 'centroid' with ``w_formation`` 1e5: 0.0067 / 0.0109 / 0.0155 (max 0.026 / 0.039 /
+    0.043), but top speed 0.539 m/s. Not the default yet (BENCHMARKS.md section 8)."""
     comfort_obstacle_m: float = 0.0
     """When the first attempt's trajectory passes closer than this to an obstacle (and closer
     than it starts), the planner also optimises from an A* path at ``obstacle_clearance_m``
@@ -214,6 +229,7 @@ class PlannerParams:
             "check_drone_m",
             "check_known_s",
             "lead_slowdown_m",
+            "lead_deadband_m",
             "w_altitude",
             "altitude_margin_m",
             "comfort_obstacle_m",

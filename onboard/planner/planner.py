@@ -459,14 +459,20 @@ class FormationPlanner:
         return np.asarray(pts), self.formation[np.array(slots)]
 
     def _reference(
-        self, t_s: float, sp: np.ndarray, goal: np.ndarray, peers: Sequence[PeerTrajectory]
+        self,
+        t_s: float,
+        sp: np.ndarray,
+        goal: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        mode: str | None = None,
     ) -> tuple[np.ndarray, np.ndarray, float] | None:
         """The swarm's reference origin of ``swarm_target`` (None when it is 'own-goal', without
         formation peers, or at the goal's origin): (origin r (3,), unit direction u (3,) of the
         shared path from r to the goal's origin ``goal - F[slot]``, distance left along it).
         Each member j estimates the origin as ``p_j - F[slot_j]``; r is their mean
-        ('centroid'), moved back along u to the member least advanced ('slowest')."""
-        mode = self.params.swarm_target
+        ('centroid'), moved back along u to the member least advanced ('slowest'). ``mode``
+        (default ``swarm_target``) names the reference."""
+        mode = self.params.swarm_target if mode is None else mode
         if mode == "own-goal":
             return None
         P, F = self._members(t_s, sp, peers)
@@ -656,7 +662,10 @@ class FormationPlanner:
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
         if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
-            lead = self._lead(t_start_s, sp, gl, peers, ref)
+            lead_ref = (
+                self._reference(t_start_s, sp, gl, peers, "slowest") if p.lead_from_slowest else ref
+            )
+            lead = self._lead(t_start_s, sp, gl, peers, lead_ref) - p.lead_deadband_m
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
