@@ -539,17 +539,9 @@ class FormationPlanner:
         if dist < 1e-6:
             return 0.0
         u = d / dist
-        n = self.formation.shape[0]
-        pts = [sp]
-        slots = [self.slot]
-        for pt in peers:
-            if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0:
-                pts.append(pt.trajectory.sample(t_s))
-                slots.append(pt.slot)
-        if len(pts) < 2:
+        P, F = self._members(t_s, sp, peers)
+        if P.shape[0] < 2:
             return 0.0
-        P = np.asarray(pts)
-        F = self.formation[np.array(slots)]
         off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
         return float(off @ u)
 
