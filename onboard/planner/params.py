@@ -172,9 +172,10 @@ class PlannerParams:
     and above the map window an ESDF knows nothing (it reports free space), so an unbounded
     optimiser let the tail of a 7 s plan sink to z -1.7 m or climb to 5.3 m (issue #10's
     demo). Default 0.3-3.1 m, for flight at about 1 m: 0.3 m above the ground, 0.4 m under
-    the top of the default map window (11 x 11 x 4 m from 0.5 m below the ground); with the
-    margin, the A* fallback searches 0.4-3.0 m as before the band existed. The service should
-    pass the intersection with its geofence."""
+    the top of ``OccupancyParams``' default window (11 x 11 x 4 m from 0.5 m below the ground;
+    the flight service fits its window to this band instead, ``mapping.window_band_margin_m``
+    each side); with the margin, the A* fallback searches 0.4-3.0 m as before the band
+    existed. The service should pass the intersection with its geofence."""
     w_altitude: float = 1.0e7
     """J_z: weight of max(z_lo - z, 0)^3 + max(z - z_hi, 0)^3 over constraint points, with
     (z_lo, z_hi) the band shrunk by ``altitude_margin_m``."""
