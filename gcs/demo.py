@@ -221,6 +221,21 @@ class ProcessGroup:
                 p.wait()
         return {n: self.procs[n].returncode for n in names}
 
+    def finish(self, name: str, timeout_s: float) -> float:
+        """Wait for the one-shot child ``name`` to end; raise :class:`DemoError` unless it
+        exited with 0 in time. Forgotten afterwards (``check`` would count it as exited).
+        Seconds waited."""
+        p = self.procs[name]
+        t0 = time.monotonic()
+        try:
+            rc = p.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            raise DemoError(f"{name} did not end within {timeout_s:.0f} s") from None
+        if rc != 0:
+            raise DemoError(f"{name} exited with status {rc}:\n{self.tail(name)}")
+        del self.procs[name]
+        return time.monotonic() - t0
+
     def close(self, timeout_s: float = 15.0) -> None:
         """Stop every child, then make sure nothing of the group is left."""
         try:
@@ -560,14 +575,21 @@ class Demo:
             sitl += ["--config", str(self.security.sitl_config)]
         for s in cfg.sitl_sets:
             sitl += ["--set", s]
+        conf = self.out / "onboard.yaml"
+        conf.write_text(self._onboard_yaml(base_port, sitl_ep, prefix), encoding="utf-8")
+        # what the warm-up unit does on a drone at boot: numba's kernels compiled into the
+        # cache once, while the mock starts, instead of by every service at once (cold, on 2
+        # cores, that took longer than the services' 60 s to READY); seconds when cached
+        warm = [*_exe("swarm-onboard", "onboard.cli"), "warmup", "--config", str(conf)]
+        self.procs.start("warmup", warm)
         self.procs.start("sitl", sitl, nice=cfg.sitl_nice)
         self.truth = TruthWatch(prefix, sitl_ep)
         self._wait("mock", lambda: len(self.truth.snapshot()) == n if self.truth else False,
                    cfg.step_timeout_s, ["sitl"])  # fmt: skip
         self._event(f"mock fleet up: {n} vehicles, {cfg.world} seed {cfg.seed}")
+        waited = self.procs.finish("warmup", 300.0)
+        self._event(f"kernels warm (waited {waited:.1f} s for the warm-up)")
         mesh = peer_mesh(n + 1)  # the drones and this ground station
-        conf = self.out / "onboard.yaml"
-        conf.write_text(self._onboard_yaml(base_port, sitl_ep, prefix), encoding="utf-8")
         for i in range(n):
             ep = mesh[i + 1]
             argv = [

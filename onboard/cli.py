@@ -22,37 +22,34 @@ def main() -> None:
 
 
 @main.command()
-def warmup() -> None:
-    """Compile (or load from cache) every planner kernel by planning a small formation problem."""
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Service config whose planner and map are warmed (default: config/onboard.yaml).",
+)
+def warmup(config_file: Path | None) -> None:
+    """Compile (or load from numba's cache) every kernel the flight service runs: the planner's
+    paths (the service's own warm-up) and, when the config has a depth source, the mapping
+    path (ray casting, ESDF). Run once per boot and after an upgrade (the warm-up unit)."""
     t0 = time.perf_counter()
-    import numpy as np
+    from onboard.config import ConfigError
+    from onboard.service.config import load_onboard_config
+    from onboard.service.planning import warm_mapping, warm_up
 
-    from onboard.planner.field import AnalyticField
-    from onboard.planner.params import PlannerParams
-    from onboard.planner.planner import FormationPlanner, PeerTrajectory
-    from onboard.planner.trajectory import Trajectory
-    from onboard.world import World
-
+    try:
+        cfg = load_onboard_config(config_file, None)
+    except ConfigError as e:
+        click.echo(f"config: {e}", err=True)
+        sys.exit(2)
     t1 = time.perf_counter()
-    world = World(
-        cylinders=np.array([[3.0, 0.2, 0.3, 0.0, 3.0]]),
-        rings=np.array([[6.0, 0.0, 1.5, 0.0, 0.8, 0.6, 0.1]]),
-        boxes=np.zeros((0, 6)),
-        ground_z=0.0,
-    )
-    formation = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), formation, slot=1)
-    start = np.array([0.0, 0.0, 1.0])
-    peers = [PeerTrajectory(k, k, Trajectory.hover(start + formation[k], 0.0, 5.0)) for k in (0, 2)]
-    res = planner.plan(0.0, start, np.zeros(3), np.zeros(3), np.array([8.0, 0, 1]), peers,
-                       AnalyticField(world))  # fmt: skip
-    t2 = time.perf_counter()
-    click.echo(
-        f"planner ready: import {t1 - t0:.2f} s, first plan {t2 - t1:.2f} s "
-        f"(status {res.status.value}, {res.evaluations} evaluations)"
-    )
-    if res.trajectory is None:  # pragma: no cover - plan always returns a trajectory
-        sys.exit(1)
+    plan_s = warm_up(cfg.planner)
+    line = f"planner ready: import {t1 - t0:.2f} s, planning paths {plan_s:.2f} s"
+    if cfg.depth.source != "none":
+        map_s = warm_mapping(cfg.map_params, cfg.depth.step)
+        line += f", mapping path {map_s:.2f} s"
+    click.echo(line)
 
 
 @main.command("check-config")
@@ -121,7 +118,10 @@ def run(
     notifier.status("connecting to the autopilot")
     event(log, "starting", swarm=cfg.drone.swarm, autopilot=cfg.autopilot.endpoint(drone_id))
     # load the planner's kernels while the edges connect (mostly waiting for the autopilot)
-    warming = WarmUp(cfg.planner).start() if cfg.planning.warm_up else None
+    # and the mapping kernels too when there is a camera (the depth thread would otherwise
+    # compile them on its first frame, cold: tens of seconds before READY)
+    mapping = cfg.map_params if cfg.depth.source != "none" else None
+    warming = WarmUp(cfg.planner, mapping, cfg.depth.step).start() if cfg.planning.warm_up else None
     closers: list = []
     try:
         ap = open_autopilot(cfg)
@@ -182,4 +182,11 @@ def run(
         for sig, h in old.items():
             signal.signal(sig, h)
         event(log, "stopped", code=rc)
+    if svc.stuck_threads or (warming is not None and warming.running()):
+        # the interpreter's teardown with a thread inside numba's compiler (a stop before a
+        # cold warm-up ended) crashed the process (SIGSEGV, "corrupted double-linked list"):
+        # leave without it, the record and the links are closed already
+        event(log, "exit_with_running_threads", logging.WARNING, threads=svc.stuck_threads)
+        logging.shutdown()
+        os._exit(rc)
     sys.exit(rc)

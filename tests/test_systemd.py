@@ -43,6 +43,9 @@ def test_service_unit_settings() -> None:
     assert numba_env and numba_env == [
         e for e in warm["Environment"] if e.startswith("NUMBA_CACHE_DIR=")
     ]
+    # the warm-up compiles for the config the service flies (its map: the mapping kernels)
+    config = svc["ExecStart"][0].split("--config", 1)[1].split()[0]
+    assert warm["ExecStart"][0].split("--config", 1)[1].split()[0] == config
 
 
 def test_units_pass_systemd_analyze_verify(tmp_path: Path) -> None:

@@ -5,6 +5,7 @@ READY."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -14,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from onboard.comm.messages import TrajectoryMsg
+from onboard.mapping.occupancy import OccupancyParams
 from onboard.planner.field import DistanceField
 from onboard.planner.params import PlannerParams
 from onboard.planner.trajectory import Trajectory
@@ -177,15 +179,51 @@ def warm_up(params: PlannerParams) -> float:
     return time.perf_counter() - t0
 
 
+def warm_mapping(occupancy: OccupancyParams | None = None, step: int | None = None) -> float:
+    """Run the mapping path once (a rendered depth frame ray cast into a ``LocalMapper``, its
+    ESDF, the planning field sampled), so that its kernels are compiled into numba's cache (or
+    loaded from it) before the depth thread needs them: compiling them there, cold, takes tens
+    of seconds and would hold READY back. Seconds taken."""
+    from onboard.mapping.camera import look_rotation
+    from onboard.mapping.mapper import LocalMapper
+    from onboard.mapping.simcam import D435_TYPICAL, SimulatedDepthCamera
+    from onboard.world import World
+
+    t0 = time.perf_counter()
+    occ = occupancy if occupancy is not None else OccupancyParams()
+    world = World(np.array([[2.5, 0.3, 0.3, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    cam_step = step if step is not None else occ.skip_pixel
+    camera = SimulatedDepthCamera(world, params=dataclasses.replace(D435_TYPICAL, step=cam_step))
+    mapper = LocalMapper(occ)
+    position = np.array([0.0, 0.0, 1.0])
+    for k in range(2):
+        frame = camera.capture(position, look_rotation(0.0), 0.1 * k)
+        res = mapper.ingest(frame, step=step)
+        if not res.accepted:
+            raise RuntimeError(f"mapping warm-up: frame refused ({res.reason})")
+    field = mapper.planning_field()
+    field.distance(np.array([[2.0, 0.0, 1.0], [1.0, 0.5, 1.2]]))
+    return time.perf_counter() - t0
+
+
 class WarmUp:
     """``warm_up`` in a thread of its own, started early (while the process still connects to
     the autopilot and the bus, mostly waiting); ``wait`` joins it and returns its seconds, or
     raises what it raised."""
 
-    def __init__(self, params: PlannerParams) -> None:
+    def __init__(
+        self,
+        params: PlannerParams,
+        mapping: OccupancyParams | None = None,
+        depth_step: int | None = None,
+    ) -> None:
+        """``mapping``: also warm the mapping path with these map parameters (a service with a
+        depth source), ray casting every ``depth_step``-th pixel."""
         import threading
 
         self.params = params
+        self.mapping = mapping
+        self.depth_step = depth_step
         self.seconds: float | None = None
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="svc-warm-up", daemon=True)
@@ -196,9 +234,15 @@ class WarmUp:
 
     def _run(self) -> None:
         try:
-            self.seconds = warm_up(self.params)
+            seconds = warm_up(self.params)
+            if self.mapping is not None:
+                seconds += warm_mapping(self.mapping, self.depth_step)
+            self.seconds = seconds
         except BaseException as e:  # handed to the caller of wait()
             self.error = e
+
+    def running(self) -> bool:
+        return self._thread.is_alive()
 
     def wait(self) -> float:
         self._thread.join()

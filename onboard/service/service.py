@@ -277,6 +277,8 @@ class FlightService:
         }
         self.ready = False
         self._threads: list[threading.Thread] = []
+        self.stuck_threads: list[str] = []
+        """Workers that had not ended 5 s after ``stop`` (see ``stop``)."""
         self._warm_s = 0.0
         self._warming = warming
         self._last_watchdog = -math.inf
@@ -1221,6 +1223,9 @@ class FlightService:
         self._actions.put(None)
         for t in self._threads:
             t.join(5.0)
+        # a worker still inside native code (numba compiling a kernel, a blocking driver call)
+        # cannot be interrupted: the caller must not run the interpreter's teardown under it
+        self.stuck_threads = [t.name for t in self._threads if t.is_alive()]
         self._threads.clear()
         self.ap.stream(None)
         if self.recorder is not None:
