@@ -25,7 +25,7 @@ export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 export MPLBACKEND := Agg
 
-.PHONY: demo test lint typecheck pytest pytest310 bench check-target system-deps clean
+.PHONY: demo test lint typecheck pytest pytest310 prepare310 check-default bench check-target system-deps clean
 
 # Debian packages: venv support for the interpreter, the shared libraries Open3D loads,
 # systemd-analyze (the tests verify the units) and openssl (swarm-gcs certs makes the demo CA).
@@ -55,14 +55,19 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy onboard gcs sitl_mock
 
-# The quick tests run on every core (pytest-xdist, `-n auto`); the slow scenario tests (marker
-# `slow`: flights against the mock, the demo, whose processes are timing-sensitive) one at a
-# time. The whole suite runs once, on Python 3.10: the drone's interpreter, and everything runs
-# there (the ground station and the mock too). On the default interpreter (the `.venv` that
-# `make demo` uses) a smoke selection checks that environment: every module imports, the
-# planner's kernels, the mock, the bus, the view, the report and the demo's process handling.
-# Without a 3.10 interpreter the whole suite runs on the default one instead.
-PYTEST_FAST := -m "not slow" -n auto
+# Tests. Every test runs on every core (pytest-xdist, `-n auto`) except those marked `fleet`
+# (processes flying together: the mock fleet, flight services, the demo; timing-sensitive), which
+# run one at a time afterwards. The whole suite runs once, on Python 3.10: the drone's
+# interpreter, and everything runs there (the ground station and the mock too). On the default
+# interpreter (the `.venv` that `make demo` uses) a smoke selection checks that environment:
+# every module imports, the planner's kernels, the mock, the bus, the view, the report and the
+# demo's process handling. Without a 3.10 interpreter the whole suite runs on the default one.
+#
+# `make test` goes in two phases. First, side by side (two jobs; mostly installing and
+# compiling, which do not mind sharing the cores): the default environment (install, lint,
+# types, kernels, smoke) and the 3.10 one (install, kernels). Then the 3.10 suite alone.
+PYTEST_PARALLEL := -m "not fleet" -n auto
+PYTEST_FLEET := -m fleet
 SMOKE_TESTS := tests/test_imports.py tests/test_layers.py tests/test_planner_kernels.py \
 	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py \
 	tests/test_demo.py
@@ -73,15 +78,15 @@ WARM = $(1) tests/warm_kernels.py planner & p=$$!; $(1) tests/warm_kernels.py re
 pytest: $(STAMP)
 	@$(call WARM,$(PY))
 ifeq ($(strip $(PYTHON310)),)
-	$(VENV)/bin/pytest -q $(PYTEST_FAST)
-	$(VENV)/bin/pytest -q -m slow
+	$(VENV)/bin/pytest -q $(PYTEST_PARALLEL)
+	$(VENV)/bin/pytest -q $(PYTEST_FLEET)
 else
-	$(VENV)/bin/pytest -q $(PYTEST_FAST) $(SMOKE_TESTS)
+	$(VENV)/bin/pytest -q -m "not slow" -n auto $(SMOKE_TESTS)
 endif
 
 # The same environment and suite on Python 3.10. numba names its cache files after the Python
 # version (*.py310.nbi next to *.py311.nbi), so the two runs do not overwrite each other's kernels.
-$(STAMP310): pyproject.toml
+$(STAMP310): pyproject.toml | system-deps
 	@test -n "$(PYTHON310)" || { echo "no Python 3.10 interpreter (set PYTHON310=...)"; exit 1; }
 	@$(PYTHON310) -c "import venv, ensurepip" 2>/dev/null || { \
 		echo "installing Debian package python3.10-venv"; \
@@ -94,21 +99,25 @@ $(STAMP310): pyproject.toml
 	touch $(STAMP310)
 
 ifeq ($(strip $(PYTHON310)),)
+prepare310:
+	@true
 pytest310:
 	@echo "pytest310: no Python 3.10 interpreter found (see README): the suite runs on $$($(PYTHON) -V 2>&1) only"
 else
-pytest310: $(STAMP310) | system-deps
+prepare310: $(STAMP310)
 	@$(call WARM,$(PY310))
-	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_FAST)
-	$(VENV310)/bin/pytest -q -p no:cacheprovider -m slow
+pytest310: prepare310
+	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_PARALLEL)
+	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_FLEET)
 endif
 
-# The two suites run one after the other (TEST_JOBS=2: side by side, one core each, faster but
-# the process-level tests of both then compete for the 2 cores: depth frames late, flights
-# hovering; seen failing that way under load). Each one's output is printed in one piece.
-TEST_JOBS ?= 1
-test: lint typecheck
-	@$(MAKE) --no-print-directory -j$(TEST_JOBS) --output-sync=target pytest pytest310
+# Phase one's two jobs (each one's output printed in one piece), then the 3.10 suite alone
+# (its kernels are cached by then: its WARM only loads them, a few seconds).
+check-default: lint typecheck
+	@$(MAKE) --no-print-directory pytest
+test:
+	@$(MAKE) --no-print-directory -j2 --output-sync=target check-default prepare310
+	@$(MAKE) --no-print-directory pytest310
 
 # 3 drones: the size this 2-core machine flies in real time with mapped perception (measured:
 # BENCHMARKS.md section 10); `swarm-gcs demo` alone flies the 7-drone hexagon, which it does not

@@ -309,6 +309,7 @@ def test_zenoh_over_udp_turns_duplicated_and_overtaken_datagrams_into_loss() -> 
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(300)
 def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> None:
     swarm = f"bf{os.getpid()}"

@@ -211,6 +211,7 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(600)
 def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     """The whole stack, headless, in-process ground station: take off, form a triangle, cross

@@ -146,6 +146,7 @@ def _wait_links(session: Any) -> list[dict[str, Any]]:
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(600)
 def test_secure_demo_flies_two_drones(tmp_path: Path) -> None:
     """The demo with signing and TLS + access control, two drones (the 3-drone flight with a
@@ -156,7 +157,14 @@ def test_secure_demo_flies_two_drones(tmp_path: Path) -> None:
     out = tmp_path / "flight"
     pair = tmp_path / "pair.yaml"  # two abreast, 1.5 m apart
     pair.write_text("points: [[0, -0.75, 0], [0, 0.75, 0]]\n")
-    cfg = DemoConfig(drones=2, formation=str(pair), world="forest-small", seed=2,
+    # a short crossing past two trunks (the forest is the plain demo's test): 9 m, not 16
+    world = tmp_path / "two-trunks.yaml"
+    world.write_text(
+        "cylinders: [[2.0, 1.4, 0.3, 0.0, 3.0], [4.0, -1.4, 0.3, 0.0, 3.0]]\n"
+        "cluttered_x: [1.0, 5.0]\nstart_center: [-2.0, 0.0, 1.0]\ngoal_center: [7.0, 0.0, 1.0]\n"
+        "ground_z: 0.0\n"
+    )
+    cfg = DemoConfig(drones=2, formation=str(pair), world=str(world), seed=2,
                      out_dir=out, secure=True,
                      startup_timeout_s=150.0, flight_timeout_s=300.0)  # fmt: skip
     result = run_demo(cfg)

@@ -156,6 +156,7 @@ def _land(gs: GroundStation, mock: MockProcess, drones: list[int], alive: Any) -
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(300)
 def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: Path) -> None:
     trunk = (2.5, 0.0, 0.25, 0.0, 3.0)  # on the straight line from the start to the goal
@@ -204,6 +205,7 @@ def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: 
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(360)
 def test_three_services_cross_a_small_forest_in_formation(tmp_path: Path) -> None:
     """Three service processes, a three-vehicle mock fleet, a few trunks in the way, each drone

@@ -52,6 +52,7 @@ def _command(gcs: SwarmNode, action: object, proc: subprocess.Popen) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("implementation", ["pymavlink", "mavsdk"])
 def test_service_process_flies_in_formation(tmp_path: Path, implementation: str) -> None:
