@@ -18,7 +18,7 @@ import pytest
 from gcs.demo import Demo, DemoConfig, DemoError, parse_change, result_text, run_demo
 from gcs.report import DroneFlight
 from onboard.comm.latency import LatencyFigures, LatencyRecorder
-from onboard.record import FlightRecorder
+from onboard.record import FlightRecorder, read_record
 
 DEMO = "import sys; from gcs.demo import demo; sys.argv[0] = 'swarm-gcs demo'; demo()"
 
@@ -244,7 +244,14 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     assert [a["name"] for a in mission["assignments"]] == ["triangle-3", "line-3"]
     e1, e2 = (a["epoch"] for a in mission["assignments"])
     assert e2 > e1
-    assert len(list(out.glob("drone*.mcap"))) == 3
+    records = sorted(out.glob("drone*.mcap"))
+    assert len(records) == 3
+    for rec_path in records:
+        rec = read_record(rec_path)
+        # each drone planned on its own map, built from the mock's depth frames ...
+        assert max(m["occupied_cells"] for m in rec.messages("/map")) > 100, rec_path
+        # ... and flew with its peers: some plans had both others in the formation
+        assert max(p["n_peers"] for p in rec.messages("/plan")) == 2, rec_path
     for name in ("top_view.png", "formation_error.png", "summary.json"):
         assert (out / "report" / name).is_file()
     summary = json.loads((out / "report" / "summary.json").read_text())

@@ -3,6 +3,9 @@ poses and publishes them (and the poses) over Zenoh; each ``swarm-onboard run`` 
 them (``depth: zenoh-sim``) and plans on its own map only. A ground-station client
 (``gcs.station.GroundStation``) sends the commands over the swarm bus.
 
+Three services crossing a forest together, each on its own map, is the demo's test
+(``tests/test_demo.py``, which also checks their records' maps and peers).
+
 Judged on the mock's ground truth (collision count, clearances, true positions) and on the
 services' flight records, not on exit codes alone.
 """
@@ -202,62 +205,3 @@ def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: 
     assert on_trunk, [(m["camera_enu_m"], m["nearest_obstacle_enu_m"]) for m in maps]
     plans = rec.messages("/plan")
     assert plans and all(p["n_peers"] == 0 for p in plans)
-
-
-@pytest.mark.slow
-@pytest.mark.fleet
-@pytest.mark.timeout(360)
-def test_three_services_cross_a_small_forest_in_formation(tmp_path: Path) -> None:
-    """Three service processes, a three-vehicle mock fleet, a few trunks in the way, each drone
-    on its own map: all arrive, the mock reports no collision."""
-    trunks = [
-        (3.0, -1.5, 0.2, 0.0, 3.0),  # on drone 0's straight line
-        (4.5, 0.1, 0.25, 0.0, 3.0),  # on drone 1's
-        (3.6, 2.4, 0.2, 0.0, 3.0),
-        (6.0, 1.4, 0.2, 0.0, 3.0),  # on drone 2's
-    ]
-    swarm = f"f{os.getpid()}"
-    prefix = f"{swarm}/sim"
-    drones = [0, 1, 2]
-    points = [(0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0)]
-    spawns = [(0.0, -1.5, 0.0), (0.0, 0.0, 0.0), (0.0, 1.5, 0.0)]
-    centre = (7.5, 0.0, 1.0)
-    goals = np.array(centre) + np.array(points) - np.mean(points, axis=0)
-    mesh = peer_mesh(4)
-    services: list[ServiceProcess] = []
-    with ExitStack() as stack:
-        mock, port = stack.enter_context(mapped_mock(tmp_path, trunks, spawns, prefix))
-        for d in drones:
-            cfg = _config(swarm, port, mesh[d], mock.truth_endpoint, prefix, tmp_path / f"d{d}")
-            services.append(stack.enter_context(ServiceProcess(d, cfg, tmp_path / f"d{d}")))
-        gs = stack.enter_context(
-            GroundStation(swarm, mesh[3], config=StationConfig(lead_s=1.0, ack_timeout_s=5.0))
-        )
-
-        def alive() -> bool:
-            return all(s.alive() for s in services) and mock.alive()
-
-        for s in services:
-            s.wait_ready(90.0)
-        assert gs.wait_for_drones(ids=drones, timeout_s=20.0, with_state=True) == set(drones)
-        track = _fly(gs, mock, drones, points, centre, alive, 150.0)
-        truth = mock.latest_truth()
-        for d in drones:
-            p = np.array(truth[d + 1].position_m)
-            assert np.linalg.norm(p - goals[d]) < 0.4, (d, p, goals[d])
-            assert truth[d + 1].collisions == 0
-        # every drone crossed the forest (its true x went from 0 past the last trunk)
-        assert np.all(track[0, :, 0] < 0.5) and np.all(track[-1, :, 0] > 7.0)
-        _land(gs, mock, drones, alive)
-    report = mock.summary
-    assert report["collisions"] == []
-    assert report["min_obstacle_distance_m"] > 0.05
-    assert report["min_vehicle_distance_m"] > 2 * BODY_RADIUS_M + 0.1
-    for d, s in enumerate(services):
-        assert s.returncode == 0, s.log_tail()
-        (rec_path,) = (tmp_path / f"d{d}").glob(f"drone{d}-*.mcap")
-        rec = read_record(rec_path)
-        assert max(m["occupied_cells"] for m in rec.messages("/map")) > 100
-        plans = rec.messages("/plan")
-        # the peers were heard and flown with: some plans had both others in the formation
-        assert max(p["n_peers"] for p in plans) == 2

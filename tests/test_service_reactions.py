@@ -392,6 +392,32 @@ def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> N
     assert "arming denied" in h.svc.machine.history[-1].reason
 
 
+def test_the_ground_hold_before_the_climb_never_counts_as_the_takeoff_reached(
+    tmp_path: Path,
+) -> None:
+    """Seen on the real stack: PX4 acknowledged the arming 1.3 s after the take-off command, the
+    main loop found the 1 s hold on the ground (streamed before OFFBOARD) ended with the vehicle
+    armed and still, called the take-off reached and the drone hovered on the ground, every plan
+    from there leaving the geofence, until it gave up."""
+    h = Harness(tmp_path, depth=False)
+    h.formation()
+    arm = h.ap.arm
+
+    def slow_arm() -> None:
+        arm()
+        # the acknowledgement took 1.5 s, while the main loop went on
+        for _ in range(30):
+            h.clock.t += 0.05
+            h.ap.tick()
+            h.svc.main_step()
+
+    h.ap.arm = slow_arm  # type: ignore[method-assign]
+    ok, _ = h.command(Takeoff())
+    assert ok
+    h.until(lambda: h.state is S.HOVER, 15.0, "hover")
+    assert h.ap.position[2] > h.cfg.flight.takeoff_altitude_m - 0.25, h.ap.position
+
+
 def test_goal_and_formation_take_effect_at_their_common_time_in_the_agent(
     tmp_path: Path,
 ) -> None:

@@ -278,6 +278,10 @@ class FlightService:
         self.ready = False
         self._threads: list[threading.Thread] = []
         self.stuck_threads: list[str] = []
+        self._climbing = False
+        """The take-off's climb is in control (set by the actions thread after arming): until
+        then the trajectory in control is the hold on the ground that PX4's OFFBOARD needs
+        streamed first, which must not count as the take-off reached."""
         """Workers that had not ended 5 s after ``stop`` (see ``stop``)."""
         self._warm_s = 0.0
         self._warming = warming
@@ -364,6 +368,7 @@ class FlightService:
             self.ap.stream(None)  # at once: never fight the pilot, never stream blind
             return
         if target is S.TAKEOFF:
+            self._climbing = False  # not the last take-off's climb: this one's, once armed
             self._queue_action("takeoff", self._do_takeoff)
             return
         if target is S.LANDING:
@@ -443,12 +448,14 @@ class FlightService:
         start = veh.position_m.copy()
         self._yaw = veh.yaw_rad
         now = self.clock()
+        self._climbing = False
         self._control(Trajectory.hover(start, now, 1.0))
         self.ap.stream(self.sample_setpoint)
         self.ap.request_offboard()
         self.ap.arm()
         alt = self.machine.takeoff_altitude_m or self.cfg.flight.takeoff_altitude_m
         self._control(climb_trajectory(self.clock(), start, alt, self.cfg.flight.takeoff_speed_m_s))
+        self._climbing = True
 
     def _do_resume(self) -> None:
         veh = self.ap.vehicle()
@@ -895,7 +902,9 @@ class FlightService:
             m.clock_in_bound()
         # progress
         if veh is not None:
-            if m.state is S.TAKEOFF and self.ap.streaming:
+            # (the ground hold streamed before OFFBOARD may have ended while the arming was
+            # acknowledged, on the ground: only the climb's end counts)
+            if m.state is S.TAKEOFF and self.ap.streaming and self._climbing:
                 traj = self.flying(now)
                 if traj is not None and now >= traj.t_end_s and veh.armed:
                     err = float(np.linalg.norm(veh.position_m - traj.end_position))
