@@ -54,7 +54,8 @@ def _command(gcs: SwarmNode, action: object, proc: subprocess.Popen) -> None:
 @pytest.mark.slow
 @pytest.mark.fleet
 @pytest.mark.timeout(120)
-@pytest.mark.parametrize("implementation", ["pymavlink", "mavsdk"])
+# MAVSDK only: the demo's test flies service processes on pymavlink (the default) end to end
+@pytest.mark.parametrize("implementation", ["mavsdk"])
 def test_service_process_flies_in_formation(tmp_path: Path, implementation: str) -> None:
     sock = bind_consecutive_udp(1)[0]
     port = sock.getsockname()[1]
