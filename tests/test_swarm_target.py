@@ -45,7 +45,7 @@ def _target(mode: str, sp: np.ndarray, peers: list[PeerTrajectory], slot: int = 
 
 
 def test_the_option_is_validated_and_settable_like_every_planner_limit() -> None:
-    assert PlannerParams().swarm_target == "own-goal"
+    assert PlannerParams().swarm_target == "centroid"  # the default since it was measured
     with pytest.raises(ValueError, match="swarm_target"):
         PlannerParams(swarm_target="nearest")
     assert load_planner_params(**parse_override("swarm_target=centroid")).swarm_target == (

@@ -112,27 +112,29 @@ class PlannerParams:
     shared path (the 'slowest' reference of ``swarm_target``) instead of the centroid or the
     swarm target's reference: a drone left behind slows every drone ahead of it, not only by
     its share of the centroid."""
-    swarm_target: str = "own-goal"
-    """Swarm-consistent local target (issue #11). 'own-goal' (the option off; not 'off', which
-    YAML reads as false): the local target lies ``horizon_m`` along the straight line to the
-    drone's own goal. 'centroid': the swarm's reference origin is estimated from the drone and
-    its formation peers (at the replan's start) as the mean of ``p_j - F[slot_j]``; the local
-    target is that origin advanced ``horizon_m`` along the shared path to the goal's origin
-    (``goal - F[slot]``) plus the drone's slot ``F[slot]``, then moved along the line from the
-    drone to the nearest point clear of obstacles as the 'own-goal' target: a drone that went
-    round a trunk the other way is pulled back towards its slot, and the swarm's targets stay
-    a formation. 'slowest': the reference origin is moved back along the shared path to the
-    member least advanced on it (time-consistent: the targets of drones ahead come closer).
-    With ``lead_slowdown_m`` > 0 and a swarm target, the lead is measured from this reference
-    (for 'slowest': ahead of the slowest member's pace). Within ``horizon_m`` of the goal's
-    origin the target is the drone's own goal. Measured (``bench table --method ours --jobs 1``,
-    the same 3 x 20 worlds, all 60 flights succeed, 0 collisions, min trunk clearance 0.220 m
-    in every run): mean e_sim 0.0107 / 0.0242 / 0.0292 (sparse / medium / dense; max 0.038 /
-    0.112 / 0.096) -> 'centroid' 0.0080 / 0.0127 / 0.0182 (max 0.020 / 0.027 / 0.039) with
-    flights 3-7 s longer; 'slowest' 0.0080 / 0.0155 / 0.0271 (one dense fold, 0.111);
-    'centroid' with ``lead_slowdown_m`` 1.5 0.0088 / 0.0152 / 0.0206 and flights 11-21 s
-    longer. 'centroid' with ``w_formation`` 1e5: 0.0067 / 0.0109 / 0.0155 (max 0.026 / 0.039 /
-    0.043), but top speed 0.539 m/s. Not the default yet (BENCHMARKS.md section 8)."""
+    swarm_target: str = "centroid"
+    """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
+    2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
+    straight line to the drone's own goal. 'centroid': the swarm's reference origin is estimated
+    from the drone and its formation peers (at the replan's start) as the mean of ``p_j -
+    F[slot_j]``; the local target is that origin advanced ``horizon_m`` along the shared path to the
+    goal's origin (``goal - F[slot]``) plus the drone's slot ``F[slot]``, then moved along the line
+    from the drone to the nearest point clear of obstacles as the 'own-goal' target: a drone that
+    went round a trunk the other way is pulled back towards its slot, and the swarm's targets stay a
+    formation. 'slowest': the reference origin is moved back along the shared path to the member
+    least advanced on it (time-consistent: the targets of drones ahead come closer). With
+    ``lead_slowdown_m`` > 0 and a swarm target, the lead is measured from this reference (for
+    'slowest': ahead of the slowest member's pace). Within ``horizon_m`` of the goal's origin the
+    target is the drone's own goal. Measured (``bench table --method ours --jobs 1``, the same 3 x
+    20 worlds, all 60 flights succeed, 0 collisions, min trunk clearance 0.220 m in every run): mean
+    e_sim 0.0107 / 0.0242 / 0.0292 (sparse / medium / dense; max 0.038 / 0.112 / 0.096) ->
+    'centroid' 0.0080 / 0.0127 / 0.0182 (max 0.020 / 0.027 / 0.039) with flights 3-7 s longer;
+    'slowest' 0.0080 / 0.0155 / 0.0271 (one dense fold, 0.111); 'centroid' with ``lead_slowdown_m``
+    1.5 0.0088 / 0.0152 / 0.0206 and flights 11-21 s longer. 'centroid' with ``w_formation`` 1e5:
+    0.0067 / 0.0109 / 0.0155 (max 0.026 / 0.039 / 0.043), but top speed 0.539 m/s. On unseen worlds
+    (seeds 101-120) 'own-goal' -> 'centroid': 0.0118 / 0.0186 / 0.0242 (max 0.096 / 0.160 / 0.074)
+    -> 0.0069 / 0.0097 / 0.0202 (max 0.015 / 0.017 / 0.097); the reference forest 0.0039 -> 0.0028.
+    The default since then (BENCHMARKS.md section 8)."""
     comfort_obstacle_m: float = 0.0
     """When the first attempt's trajectory passes closer than this to an obstacle (and closer
     than it starts), the planner also optimises from an A* path at ``obstacle_clearance_m``
