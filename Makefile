@@ -56,8 +56,8 @@ typecheck: $(STAMP)
 	$(VENV)/bin/mypy onboard gcs sitl_mock
 
 # Tests. Every test runs on every core (pytest-xdist, `-n auto`) except those marked `fleet`
-# (processes flying together: the mock fleet, flight services, the demo; timing-sensitive), which
-# run one at a time afterwards. The whole suite runs once, on Python 3.10: the drone's
+# (timing-sensitive flights against the mock: its fleet, flight services, the demo, or one
+# vehicle flown and landed), which run one at a time afterwards. The whole suite runs once, on Python 3.10: the drone's
 # interpreter, and everything runs there (the ground station and the mock too). On the default
 # interpreter (the `.venv` that `make demo` uses) a smoke selection checks that environment:
 # every module imports, the planner's kernels, the mock, the bus, the view, the report and the

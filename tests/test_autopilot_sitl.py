@@ -261,6 +261,7 @@ def near(p: Any, q: Any, tol: float) -> bool:
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_flies_to_an_enu_target_and_lands(implementation: str) -> None:
@@ -425,6 +426,7 @@ def test_link_loss_detected_when_the_mock_stops(implementation: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(90)
 def test_airborne_link_loss_never_reenters_offboard() -> None:
     with rig("pymavlink", relay=True) as rg:
@@ -463,6 +465,7 @@ def gcs_set_mode(relay: Relay, custom_mode_main: int, sub: int) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_mode_change_by_someone_else_stops_streaming(implementation: str) -> None:
@@ -493,6 +496,7 @@ def test_mode_change_by_someone_else_stops_streaming(implementation: str) -> Non
 
 
 @pytest.mark.slow
+@pytest.mark.fleet
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 def test_px4_failsafe_exit_from_offboard_is_detected(implementation: str) -> None:
