@@ -2,18 +2,33 @@
 
 - ``run --id I [--config FILE]``: the flight service of drone I (``onboard.service``);
 - ``check-config FILE``: validate a service config, print OK or the error (exit 1);
-- ``warmup``: compile the planner kernels into numba's on-disk cache, so that a freshly started
-  service on the drone is ready to plan in about a second (run it once after installing or
-  upgrading).
+- ``warmup [--config FILE]``: compile the service's kernels (planner, and mapping when the config
+  has a camera) into numba's on-disk cache, so that a freshly started service on the drone is
+  ready in about a second (run it once after installing or upgrading; the warm-up unit does).
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import click
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _config_option(help_text: str) -> Callable[[F], F]:
+    """The ``--config FILE`` option of the commands that read a flight-service config."""
+    return click.option(
+        "--config",
+        "config_file",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help=help_text,
+    )
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -22,13 +37,7 @@ def main() -> None:
 
 
 @main.command()
-@click.option(
-    "--config",
-    "config_file",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="Service config whose planner and map are warmed (default: config/onboard.yaml).",
-)
+@_config_option("Service config whose planner and map are warmed (default: config/onboard.yaml).")
 def warmup(config_file: Path | None) -> None:
     """Compile (or load from numba's cache) every kernel the flight service runs: the planner's
     paths (the service's own warm-up) and, when the config has a depth source, the mapping
@@ -74,13 +83,7 @@ def check_config(file: Path, drone_id: int | None) -> None:
 
 @main.command()
 @click.option("--id", "drone_id", type=int, required=True, help="This drone's id (0-based).")
-@click.option(
-    "--config",
-    "config_file",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="Service config (default: config/onboard.yaml).",
-)
+@_config_option("Service config (default: config/onboard.yaml).")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override a setting.")
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
 def run(
