@@ -25,7 +25,8 @@ export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 export MPLBACKEND := Agg
 
-.PHONY: demo test lint typecheck pytest pytest310 prepare310 check-default bench check-target system-deps clean
+.PHONY: demo test lint typecheck pytest pytest310 prepare310 check-default bench check-target \
+	system-deps clean
 
 # Debian packages: venv support for the interpreter, the shared libraries Open3D loads,
 # systemd-analyze (the tests verify the units) and openssl (swarm-gcs certs makes the demo CA).
@@ -57,8 +58,9 @@ typecheck: $(STAMP)
 
 # Tests. Every test runs on every core (pytest-xdist, `-n auto`) except those marked `fleet`
 # (timing-sensitive flights against the mock: its fleet, flight services, the demo, or one
-# vehicle flown and landed), which run one at a time afterwards. The whole suite runs once, on Python 3.10: the drone's
-# interpreter, and everything runs there (the ground station and the mock too). On the default
+# vehicle flown and landed), which run one at a time afterwards. The whole suite runs once, on
+# Python 3.10: the drone's interpreter, and everything runs there (the ground station and the
+# mock too). On the default
 # interpreter (the `.venv` that `make demo` uses) a smoke selection checks that environment:
 # every module imports, the planner's kernels, the mock, the bus, the view, the report and the
 # demo's process handling. Without a 3.10 interpreter the whole suite runs on the default one.

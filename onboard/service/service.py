@@ -278,11 +278,11 @@ class FlightService:
         self.ready = False
         self._threads: list[threading.Thread] = []
         self.stuck_threads: list[str] = []
-        self._climbing = False
-        """The take-off's climb is in control (set by the actions thread after arming): until
-        then the trajectory in control is the hold on the ground that PX4's OFFBOARD needs
-        streamed first, which must not count as the take-off reached."""
         """Workers that had not ended 5 s after ``stop`` (see ``stop``)."""
+        self._climbing = False
+        """The take-off's climb is in control (set by the actions thread after arming; cleared
+        on entering TAKEOFF): until then the trajectory in control is the hold on the ground
+        that PX4's OFFBOARD needs streamed first, which must not count as the take-off reached."""
         self._warm_s = 0.0
         self._warming = warming
         self._last_watchdog = -math.inf
@@ -448,7 +448,6 @@ class FlightService:
         start = veh.position_m.copy()
         self._yaw = veh.yaw_rad
         now = self.clock()
-        self._climbing = False
         self._control(Trajectory.hover(start, now, 1.0))
         self.ap.stream(self.sample_setpoint)
         self.ap.request_offboard()
