@@ -60,26 +60,30 @@ typecheck: $(STAMP)
 # (timing-sensitive flights against the mock: its fleet, flight services, the demo, or one
 # vehicle flown and landed), which run one at a time afterwards. The whole suite runs once, on
 # Python 3.10: the drone's interpreter, and everything runs there (the ground station and the
-# mock too). On the default
-# interpreter (the `.venv` that `make demo` uses) a smoke selection checks that environment:
-# every module imports, the planner's kernels, the mock, the bus, the view, the report and the
-# demo's process handling. Without a 3.10 interpreter the whole suite runs on the default one.
+# mock too). On the default interpreter (the `.venv` that `make demo` uses) a smoke selection
+# checks that environment: every module imports, numba compiles and runs kernels there (the
+# small ones: the planner's and the mapping's big kernels are the same code under the same
+# numba, compiled and tested on 3.10; compiling them cold again costs ~135 s of CPU), the
+# mock, the bus, the view and the report. Without a 3.10 interpreter the whole suite runs on
+# the default one.
 #
 # `make test` goes in two phases. First, side by side (two jobs; mostly installing and
 # compiling, which do not mind sharing the cores): the default environment (install, lint,
-# types, kernels, smoke) and the 3.10 one (install, kernels). Then the 3.10 suite alone.
+# types, smoke) and the 3.10 one (install, kernels). Then the 3.10 suite alone.
 PYTEST_PARALLEL := -m "not fleet" -n auto
 PYTEST_FLEET := -m fleet
-SMOKE_TESTS := tests/test_imports.py tests/test_layers.py tests/test_planner_kernels.py \
-	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py \
-	tests/test_demo.py
+KERNEL_SMOKE := $(addprefix tests/test_planner_kernels.py::test_,np_sum_is_numpys_pairwise_sum \
+	norm3_is_numpys_norm np_linspace_is_numpys np_arange_is_numpys np_interp_is_numpys \
+	position_kernels_are_eval_piecewise)
+SMOKE_TESTS := tests/test_imports.py tests/test_layers.py $(KERNEL_SMOKE) \
+	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py
 # numba's kernels compiled once, two processes side by side, before the xdist workers start
 # (else each worker compiles the same kernels at the same time: tests/warm_kernels.py)
 WARM = $(1) tests/warm_kernels.py planner & p=$$!; $(1) tests/warm_kernels.py rest; r=$$?; \
 	wait $$p && test $$r = 0
 pytest: $(STAMP)
-	@$(call WARM,$(PY))
 ifeq ($(strip $(PYTHON310)),)
+	@$(call WARM,$(PY))
 	$(VENV)/bin/pytest -q $(PYTEST_PARALLEL)
 	$(VENV)/bin/pytest -q $(PYTEST_FLEET)
 else
