@@ -55,8 +55,9 @@ def warmup(config_file: Path | None) -> None:
     t1 = time.perf_counter()
     plan_s = warm_up(cfg.planner)
     line = f"planner ready: import {t1 - t0:.2f} s, planning paths {plan_s:.2f} s"
-    if cfg.depth.source != "none":
-        map_s = warm_mapping(cfg.map_params, cfg.depth.step)
+    mapping = cfg.camera_map_params
+    if mapping is not None:
+        map_s = warm_mapping(mapping, cfg.depth.step)
         line += f", mapping path {map_s:.2f} s"
     click.echo(line)
 
@@ -123,8 +124,11 @@ def run(
     # load the planner's kernels while the edges connect (mostly waiting for the autopilot)
     # and the mapping kernels too when there is a camera (the depth thread would otherwise
     # compile them on its first frame, cold: tens of seconds before READY)
-    mapping = cfg.map_params if cfg.depth.source != "none" else None
-    warming = WarmUp(cfg.planner, mapping, cfg.depth.step).start() if cfg.planning.warm_up else None
+    warming = (
+        WarmUp(cfg.planner, cfg.camera_map_params, cfg.depth.step).start()
+        if cfg.planning.warm_up
+        else None
+    )
     closers: list = []
     try:
         ap = open_autopilot(cfg)

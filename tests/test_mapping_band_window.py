@@ -118,6 +118,10 @@ def test_service_maps_the_band_window(tmp_path: Path) -> None:
     # null: the window as occupancy places it
     off = load_onboard_config(_write(tmp_path, "mapping:\n  window_band_margin_m: null\n"))
     assert off.map_params == off.mapping.occupancy == OccupancyParams()
+    # what the service maps (and its warm-up compiles): that window with a camera, none without
+    assert cfg.depth.source != "none" and cfg.camera_map_params == cfg.map_params
+    blind = load_onboard_config(_write(tmp_path, "depth:\n  source: none\n"))
+    assert blind.camera_map_params is None
 
 
 @pytest.mark.parametrize(

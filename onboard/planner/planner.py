@@ -465,17 +465,19 @@ class FormationPlanner:
         goal: np.ndarray,
         peers: Sequence[PeerTrajectory],
         mode: str | None = None,
+        members: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, float] | None:
         """The swarm's reference origin of ``swarm_target`` (None when it is 'own-goal', without
         formation peers, or at the goal's origin): (origin r (3,), unit direction u (3,) of the
         shared path from r to the goal's origin ``goal - F[slot]``, distance left along it).
         Each member j estimates the origin as ``p_j - F[slot_j]``; r is their mean
         ('centroid'), moved back along u to the member least advanced ('slowest'). ``mode``
-        (default ``swarm_target``) names the reference."""
+        (default ``swarm_target``) names the reference; ``members``: ``_members``' result at
+        t_s when the caller has it already."""
         mode = self.params.swarm_target if mode is None else mode
         if mode == "own-goal":
             return None
-        P, F = self._members(t_s, sp, peers)
+        P, F = self._members(t_s, sp, peers) if members is None else members
         if P.shape[0] < 2:
             return None
         origins = P - F
@@ -525,12 +527,13 @@ class FormationPlanner:
         goal: np.ndarray,
         peers: Sequence[PeerTrajectory],
         ref: tuple[np.ndarray, np.ndarray, float] | None = None,
+        members: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> float:
         """How far [m] this drone is ahead of its slot along its way to the goal: its offset
         from the centroid of itself and its peers (at t_s) minus its slot's offset from the
         centroid of the same slots of the formation, projected on the direction to the goal.
         With a swarm reference ``ref`` (``_reference``): its origin estimate ``sp - F[slot]``
-        ahead of the reference origin along the shared path."""
+        ahead of the reference origin along the shared path. ``members`` as in ``_reference``."""
         if ref is not None:
             r, u, _ = ref
             return float((sp - self.formation[self.slot] - r) @ u)
@@ -539,7 +542,7 @@ class FormationPlanner:
         if dist < 1e-6:
             return 0.0
         u = d / dist
-        P, F = self._members(t_s, sp, peers)
+        P, F = self._members(t_s, sp, peers) if members is None else members
         if P.shape[0] < 2:
             return 0.0
         off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
@@ -628,7 +631,14 @@ class FormationPlanner:
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
         p = self.params
-        ref = self._reference(t_start_s, sp, gl, peers) if len(peers) > 0 else None
+        # this drone and its formation peers at the plan's start: read once (sampling every
+        # peer's trajectory), shared by the local target's reference and the lead's
+        members = self._members(t_start_s, sp, peers) if len(peers) > 0 else None
+        ref = (
+            self._reference(t_start_s, sp, gl, peers, None, members)
+            if members is not None
+            else None
+        )
         goal_t, horizon = self._swarm_goal(sp, gl, ref)
         target, x0, astar_clearance = self._initial_x(
             t_start_s,
@@ -655,9 +665,11 @@ class FormationPlanner:
         prm = self._prm_formation if use_formation else self._prm_no_formation
         if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
             lead_ref = (
-                self._reference(t_start_s, sp, gl, peers, "slowest") if p.lead_from_slowest else ref
+                self._reference(t_start_s, sp, gl, peers, "slowest", members)
+                if p.lead_from_slowest
+                else ref
             )
-            lead = self._lead(t_start_s, sp, gl, peers, lead_ref) - p.lead_deadband_m
+            lead = self._lead(t_start_s, sp, gl, peers, lead_ref, members) - p.lead_deadband_m
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)

@@ -581,6 +581,13 @@ class OnboardConfig:
         lo, hi = self.planner.z_limits_m
         return m.occupancy.for_band(lo, hi, m.window_band_margin_m)
 
+    @property
+    def camera_map_params(self) -> OccupancyParams | None:
+        """``map_params`` when the service has a depth source to map, else None: whether (and
+        with what) the service builds a map, and so whether the warm-up compiles the mapping
+        path (``swarm-onboard run`` and ``warmup`` both ask here)."""
+        return None if self.depth.source == "none" else self.map_params
+
     def _check_map_window(self) -> None:
         m = self.mapping
         margin = m.window_band_margin_m
