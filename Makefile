@@ -56,9 +56,10 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy onboard gcs sitl_mock
 
-# Tests. Every test runs on every core (pytest-xdist, `-n auto`) except those marked `fleet`
-# (timing-sensitive flights against the mock: its fleet, flight services, the demo, or one
-# vehicle flown and landed), which run one at a time afterwards. The whole suite runs once, on
+# Tests. Every test runs on every core (pytest-xdist, `-n auto`) except the timing-sensitive
+# flights against the mock, which run afterwards: those marked `vehicle` (one vehicle flown and
+# landed: light) two at a time, then those marked `fleet` (its fleet, flight services, the
+# demo) one at a time. The whole suite runs once, on
 # Python 3.10: the drone's interpreter, and everything runs there (the ground station and the
 # mock too). On the default interpreter (the `.venv` that `make demo` uses) a smoke selection
 # checks that environment: every module imports, numba compiles and runs kernels there (the
@@ -70,7 +71,8 @@ typecheck: $(STAMP)
 # `make test` goes in two phases. First, side by side (two jobs; mostly installing and
 # compiling, which do not mind sharing the cores): the default environment (install, lint,
 # types, smoke) and the 3.10 one (install, kernels). Then the 3.10 suite alone.
-PYTEST_PARALLEL := -m "not fleet" -n auto
+PYTEST_PARALLEL := -m "not fleet and not vehicle" -n auto
+PYTEST_VEHICLE := -m vehicle -n 2
 PYTEST_FLEET := -m fleet
 KERNEL_SMOKE := $(addprefix tests/test_planner_kernels.py::test_,np_sum_is_numpys_pairwise_sum \
 	norm3_is_numpys_norm np_linspace_is_numpys np_arange_is_numpys np_interp_is_numpys \
@@ -85,6 +87,7 @@ pytest: $(STAMP)
 ifeq ($(strip $(PYTHON310)),)
 	@$(call WARM,$(PY))
 	$(VENV)/bin/pytest -q $(PYTEST_PARALLEL)
+	$(VENV)/bin/pytest -q $(PYTEST_VEHICLE)
 	$(VENV)/bin/pytest -q $(PYTEST_FLEET)
 else
 	$(VENV)/bin/pytest -q -m "not slow" -n auto $(SMOKE_TESTS)
@@ -114,6 +117,7 @@ prepare310: $(STAMP310)
 	@$(call WARM,$(PY310))
 pytest310: prepare310
 	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_PARALLEL)
+	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_VEHICLE)
 	$(VENV310)/bin/pytest -q -p no:cacheprovider $(PYTEST_FLEET)
 endif
 

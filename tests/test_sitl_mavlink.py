@@ -219,7 +219,7 @@ def test_telemetry_requests_and_parameters() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.fleet
+@pytest.mark.vehicle
 def test_offboard_after_one_setpoint_failsafe_and_return() -> None:
     """PX4 v1.16 as observed: Offboard at once after one setpoint; stream lost -> Position
     mode, "Failsafe activated", system_status 5, CURRENT_MODE still naming Offboard; stream

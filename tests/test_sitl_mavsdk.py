@@ -30,7 +30,7 @@ def poll(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.fleet
+@pytest.mark.vehicle
 @pytest.mark.timeout(120)
 def test_mavsdk_flies_the_mock() -> None:
     from mavsdk import ComponentType, Configuration, Mavsdk
