@@ -462,7 +462,14 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
     lost = {d: 1.0 - got[d] / sum(sent[j] for j in range(N) if j != d) for d in range(N)}
     print("trajectories sent", sent, "received", got, "lost fraction", lost)
     print("rejects", {d: {k: v for k, v in final[d].items() if "reject" in k} for d in range(N)})
-    assert all(lost[d] > 0.1 for d in range(N)), lost
+    # two hops at 10.6 % each lose ~20 % (more with Zenoh's drops of duplicates); each drone
+    # hears ~50 peer trajectories in the window, so a per-drone bound near 20 % fails a few
+    # runs in a hundred (CI saw 5 of 54 lost): each drone must see a loss, and the swarm as a
+    # whole (~150 trajectories) a fraction that random draws miss about once in 10^4 runs
+    assert all(lost[d] > 0.02 for d in range(N)), lost
+    total_sent = sum(sent[j] for d in range(N) for j in range(N) if j != d)
+    lost_all = 1.0 - sum(got.values()) / total_sent
+    assert lost_all > 0.08, (lost_all, lost)
     for d in range(N):
         assert final[d]["bus.error.internal"] == 0 and final[d]["bus.error.callback"] == 0
 
