@@ -207,6 +207,9 @@ class PlanReport:
     (with ``avoid_reported``, also peers heard without a trajectory considered)."""
     quiet_peers: tuple[int, ...] = ()
     """Peers quiet but not (yet) silent: avoided at their ghosts too, still in the formation."""
+    reforming: bool = False
+    """Planned within ``PlannerParams.reform_s`` of a formation change: without the lead
+    slow-down."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -510,7 +513,11 @@ class DroneAgent:
             frozenset(),
             frozenset(),
         )
-        self._planners: dict[tuple[int, bytes, int], FormationPlanner] = {}
+        self._planners: dict[tuple[int, bytes, int, bool], FormationPlanner] = {}
+        # (epoch, slot, template) of the last replan, and when the re-forming after a change
+        # ends (``PlannerParams.reform_s``)
+        self._shape_seen: tuple[int, int, bytes] | None = None
+        self._reform_until_s = -math.inf
         self._active: FormationPlanner | None = None
         self._next_replan_s = float(initial.t0_s if first_replan_s is None else first_replan_s)
         if not math.isfinite(self._next_replan_s):
@@ -969,7 +976,12 @@ class DroneAgent:
             )
             + tuple(PeerTrajectory(pid, n_form + n_av + k, g) for k, (pid, g) in enumerate(ghosts))
         )
-        planner = self._planner(a.formation, a.slot, n_av + len(ghosts))
+        shape = (a.epoch, a.slot, a.formation.tobytes())
+        if self._shape_seen is not None and shape != self._shape_seen:
+            self._reform_until_s = now + self.params.reform_s
+        self._shape_seen = shape
+        reforming = now < self._reform_until_s and self.params.lead_slowdown_m > 0.0
+        planner = self._planner(a.formation, a.slot, n_av + len(ghosts), reforming)
         if self.on_inputs is not None:
             self.on_inputs(
                 PlanInputs(
@@ -1030,6 +1042,7 @@ class DroneAgent:
             silent_peers=tuple(sorted(silent)),
             deviating_peers=tuple(sorted(deviating)),
             quiet_peers=tuple(sorted(quiet - silent)),
+            reforming=reforming,
         )
         self._last = report
         if self.on_plan is not None:
@@ -1207,22 +1220,27 @@ class DroneAgent:
             formed = [m for m in formed if claims[m.slot] == 1]
         return formed, avoided
 
-    def _planner(self, formation: np.ndarray, slot: int, n_avoided: int) -> FormationPlanner:
-        """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached)."""
-        key = (slot, formation.tobytes(), n_avoided)
+    def _planner(
+        self, formation: np.ndarray, slot: int, n_avoided: int, reforming: bool = False
+    ) -> FormationPlanner:
+        """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached);
+        ``reforming``: without the lead slow-down (``PlannerParams.reform_s``)."""
+        key = (slot, formation.tobytes(), n_avoided, reforming)
         hit = self._planners.get(key)
         if hit is not None:
             return hit
         if len(self._planners) > 16:
             self._planners.clear()
+        params = self.params
+        if reforming:
+            params = dataclasses.replace(params, lead_slowdown_m=0.0)
         if n_avoided == 0:
-            planner = FormationPlanner(self.params, formation, slot)
+            planner = FormationPlanner(params, formation, slot)
         else:
             n = formation.shape[0]
             F = np.vstack([formation, np.zeros((n_avoided, 3))])
             mask = np.zeros((n + n_avoided, n + n_avoided))
             mask[:n, :n] = complete_mask(n)
-            params = self.params
             if params.formation_penalty == "relative":
                 # fixed offsets ignore the edge mask: no formation term while some are avoided
                 params = dataclasses.replace(params, w_formation=0.0)

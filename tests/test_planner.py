@@ -184,8 +184,10 @@ def test_a_drone_ahead_of_its_slot_slows_down_for_the_swarm() -> None:
         PeerTrajectory(2, 2, Trajectory.hover(np.array([0.0, 1.5, 1.0]), 0.0, 30.0)),
     ]
     field = AnalyticField(_world([]))
-    off = FormationPlanner(PlannerParams(v_max_m_s=1.0, lead_slowdown_m=0.0), LINE3, slot=1)
-    on = FormationPlanner(PlannerParams(v_max_m_s=1.0, lead_slowdown_m=2.0), LINE3, slot=1)
+    # the plain lead (from the centroid, no dead band, the limit itself)
+    base = dict(v_max_m_s=1.0, lead_deadband_m=0.0, lead_from_slowest=False, limit_margin=1.0)
+    off = FormationPlanner(PlannerParams(**base, lead_slowdown_m=0.0), LINE3, slot=1)
+    on = FormationPlanner(PlannerParams(**base, lead_slowdown_m=2.0), LINE3, slot=1)
     # the centroid is at x = 2/3, the slot's offset from it 0: the lead is 4/3 m
     assert on._lead(0.0, start, goal, peers) == pytest.approx(4.0 / 3.0)
     assert on._lead(0.0, np.array([0.0, 0.0, 1.0]), goal, peers) == pytest.approx(0.0, abs=1e-12)

@@ -47,17 +47,19 @@ class PlannerParams:
     """Vertical separations count this much in J_r's distance (downwash: z counts half)."""
     w_feasibility: float = 1.0e8
     """J_d: weight of the velocity, acceleration and jerk limit penalties."""
-    limit_margin: float = 1.0
+    limit_margin: float = 0.97
     """J_d penalises speed, acceleration and jerk above this fraction of their limits: a soft
     penalty balances the other terms slightly past where it starts, so a margin below 1 keeps
     the flown values within the limits without a stiff weight. Table (3 x 20 forests, 0.5 m/s):
     margin 1 flies at most 0.518 / 0.519 / 0.522 m/s, 0.97 at most 0.503 / 0.513 / 0.510 m/s
     with mean e_sim 0.0107 / 0.0209 / 0.0218 -> 0.0110 / 0.0166 / 0.0282 and flights 2-3 s
-    longer; not the default yet (BENCHMARKS.md section 8)."""
+    longer. 0.97 is part of the default set of 2026-11-24 (see ``lead_slowdown_m``)."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
-    w_formation: float = 3.0e4
-    """J_f: weight of the formation penalty (about 1e7 suits 'cubic')."""
+    w_formation: float = 1.0e5
+    """J_f: weight of the formation penalty (about 1e7 suits 'cubic'). 1e5 (was 3e4) is part of
+    the default set of 2026-11-24 (see ``lead_slowdown_m``); alone it breaks the speed limit
+    (0.539 m/s), with ``limit_margin`` 0.97 it keeps it within 2-3 %."""
     formation_stride: int = 2
     """J_f is evaluated on every formation_stride-th constraint point (kappa must divide)."""
     tau_scale: float = 1.0
@@ -94,24 +96,39 @@ class PlannerParams:
     arrived); since the map clears free space along such pixels (``OccupancyParams.no_return_m``)
     that flight arrives 7 of 7 with no attempt refused for unobserved space (BENCHMARKS.md
     section 4)."""
-    lead_slowdown_m: float = 0.0
+    lead_slowdown_m: float = 2.0
     """Time-consistent formation: a drone ahead of its slot (relative to the centroid of itself
     and its peers, along its way to the goal) by ``lead`` metres plans with the speed limit of
     J_d scaled by ``1 - lead / lead_slowdown_m`` (at least ``lead_min_speed_frac``), so the
-    swarm waits for a drone left behind instead of flying on at full speed; 0 disables. Off by
-    default: with 1.5 (and ``astar_keeps_formation``) the table's 20 forests per density went
-    from mean e_sim 0.0107 / 0.0209 / 0.0218 (max 0.038 / 0.066 / 0.062) to 0.0114 / 0.0152 /
-    0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer (85-88 -> 93-98 s)."""
+    swarm waits for a drone left behind instead of flying on at full speed; 0 disables. With 1.5
+    (and ``astar_keeps_formation``, before the swarm target) the table's 20 forests per density
+    went from mean e_sim 0.0107 / 0.0209 / 0.0218 (max 0.038 / 0.066 / 0.062) to 0.0114 /
+    0.0152 / 0.0221 (max 0.045 / 0.037 / 0.049), and flights took 8-10 s longer. The default
+    set since 2026-11-24 (2.0, ``lead_deadband_m`` 1.0, ``lead_from_slowest``, ``w_formation``
+    1e5, ``astar_keeps_formation``, ``limit_margin`` 0.97, with the 'centroid' swarm target;
+    BENCHMARKS.md section 8): mean e_sim on the table's worlds 0.0080 / 0.0127 / 0.0182 ->
+    0.0063 / 0.0088 / 0.0094, on unseen seeds 101-120 0.0069 / 0.0097 / 0.0202 -> 0.0046 /
+    0.0081 / 0.0158, on the reference forest 0.0028 -> 0.0018, on mapped forest-medium seeds 1-4
+    0.060 / 0.010 / 0.146 / 0.054 -> 0.016 / 0.003 / 0.042 / 0.008 (closest trunk 0.314 ->
+    0.226 m there). It is off for ``reform_s`` after a formation change."""
     lead_min_speed_frac: float = 0.3
     """Lower bound of that scale."""
-    lead_deadband_m: float = 0.0
+    lead_deadband_m: float = 1.0
     """A lead up to this is not slowed: the scale of ``lead_slowdown_m`` is taken of the lead
     minus this (the ordinary spread of a formation in a forest then costs no speed)."""
-    lead_from_slowest: bool = False
+    lead_from_slowest: bool = True
     """With ``lead_slowdown_m``: measure the lead from the member least advanced along the
     shared path (the 'slowest' reference of ``swarm_target``) instead of the centroid or the
     swarm target's reference: a drone left behind slows every drone ahead of it, not only by
     its share of the centroid."""
+    reform_s: float = 10.0
+    """After a formation change in flight (a new template, slot or epoch), the lead slow-down
+    (``lead_slowdown_m``) is off for this long (the flight's first assignment is not a change).
+    While the swarm re-shapes, every drone is off its new slot by design: slowing the drones
+    ahead for the one farthest from its slot stalls the change (measured: three drones, line
+    -> triangle at 1 m/s with the lead slow-down from the slowest member, 2.0 / 1.0 m: the
+    triangle reached after ~35 s instead of ~16 s, the swarm shrunk to a knot of crossing
+    drones). ``DroneAgent`` applies it; the planner itself has no notion of time since."""
     swarm_target: str = "centroid"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
     2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
@@ -141,11 +158,12 @@ class PlannerParams:
     with the same terms, and keeps whichever passes the safety check with the larger clearance:
     the warm start keeps the gap it chose when the gap was far, so a narrow one is otherwise
     flown at whatever the check allows. 0 disables."""
-    astar_keeps_formation: bool = False
+    astar_keeps_formation: bool = True
     """When the first attempt fails the check, retry from an A* path with the formation term
     before the retry without it (the latter flies its own way around and can split the shape).
-    Off by default: alone it took one medium forest from e_sim 0.048 to 0.139 (a drone left
-    behind). With the check at 0.3 m and the comfort test it helps (4 forests per density:
+    On by default since 2026-11-24 (the set of ``lead_slowdown_m``). Alone (before the swarm
+    target and the lead slow-down) it took one medium forest from e_sim 0.048 to 0.139 (a drone
+    left behind). With the check at 0.3 m and the comfort test it helps (4 forests per density:
     mean e_sim 0.0168 / 0.0242 / 0.0332 without, 0.0162 / 0.0176 / 0.0274 with)."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
@@ -233,6 +251,7 @@ class PlannerParams:
             "check_known_s",
             "lead_slowdown_m",
             "lead_deadband_m",
+            "reform_s",
             "w_altitude",
             "altitude_margin_m",
             "comfort_obstacle_m",
