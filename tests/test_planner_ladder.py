@@ -185,7 +185,9 @@ def test_a_refused_rescue_keeps_the_hover_and_counts_as_a_refusal(
     peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.0, 2.2, 1.0]), 0.0, 30.0))]
     start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
     hover = Trajectory.hover(start, 0.0, 3.0)
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    # the ladder alone: no A* retry with the formation term before the one without
+    params = PlannerParams(v_max_m_s=1.0, astar_keeps_formation=False)
+    planner = FormationPlanner(params, LINE3, slot=1)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, hover)
     assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
     assert res.trajectory is hover
@@ -216,9 +218,19 @@ def test_a_previous_trajectory_that_still_moves_is_kept_before_the_rescue(
     field = AnalyticField(world)
     start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
     peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
     back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
     assert np.linalg.norm(back.end_position - start) >= KEEP_MOVING_M
+    # the default first retries from A* with the formation term (one more refused attempt,
+    # the same search), then without it, and keeps the trajectory that still moves
+    default = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    res = default.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
+    assert res.status == PlanStatus.KEPT_PREVIOUS and res.trajectory is back
+    assert res.message.count("drone 7 at") == 3 and "rescue" not in res.message
+    assert "a* retry: drone 7" in res.message and "a* retry without formation" in res.message
+    ladders.clear()
+    # the ladder alone
+    params = PlannerParams(v_max_m_s=1.0, astar_keeps_formation=False)
+    planner = FormationPlanner(params, LINE3, slot=1)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
     assert res.status == PlanStatus.KEPT_PREVIOUS
     assert res.trajectory is back
