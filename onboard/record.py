@@ -131,6 +131,10 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 },
                 "slot": {"type": "integer"},
                 "formation_epoch": {"type": "integer"},
+                "reforming": {
+                    "type": "boolean",
+                    "description": "within reform_s of a formation change: no lead slow-down",
+                },
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},
                 "coeffs": {

@@ -42,6 +42,7 @@ def _write_flight(path: Path) -> None:
             avoided_peers=[6],
             slot=3,
             formation_epoch=2,
+            reforming=True,
             t0_s=1000.6,
             durations_s=np.array([1.0, 2.0]),
             coeffs=np.zeros((2, 6, 3)).ravel(),
@@ -79,7 +80,7 @@ def test_record_round_trip(tmp_path: Path) -> None:
     assert plan["status"] == "ok" and plan["durations_s"] == [1.0, 2.0]
     assert len(plan["coeffs"]) == 36
     assert plan["formation_peers"] == [1, 4] and plan["avoided_peers"] == [6]
-    assert (plan["slot"], plan["formation_epoch"]) == (3, 2)
+    assert (plan["slot"], plan["formation_epoch"], plan["reforming"]) == (3, 2, True)
     (m,) = rec.messages("/map")
     assert m["occupied_cells"] == 345 and m["nearest_obstacle_enu_m"] == [1.75, 0.0, 1.1]
     assert rec.messages("/counters")[0]["counters"]["traj_rx"] == 10

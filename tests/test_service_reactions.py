@@ -443,6 +443,8 @@ def test_goal_and_formation_take_effect_at_their_common_time_in_the_agent(
     first = h.reports[n_reports]
     assert first.planned_at_s >= t_goal  # the first plan to it is made at its time, not before
     assert (first.slot, first.formation_epoch) == (0, 2)
+    # the flight's first plan: the formation it starts with is not a change (no re-forming)
+    assert not first.reforming
     # this drone's goal: the formation goal plus its slot's offset (slot 0: y - 1.5)
     assert np.allclose(first.goal, [4.0, -1.5, 1.0])
     h.until(lambda: h.state is S.HOVER, 30.0, "arrival")

@@ -38,7 +38,7 @@ from onboard.planner.field import field_eval
 from onboard.planner.minco import BAND_COLS, solve_coeffs
 from onboard.planner.npexact import interp_at, norm3, np_arange, np_linspace, np_sum
 from onboard.planner.timemap import T_from_tau, tau_from_T
-from onboard.planner.trajectory import eval_position
+from onboard.planner.trajectory import eval_piecewise, eval_position
 
 # initial_guess codes
 GUESS_OK = 0
@@ -302,6 +302,22 @@ def pad_peers(
             c[k, i, 0] = ends[k]
         r += n[k]
     return c, T
+
+
+@njit(cache=True, nogil=True)
+def peer_positions(
+    c: np.ndarray, T: np.ndarray, n: np.ndarray, t0: np.ndarray, t: float
+) -> np.ndarray:
+    """Every packed peer's position at global time ``t`` (P, 3): the peer's own ``n[k]``
+    pieces evaluated as ``Trajectory.sample`` does (the same routine, bit for bit)."""
+    P = n.shape[0]
+    out = np.empty((P, 3))
+    buf = np.empty((4, 3))
+    for k in range(P):
+        eval_piecewise(c[k, : n[k]], T[k, : n[k]], t - t0[k], buf)
+        for d in range(3):
+            out[k, d] = buf[0, d]
+    return out
 
 
 @njit(cache=True, nogil=True)

@@ -445,18 +445,26 @@ class FormationPlanner:
         return np.ascontiguousarray(path, dtype=np.float64), clearance
 
     def _members(
-        self, t_s: float, sp: np.ndarray, peers: Sequence[PeerTrajectory]
+        self,
+        t_s: float,
+        sp: np.ndarray,
+        peers: Sequence[PeerTrajectory],
+        pack: _PeerPack | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(positions (K, 3), template points (K, 3)) of this drone (first) and its formation
-        peers (an edge to this drone's slot) at t_s."""
+        peers (an edge to this drone's slot) at t_s; ``pack``: ``peers`` packed (their
+        positions then sampled in one compiled call, the same values)."""
         n = self.formation.shape[0]
-        pts = [sp]
-        slots = [self.slot]
-        for pt in peers:
-            if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0:
-                pts.append(pt.trajectory.sample(t_s))
-                slots.append(pt.slot)
-        return np.asarray(pts), self.formation[np.array(slots)]
+        idx = [
+            j for j, pt in enumerate(peers) if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0
+        ]
+        slots = [self.slot] + [peers[j].slot for j in idx]
+        if pack is not None:
+            pos = kn.peer_positions(pack.c, pack.T, pack.n, pack.t0, float(t_s))
+            pts = np.vstack((sp[None, :], pos[idx]))
+        else:
+            pts = np.asarray([sp] + [peers[j].trajectory.sample(t_s) for j in idx])
+        return pts, self.formation[np.array(slots)]
 
     def _reference(
         self,
@@ -481,7 +489,7 @@ class FormationPlanner:
         if P.shape[0] < 2:
             return None
         origins = P - F
-        r = origins.mean(axis=0)
+        r = origins.sum(axis=0) / origins.shape[0]  # np.mean's own arithmetic, less overhead
         g_o = goal - F[0]
         d = g_o - r
         dist = float(np.linalg.norm(d))
@@ -633,7 +641,7 @@ class FormationPlanner:
         p = self.params
         # this drone and its formation peers at the plan's start: read once (sampling every
         # peer's trajectory), shared by the local target's reference and the lead's
-        members = self._members(t_start_s, sp, peers) if len(peers) > 0 else None
+        members = self._members(t_start_s, sp, peers, pack) if len(peers) > 0 else None
         ref = (
             self._reference(t_start_s, sp, gl, peers, None, members)
             if members is not None

@@ -652,6 +652,7 @@ class FlightService:
                 deviating_peers=list(rep.deviating_peers),
                 slot=rep.slot,
                 formation_epoch=rep.formation_epoch,
+                reforming=rep.reforming,
                 t0_s=traj.t0_s,
                 durations_s=traj.durations_s,
                 coeffs=traj.coeffs.ravel(),
