@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from onboard.planner import kernels as kn
 from onboard.planner.astar import astar_path, segment_is_free
 from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.minco import Minco
@@ -107,6 +108,24 @@ def test_position_kernels_are_eval_piecewise() -> None:
         eval_position_velocity(tr.coeffs, tr.durations_s, t - tr.t0_s, out)
         assert np.array_equal(out[0], p) and np.array_equal(out[1], v)
         assert np.array_equal(np.array(eval_position(tr.coeffs, tr.durations_s, t - 1.0)), p)
+
+
+def test_peer_positions_are_each_trajectorys_own_samples() -> None:
+    """The packed peers (different piece counts, so the shorter ones are padded with hovers)
+    sampled in one call equal ``Trajectory.sample`` bit for bit, before, inside and after
+    each trajectory (the padding never read)."""
+    rng = np.random.default_rng(11)
+    trs = []
+    for pieces in (1, 3, 5, 2):
+        m = Minco(pieces)
+        m.set_conditions(rng.normal(size=(3, 3)), rng.normal(size=(3, 3)))
+        m.set_parameters(rng.normal(size=(pieces - 1, 3)), rng.uniform(0.2, 2.0, pieces))
+        trs.append(Trajectory(float(rng.uniform(0.0, 2.0)), m.coeffs, m.T))
+    pack = _pack_peers([PeerTrajectory(i, i, tr) for i, tr in enumerate(trs)])
+    for t in np.concatenate([rng.uniform(-1.0, 14.0, 200), [tr.t0_s for tr in trs]]):
+        got = kn.peer_positions(pack.c, pack.T, pack.n, pack.t0, float(t))
+        want = np.array([tr.sample(t) for tr in trs])
+        assert np.array_equal(got, want), t
 
 
 # --- the numpy oracle: the planner's set-up and check before they were compiled ------------
