@@ -489,6 +489,11 @@ def test_mode_change_by_someone_else_stops_streaming(implementation: str) -> Non
             lambda e: e.current == FlightMode.HOLD and e.previous == FlightMode.OFFBOARD,
         )
         assert not change.commanded
+        # a setpoint already on its way when streaming stopped may still arrive (MAVSDK's
+        # server sends from its own thread: CI saw one land after the event, machine loaded);
+        # after two heartbeats of the same loop nothing is in flight any more
+        hb = link.counters().heartbeats_sent
+        poll(lambda: link.counters().heartbeats_sent >= hb + 2, 5.0, "heartbeats")
         n = rg.fleet.links[0].stats.setpoints
         hb = link.counters().heartbeats_sent
         poll(lambda: link.counters().heartbeats_sent >= hb + 2, 5.0, "heartbeats")
@@ -514,6 +519,10 @@ def test_px4_failsafe_exit_from_offboard_is_detected(implementation: str) -> Non
         assert ev.failsafe and ev.was_streaming and not link.streaming
         assert not link.state().link_lost
         relay.drop_up = False
+        # a setpoint still queued when streaming stopped may pass once the relay lets it (as
+        # in the test above); after two heartbeats nothing is in flight
+        hb = link.counters().heartbeats_sent
+        poll(lambda: link.counters().heartbeats_sent >= hb + 2, 5.0, "heartbeats")
         n = rg.fleet.links[0].stats.setpoints
         hb = link.counters().heartbeats_sent
         poll(lambda: link.counters().heartbeats_sent >= hb + 2, 5.0, "heartbeats")
