@@ -452,19 +452,16 @@ class FormationPlanner:
         pack: _PeerPack | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(positions (K, 3), template points (K, 3)) of this drone (first) and its formation
-        peers (an edge to this drone's slot) at t_s; ``pack``: ``peers`` packed (their
-        positions then sampled in one compiled call, the same values)."""
+        peers (an edge to this drone's slot) at t_s, sampled in one compiled call (the values
+        of ``Trajectory.sample``); ``pack``: ``peers`` packed already (packed here if None)."""
         n = self.formation.shape[0]
         idx = [
             j for j, pt in enumerate(peers) if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0
         ]
         slots = [self.slot] + [peers[j].slot for j in idx]
-        if pack is not None:
-            pos = kn.peer_positions(pack.c, pack.T, pack.n, pack.t0, float(t_s))
-            pts = np.vstack((sp[None, :], pos[idx]))
-        else:
-            pts = np.asarray([sp] + [peers[j].trajectory.sample(t_s) for j in idx])
-        return pts, self.formation[np.array(slots)]
+        pk = _pack_peers(peers) if pack is None else pack
+        pos = kn.peer_positions(pk.c, pk.T, pk.n, pk.t0, float(t_s))
+        return np.vstack((sp[None, :], pos[idx])), self.formation[np.array(slots)]
 
     def _reference(
         self,
