@@ -80,6 +80,7 @@ from onboard.comm.bus import PeerBus
 from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask
+from onboard.planner.kernels import BAND_OK, band_state
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -270,6 +271,23 @@ def peer_conflict(
             first = float(ts[k])
             problem = f"{what} drone {pid} {float(d[:, j].min()):.2f} m in {ts[k] - now_s:.1f} s"
     return problem, first
+
+
+def obstacle_conflict(
+    d: np.ndarray, ts: np.ndarray, now_s: float, limit_m: float
+) -> tuple[str, float]:
+    """The first sample closer than ``limit_m`` to an obstacle, from the distances ``d`` (K,)
+    of our positions at the increasing times ``ts`` (d[0] where we are), as (what, its time);
+    ('', inf) when none. With the planner's rule for a start inside the limit
+    (``kernels.band_state``, the safety check's): a plan that starts inside it (not inside the
+    obstacle), never comes closer than its start and leaves the limit is the way out, not a
+    conflict (braking there would hold the drone inside for good: every retry's plan backs
+    out and every brake undoes it)."""
+    close = d < limit_m
+    if not close.any() or band_state(d, limit_m) == BAND_OK:
+        return "", math.inf
+    k = int(np.argmax(close))
+    return f"obstacle {float(d.min()):.2f} m in {ts[k] - now_s:.1f} s", float(ts[k])
 
 
 MONITOR_STEP_S = 0.1

@@ -874,3 +874,60 @@ def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() 
     finally:
         for b in buses:
             b.close()
+
+
+def test_the_monitor_lets_a_drone_inside_the_check_distance_back_out(tmp_path: Path) -> None:
+    """Seen on the real stack (7 drones, a formation change): a drone stopped 0.14 m from a
+    trunk, inside the check distance. Every retry's plan backed out (the planner accepts a
+    start inside the limit that never comes closer and leaves it), and every time the monitor
+    braked it for the obstacle 'in 0.0 s': the drone hovered there for a minute. The monitor
+    now applies the planner's rule: backing out is no conflict; staying or coming closer is."""
+    from onboard.planner.field import AnalyticField
+    from onboard.world import World
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    limit = h.cfg.planner.check_obstacle_m
+    r = 0.3  # a trunk whose surface is 0.15 m from the drone, along +y
+    cyl = np.array([[here[0], here[1] + 0.15 + r, r, 0.0, 5.0]])
+    fld = AnalyticField(World(cyl, np.zeros((0, 7)), np.zeros((0, 6)), ground_z=0.0))
+    h.svc.field = lambda: fld  # type: ignore[method-assign]
+    t = h.clock.t
+
+    def look(traj: Trajectory) -> str:
+        h.svc.agent.reset(traj)
+        h.svc._monitor_key = ()  # a new look, not the cached one
+        return h.svc.monitor_step()
+
+    assert float(fld.distance(here[None, :])[0][0]) < limit
+    away = moving(here, here + [0.0, -1.0, 0.0], t, speed=0.4)
+    assert look(away) == ""
+    assert h.svc.counters["monitor_brakes"] == 0
+    # staying inside, or coming closer first, is a conflict at once
+    for bad in (Trajectory.hover(here, t, 5.0), moving(here, here + [0.0, 0.1, 0.0], t)):
+        what = look(bad)
+        assert what.startswith(("brake: obstacle", "braking: obstacle")), what
+    assert h.svc.counters["monitor_brakes"] == 1
+
+
+def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
+    from onboard.agent import obstacle_conflict
+
+    ts = np.arange(10) * 0.1 + 100.0
+    limit = 0.22
+    clear = np.full(10, 0.5)
+    assert obstacle_conflict(clear, ts, 100.0, limit) == ("", math.inf)
+    enters = np.linspace(0.5, 0.1, 10)
+    what, at = obstacle_conflict(enters, ts, 100.0, limit)
+    assert "obstacle 0.10 m" in what and at == ts[int(np.argmax(enters < limit))]
+    backs_out = np.linspace(0.15, 0.4, 10)
+    assert obstacle_conflict(backs_out, ts, 100.0, limit) == ("", math.inf)
+    stays = np.full(10, 0.15)
+    assert obstacle_conflict(stays, ts, 100.0, limit)[1] == ts[0]
+    closer_first = np.concatenate([[0.15, 0.14], np.linspace(0.2, 0.4, 8)])
+    assert obstacle_conflict(closer_first, ts, 100.0, limit)[1] == ts[0]
+    out_then_closer = np.concatenate([np.linspace(0.15, 0.4, 5), np.linspace(0.3, 0.1, 5)])
+    assert obstacle_conflict(out_then_closer, ts, 100.0, limit)[1] == ts[0]
+    inside_the_obstacle = np.linspace(-0.05, 0.4, 10)
+    assert obstacle_conflict(inside_the_obstacle, ts, 100.0, limit)[1] == ts[0]

@@ -344,6 +344,12 @@ def trajectory_from_x(
     return c.reshape((M, 6, 3)), T, finite
 
 
+def band_state(d: np.ndarray, threshold: float) -> int:
+    """``_band`` from Python (BAND_*): the safety check's rule for a trajectory's distances
+    to obstacles or a peer, which the flight service's monitor applies too."""
+    return int(_band(np.ascontiguousarray(d, dtype=np.float64), float(threshold)))
+
+
 @njit(cache=True, nogil=True)
 def _band(d: np.ndarray, threshold: float) -> int:
     """Distances d (K,) along a trajectory, d[0] at its start, against ``threshold``: clear of

@@ -58,6 +58,7 @@ from onboard.agent import (
     monitor_action,
     monitor_step_index,
     monitor_times,
+    obstacle_conflict,
     peer_conflict,
 )
 from onboard.planner.planner import PlanStatus
@@ -687,10 +688,7 @@ class FlightService:
             problem, at = "", math.inf  # the earliest conflict and when
             if fld is not None:
                 d, _ = fld.distance(pos)
-                close = d < p.check_obstacle_m
-                if close.any():
-                    k = int(np.argmax(close))
-                    problem, at = f"obstacle {float(d.min()):.2f} m in {ts[k] - now:.1f} s", ts[k]
+                problem, at = obstacle_conflict(d, ts, now, p.check_obstacle_m)
             peer, peer_at = peer_conflict(view, now, ts, pos, p.check_drone_m)
             if peer_at < at:
                 problem, at = peer, peer_at
