@@ -125,6 +125,15 @@ def _sim_table(r: SimResult) -> Table:
     )
     t.add_row("e_dist mean / max", f"{_fmt(r.e_dist_mean)} / {_fmt(r.e_dist_max)} m")
     t.add_row("flight time", f"{_fmt(r.flight_time_s, '.1f')} s")
+    fc = r.formation_change
+    if fc:
+        reached = fc["reached_s"]
+        t.add_row(
+            "formation change",
+            f"to {fc['name']} at {fc['at_s']:.1f} s, "
+            + ("never reached" if reached is None else f"reached after {reached:.1f} s")
+            + " (e_sim < 0.01)",
+        )
     rm = r.replan_ms
     t.add_row(
         "replan ms median / p90 / max",
@@ -228,6 +237,14 @@ _set_opt = click.option(
     help="Drone whose broadcasts are lost (repeatable): a failed radio.",
 )
 @click.option(
+    "--formation-change",
+    "change",
+    default=None,
+    metavar="NAME@SECONDS",
+    help="Change to this formation (name or file) at this simulated time; slots by minimum "
+    "total distance, as the ground station assigns them.",
+)
+@click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
 )
 @click.option(
@@ -252,6 +269,7 @@ def sim(
     sets: tuple[str, ...],
     time_limit: float | None,
     silent: tuple[int, ...],
+    change: str | None,
     json_path: Path | None,
     tracks_path: Path | None,
     plot_path: Path | None,
@@ -285,8 +303,12 @@ def sim(
         cfg = dataclasses.replace(
             cfg, **perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
         )
+        if change is not None:
+            cfg = dataclasses.replace(cfg, formation_change=_formation_change(change))
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
         with _sim_progress(console, f"{cfg.formation.name} / {cfg.world.name}") as cb:
             result = run_sim(cfg, progress=cb)
@@ -319,6 +341,16 @@ def sim(
         console.print(f"wrote {plot_path}")
     if check and not result.success:
         raise SystemExit(1)
+
+
+def _formation_change(text: str) -> tuple[Any, float]:
+    """``NAME@SECONDS`` -> (the formation, the time); ``ValueError`` or ``ConfigError``."""
+    from gcs.demo import parse_change
+
+    parsed = parse_change(text)
+    if parsed is None:
+        raise ValueError("expected NAME@SECONDS, e.g. arrow-7@20")
+    return load_formation(parsed[0]), parsed[1]
 
 
 @main.group()
@@ -777,6 +809,7 @@ def bench_planner(
 def _register_bench_plugins() -> None:
     """Benchmarks that live in their own modules (their dependencies load only when run)."""
     from gcs.bench_bus import bench_bus
+    from gcs.bench_demo import bench_demo
     from gcs.bench_faults import bench_faults
     from gcs.bench_fuzz import fuzz_command
     from gcs.bench_mapping import bench_mapping
@@ -789,6 +822,7 @@ def _register_bench_plugins() -> None:
     bench.add_command(fuzz_command)
     bench.add_command(bench_service)
     bench.add_command(bench_faults)
+    bench.add_command(bench_demo)
 
 
 _register_bench_plugins()

@@ -87,6 +87,13 @@ class SimConfig:
     set after construction (``params``)."""
     silent_drones: tuple[int, ...] = ()
     """Drones whose broadcasts never reach anyone (a failed radio)."""
+    formation_change: tuple[Formation, float] | None = None
+    """(new template, simulated time): at that time every drone is given the new formation at
+    once (the ground station's common effective time), its slot by minimum total distance from
+    where the drones are (``gcs.formations.hungarian_slots`` over the template placed at their
+    centroid, as the ground station assigns it) and its goal moved to the goal centre plus its
+    new slot's offset; from then on the monitor scores e_sim, e_dist and arrival against the new
+    shape. The result's ``formation_change`` says when the new shape was reached."""
     max_events: int = 20
     """Collision events kept in the result (all are counted)."""
     warmup: bool = True
@@ -225,6 +232,15 @@ class SimConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be >= 0, got {v!r}")
+        if self.formation_change is not None:
+            tpl, at = self.formation_change
+            if not isinstance(tpl, Formation) or tpl.n != n:
+                raise ValueError(
+                    f"formation_change: expected a Formation of {n} points, got {tpl!r}"
+                )
+            if not (math.isfinite(at) and at >= 0.0):
+                raise ValueError(f"formation_change: time must be finite and >= 0, got {at!r}")
+            object.__setattr__(self, "formation_change", (tpl, float(at)))
         both = set(self.stuck_drones) & set(self.killed_drones)
         if both:
             raise ValueError(f"drones {sorted(both)} are both stuck_drones and killed_drones")
@@ -313,6 +329,12 @@ class SimResult:
     the designed reaction), ``peer_uses_audited``, ``killed`` / ``stuck`` (id -> time and
     position where the vehicle stopped), ``bus`` (the ``FaultyBus`` counters)."""
 
+    formation_change: dict[str, Any] = field(default_factory=dict)
+    """With ``SimConfig.formation_change``: ``name``, ``at_s`` (simulated time of the change),
+    ``slots`` (drone id -> its slot in the new template) and ``reached_s`` (from the change to
+    the first sample with e_sim below ``FORMATION_REACHED_E_SIM``; None if never). Empty
+    without a change."""
+
     refusals: dict[str, int] = field(default_factory=dict)
     """Optimised attempts the safety check refused, over all replans (a replan that ends
     ok-no-formation, kept-previous or emergency refused one or more): ``attempts`` in all,
@@ -346,6 +368,7 @@ class SimResult:
             "evaluations": {k: _num(v) for k, v in self.evaluations.items()},
             "status_counts": dict(self.status_counts),
             "refusals": dict(self.refusals),
+            "formation_change": dict(self.formation_change),
             "sim_wall_s": _num(self.sim_wall_s),
             "warmup_s": _num(self.warmup_s),
             "formation": self.formation_name,
@@ -418,6 +441,8 @@ def _config_summary(cfg: SimConfig, params: PlannerParams) -> dict[str, Any]:
         v = getattr(cfg, f.name)
         if isinstance(v, BusFaults):
             v = dataclasses.asdict(v)
+        elif f.name == "formation_change" and v is not None:
+            v = {"name": v[0].name, "at_s": v[1], "points": np.asarray(v[0].points).tolist()}
         elif isinstance(v, dict):
             v = {str(k): x for k, x in v.items()}
         elif isinstance(v, float):
@@ -856,6 +881,8 @@ def run_sim(
     stopped: dict[int, tuple[float, list[float]]] = {}  # drone -> (time, position) it stopped
     stuck_next: dict[int, float] = {}  # next publication of a stuck drone's hover
     healthy = np.array([i not in killed and i not in stuck for i in range(n)])
+    change = cfg.formation_change
+    change_record: dict[str, Any] | None = None
     timed_out = True
     t = 0.0
     for k in range(n_steps_max + 1):
@@ -910,6 +937,8 @@ def run_sim(
             for i, ag in enumerate(agents):
                 if i not in stopped:
                     monitors[i].look(ag, t)
+        if change is not None and change_record is None and t >= change[1] - EPS_T:
+            change_record = _change_formation(change[0], t, pos, goals, agents, mon)
         for i, ag in sorted(enumerate(agents), key=lambda q: q[1].next_replan_s):
             if i not in stopped and ag.due(t):
                 replan(ag, t, pos[i].copy())
@@ -917,6 +946,13 @@ def run_sim(
                     monitors[i].last_plan_s = t
                 pos[i] = ag.advance(t).sample(t)
         done = mon.step(k, t, pos, velocities)
+        if (
+            change_record is not None
+            and change_record["reached_s"] is None
+            and k % mon.sample_every == 0
+            and mon.last_e_sim < FORMATION_REACHED_E_SIM
+        ):
+            change_record["reached_s"] = t - change_record["at_s"]
         if not done and stopped and k % mon.sample_every == 0:  # the healthy ones are enough
             done = bool(np.all(mon.arrived(pos, velocities())[healthy]))
         if done:
@@ -933,7 +969,7 @@ def run_sim(
         mon.arrived(pos, velocities()),
         world,
         starts,
-        goals,
+        mon.goals,
         t,
         timed_out,
         replan_ms=replan_ms,
@@ -957,7 +993,42 @@ def run_sim(
                 for k in ("silent", "refused_older", "avoided")
             },
         },
+        formation_change=change_record,
     )
+
+
+FORMATION_REACHED_E_SIM = 0.01
+"""A new formation counts as reached once e_sim falls below this (issue #10's bar; the demo's
+too)."""
+
+
+def _change_formation(
+    tpl: Formation,
+    t: float,
+    pos: np.ndarray,
+    goals: np.ndarray,
+    agents: Sequence[DroneAgent],
+    mon: FlightMonitor,
+) -> dict[str, Any]:
+    """Give every drone its slot of ``tpl`` (minimum total distance from ``pos`` to the
+    template placed at their centroid, as the ground station assigns) and the goal centre plus
+    that slot's offset; the monitor scores the new shape from now on. Returns the record of
+    the change (``SimResult.formation_change``)."""
+    from gcs.formations import hungarian_slots, place
+
+    pts = np.asarray(tpl.points, dtype=np.float64)
+    slot_of, _cost = hungarian_slots(pos, place(pts, pos.mean(axis=0), 1.0, 0.0))
+    offsets = pts - pts.mean(axis=0)
+    new_goals = goals.mean(axis=0) + offsets[slot_of]
+    for i, ag in enumerate(agents):
+        ag.set_formation(pts, int(slot_of[i]), goal=new_goals[i])
+    mon.retarget(new_goals, pts[slot_of])
+    return {
+        "name": tpl.name,
+        "at_s": t,
+        "slots": {str(i): int(s) for i, s in enumerate(slot_of)},
+        "reached_s": None,
+    }
 
 
 def result_from_monitor(
@@ -979,6 +1050,7 @@ def result_from_monitor(
     warmup_s: float,
     config: dict[str, Any],
     faults: dict[str, Any] | None = None,
+    formation_change: dict[str, Any] | None = None,
 ) -> SimResult:
     """The result of a flight from what its monitor saw (shared by every way of flying)."""
     tracks = mon.tracks()
@@ -1021,6 +1093,7 @@ def result_from_monitor(
         config=config,
         faults={} if faults is None else faults,
         refusals={} if refusals is None else dict(refusals),
+        formation_change={} if formation_change is None else dict(formation_change),
     )
 
 

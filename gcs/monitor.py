@@ -71,6 +71,9 @@ class FlightMonitor:
         self._t: list[float] = []
         self._p: list[np.ndarray] = []
         self._e: list[float] = []
+        self._d: list[float] = []
+        self.last_e_sim = math.nan
+        """e_sim at the latest sample instant."""
 
     def step(self, k: int, t: float, pos: np.ndarray, vel: Callable[[], np.ndarray]) -> bool:
         """Check step k at time t; returns True once every drone rests at its goal (checked at
@@ -98,10 +101,22 @@ class FlightMonitor:
             return False
         self._t.append(t)
         self._p.append(pos.copy())
-        self._e.append(similarity(pos, self.formation)[0])
+        self.last_e_sim = similarity(pos, self.formation)[0]
+        self._e.append(self.last_e_sim)
+        self._d.append(e_dist(pos, self.formation))
         v = vel()
         self.max_speed_m_s = max(self.max_speed_m_s, float(np.max(np.linalg.norm(v, axis=1))))
         return bool(np.all(self.arrived(pos, v)))
+
+    def retarget(self, goals: np.ndarray, formation: np.ndarray) -> None:
+        """A new formation in flight: arrival is judged at ``goals`` (N, 3) and the formation
+        metrics against ``formation`` (N, 3; row i: drone i's point) from the next sample on."""
+        g = np.asarray(goals, dtype=np.float64)
+        f = np.asarray(formation, dtype=np.float64)
+        if g.shape != (self.n, 3) or f.shape != (self.n, 3):
+            raise ValueError(f"retarget: goals and formation must be ({self.n}, 3)")
+        self.goals = g
+        self.formation = f
 
     def arrived(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
         """(N,) bool: within the goal tolerance and slower than the arrival speed."""
@@ -115,5 +130,4 @@ class FlightMonitor:
     def tracks(self) -> Tracks:
         t = np.array(self._t)
         p = np.array(self._p).reshape(-1, self.n, 3)
-        d = np.array([e_dist(q, self.formation) for q in p])
-        return Tracks(t, p, np.array(self._e), d)
+        return Tracks(t, p, np.array(self._e), np.array(self._d))
