@@ -456,6 +456,14 @@ class FlightLog:
         return {"e_dist_m": mean(self.e_dist), "e_sim": mean(self.e_sim)}
 
 
+def default_depth_rate(cfg: DemoConfig) -> float:
+    """Depth frames per second and drone: ``cfg.depth_rate_hz``, else what this 2-core machine
+    renders and maps in real time for the swarm's size (10 up to 4 drones, 5 above)."""
+    if cfg.depth_rate_hz is not None:
+        return float(cfg.depth_rate_hz)
+    return 10.0 if cfg.drones <= 4 else 5.0
+
+
 GAVE_UP = ("emergency", "landing", "landed", "pilot", "link-lost")
 """Flight states in which a drone no longer flies the mission."""
 
@@ -472,11 +480,7 @@ class Demo:
 
         self.cfg = cfg
         self.progress = progress or (lambda phase, info: None)
-        self.depth_rate_hz = float(
-            cfg.depth_rate_hz
-            if cfg.depth_rate_hz is not None
-            else (10.0 if cfg.drones <= 4 else 5.0)
-        )
+        self.depth_rate_hz = default_depth_rate(cfg)
         if not 1.0 <= self.depth_rate_hz <= 30.0:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:

@@ -1,0 +1,343 @@
+"""``swarm-gcs bench demo``: the end-to-end demo over seeds, beside the fast-time simulator.
+
+Issue #10's numbers: the real stack (``swarm-gcs demo``: the mock fleet, one flight service per
+drone, the ground station) over seeds 1..N, optionally with a formation change in flight, and
+for each seed the fast-time simulator (``gcs.fastsim``) on the same world: the same formation,
+obstacles, starts and goals, mapped perception at the demo's depth rate and pixel step, the
+same change at the same time after the goal. One demo runs at a time (each takes the whole
+machine), its own process (``swarm-gcs demo --json``, so that an interrupted run cleans up as
+the demo does); the fast-time flight runs after it.
+
+Clearances differ in kind: the demo's ``body`` clearance is the mock's (trunk surface to the
+vehicle's body, its radius off the centre's); ``centre`` clearances (the flight records' for
+the demo, the simulator's own) are the drone centre to the surface, which is what the
+fast-time simulator measures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from gcs.fastsim import FORMATION_REACHED_E_SIM
+
+REACHED_WITHIN_S = 10.0
+"""Issue #10: the new shape (e_sim below ``FORMATION_REACHED_E_SIM``) within this long."""
+
+
+def _num(x: Any) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def run_demo_seed(seed: int, argv: list[str], out_dir: Path, timeout_s: float) -> dict[str, Any]:
+    """One ``swarm-gcs demo`` process for ``seed``; its JSON result (or, when it failed
+    before printing one, its ``result.json`` and the tail of its error output) plus the
+    centre clearance of its flight records."""
+    cmd = [sys.executable, "-m", "gcs.cli", "demo", *argv, "--seed", str(seed)]
+    cmd += ["--json", "-q", "--out", str(out_dir)]
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except BaseException:
+        # Ctrl-C or our timeout: the demo stops every process it started on SIGINT
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+        raise
+    wall = time.monotonic() - t0
+    result: dict[str, Any] = {}
+    for line in reversed(out.splitlines()):
+        if line.startswith("{"):
+            result = json.loads(line)
+            break
+    if not result and (out_dir / "result.json").exists():
+        result = json.loads((out_dir / "result.json").read_text())
+    if not result:
+        result = {"success": False}
+    result.setdefault("error", None)
+    if proc.returncode != 0 and not result.get("error"):
+        if result.get("collisions"):
+            result["error"] = f"{result['collisions']} collision(s) reported by the mock"
+        elif err.strip():
+            result["error"] = err.strip().splitlines()[-1]
+        else:
+            result["error"] = f"exit {proc.returncode}"
+    result["exit_code"] = proc.returncode
+    result["bench_wall_s"] = wall
+    summary = out_dir / "report" / "summary.json"
+    centre = None
+    if summary.exists():
+        centre = _num(json.loads(summary.read_text()).get("min_obstacle_clearance_m"))
+    result["min_obstacle_clearance_centre_m"] = centre
+    return result
+
+
+def run_fastsim_seed(
+    seed: int,
+    formation: str,
+    world: str,
+    change: tuple[str, float] | None,
+    depth_rate_hz: float,
+    depth_step: int,
+    planner: Any,
+) -> dict[str, Any]:
+    """The fast-time flight of the demo's world for ``seed``: mapped perception at the demo's
+    depth rate and step, the demo's planner parameters, the same formation change."""
+    from gcs.fastsim import SimConfig, run_sim
+    from onboard.config import load_formation, load_world_spec
+
+    cfg = SimConfig(
+        load_formation(formation),
+        load_world_spec(world),
+        seed=seed,
+        planner=planner,
+        perception="mapped",
+        camera_rate_hz=depth_rate_hz,
+        camera_skip_pixel=depth_step,
+        formation_change=None if change is None else (load_formation(change[0]), change[1]),
+    )
+    r = run_sim(cfg)
+    t = r.tracks
+    cx = t.pos[:, :, 0].mean(axis=1) if t.pos.shape[0] else np.zeros(0)
+    lo, hi = r.cluttered_x
+    inside = (cx >= lo) & (cx <= hi)
+    return {
+        "success": bool(r.success),
+        "arrived": int(np.sum(r.arrived)),
+        "collisions": int(r.collisions),
+        "flight_time_s": _num(r.flight_time_s),
+        "e_sim": _num(np.mean(t.e_sim[inside])) if np.any(inside) else None,
+        "e_dist_m": _num(np.mean(t.e_dist[inside])) if np.any(inside) else None,
+        "min_obstacle_clearance_centre_m": _num(r.min_obstacle_clearance_m),
+        "min_drone_distance_m": _num(r.min_drone_distance_m),
+        "max_speed_m_s": _num(r.max_speed_m_s),
+        "formation_change_reached_s": (r.formation_change or {}).get("reached_s"),
+        "replan_ms_median": _num(r.replan_ms.get("median")),
+        "sim_wall_s": _num(r.sim_wall_s),
+    }
+
+
+def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
+    """The figures of a demo result the bench reports (the full result stays in its flight
+    directory)."""
+    sp = d.get("setpoint_period_ms") or {}
+    plan = d.get("plan_ms") or {}
+    depth = d.get("depth") or {}
+    return {
+        "success": bool(d.get("success")),
+        "error": d.get("error"),
+        "collisions": d.get("collisions"),
+        "wall_s": _num(d.get("wall_s", d.get("bench_wall_s"))),
+        "flight_time_s": _num(d.get("flight_time_s")),
+        "crossing_time_s": _num(d.get("crossing_time_s")),
+        "e_sim": _num(d.get("e_sim")),
+        "e_dist_m": _num(d.get("e_dist_m")),
+        "min_obstacle_clearance_body_m": _num(d.get("min_obstacle_clearance_m")),
+        "min_obstacle_clearance_centre_m": _num(d.get("min_obstacle_clearance_centre_m")),
+        "min_drone_distance_m": _num(d.get("min_drone_distance_m")),
+        "formation_change_reached_s": _num(d.get("formation_change_reached_s")),
+        "setpoint_period_p99_ms": _num(sp.get("p99")),
+        "setpoint_period_max_ms": _num(sp.get("max")),
+        "plan_ms_median": _num(plan.get("median")),
+        "plan_ms_p90": _num(plan.get("p90")),
+        "depth_frames": depth.get("frames"),
+        "depth_frames_skipped": depth.get("skipped"),
+        "cpu_s": sum((d.get("cpu_s") or {}).values()) or None,
+        "flight_dir": d.get("flight_dir"),
+    }
+
+
+def _reached(row: dict[str, Any]) -> bool:
+    r = row.get("formation_change_reached_s")
+    return r is not None and r <= REACHED_WITHIN_S
+
+
+def summarise(rows: list[dict[str, Any]], change: bool) -> dict[str, Any]:
+    """Counts over the seeds: demo successes (and, with a change, those that reached the new
+    shape within ``REACHED_WITHIN_S``), the same for the fast-time flights."""
+    out: dict[str, Any] = {"seeds": len(rows)}
+    for side in ("demo", "fastsim"):
+        got = [r[side] for r in rows if r.get(side) is not None]
+        out[side] = {
+            "flown": len(got),
+            "success": sum(1 for g in got if g["success"]),
+            "collisions": sum(int(g.get("collisions") or 0) for g in got),
+        }
+        if change:
+            out[side]["reached_within_10_s"] = sum(1 for g in got if g["success"] and _reached(g))
+    met = out["demo"]["success"] == len(rows) and out["demo"]["collisions"] == 0
+    if change:
+        met = met and out["demo"]["reached_within_10_s"] == len(rows)
+    out["demo_target_met"] = bool(rows) and met
+    return out
+
+
+def _fmt(x: Any, spec: str = ".2f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+@click.command("demo")
+@click.option("--seeds", type=click.IntRange(1, 100), default=5, show_default=True,
+              help="How many seeds (one world each).")  # fmt: skip
+@click.option("--first-seed", type=int, default=1, show_default=True,
+              help="Seeds first-seed .. first-seed + seeds - 1.")  # fmt: skip
+@click.option("--drones", type=click.IntRange(2, 64), default=7, show_default=True)
+@click.option("--formation", default="hexagon-7", show_default=True)
+@click.option("--world", default="forest-medium", show_default=True)
+@click.option("--formation-change", "change", default=None, metavar="NAME@SECONDS",
+              help="Change formation this many seconds after the goal (the fast-time flight: "
+              "after its start, where it has its goal).")  # fmt: skip
+@click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=None,
+              help="Depth frames per second and drone [default: the demo's].")  # fmt: skip
+@click.option("--no-fastsim", is_flag=True, help="Fly only the real stack.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              default=None,
+              help="Flight directories go here [default: flights/bench-demo-TIME].")  # fmt: skip
+@click.option("--timeout", "timeout_s", type=float, default=900.0, show_default=True,
+              help="Seconds one demo may take before it is interrupted.")  # fmt: skip
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write JSON.")  # fmt: skip
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
+def bench_demo(
+    seeds: int, first_seed: int, drones: int, formation: str, world: str, change: str | None,
+    depth_rate: float | None, no_fastsim: bool, out_dir: Path | None, timeout_s: float,
+    json_path: Path | None, quiet: bool,
+) -> None:  # fmt: skip
+    """The end-to-end demo over seeds (1..N by default), each beside the fast-time simulator
+    on the same world (issue #10: 5 of 5 seeds; with a formation change, the new shape within
+    10 s)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from gcs.demo import DemoConfig, default_depth_rate, parse_change
+    from onboard.config import ConfigError, load_formation
+    from onboard.service.config import load_onboard_config
+
+    console = Console(quiet=quiet, highlight=False)
+    try:
+        fc = parse_change(change)
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--formation-change") from e
+    try:
+        n = load_formation(formation).n
+        if n != drones:
+            raise ConfigError(f"{formation} has {n} points for {drones} drones")
+        if fc is not None and load_formation(fc[0]).n != drones:
+            raise ConfigError(f"{fc[0]} has {load_formation(fc[0]).n} points for {drones} drones")
+        service = load_onboard_config(None, drone_id=0)
+    except ConfigError as e:
+        raise click.ClickException(str(e)) from e
+    demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate)
+    rate = default_depth_rate(demo_cfg)
+    step = int(service.depth.step)
+    base = (
+        out_dir
+        if out_dir is not None
+        else Path("flights") / time.strftime("bench-demo-%Y%m%d-%H%M%S")
+    )
+    base.mkdir(parents=True, exist_ok=True)
+    argv = ["--drones", str(drones), "--formation", formation, "--world", world]
+    argv += ["--depth-rate", str(rate)]
+    if change is not None:
+        argv += ["--formation-change", change]
+    load0 = os.getloadavg()
+    rows: list[dict[str, Any]] = []
+    for seed in range(first_seed, first_seed + seeds):
+        console.print(f"seed {seed}: demo ...")
+        d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
+        row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
+        if not no_fastsim:
+            console.print(f"seed {seed}: fast-time flight ...")
+            row["fastsim"] = run_fastsim_seed(
+                seed, formation, world, fc, rate, step, service.planner
+            )
+        rows.append(row)
+    report: dict[str, Any] = {
+        "benchmark": "demo",
+        "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "config": {
+            "drones": drones,
+            "formation": formation,
+            "world": world,
+            "formation_change": change,
+            "seeds": list(range(first_seed, first_seed + seeds)),
+            "depth_rate_hz": rate,
+            "depth_step": step,
+            "v_max_m_s": service.planner.v_max_m_s,
+            "fastsim_perception": None if no_fastsim else "mapped",
+        },
+        "rows": rows,
+        "summary": summarise(rows, fc is not None),
+        "load_average": {"start": list(load0), "end": list(os.getloadavg())},
+        "host": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "out_dir": str(base),
+    }
+    t = Table(title=f"{formation} ({drones} drones) through {world}"
+              + (f", change to {change}" if change else ""))  # fmt: skip
+    cols = ["seed", "run", "result", "wall s", "flight s", "e_dist m", "e_sim",
+            "clear. centre / body m", "min pair m"]  # fmt: skip
+    if fc is not None:
+        cols.append("new shape after s")
+    cols += ["plans med ms", "depth frames / skipped"]
+    for c in cols:
+        t.add_column(c, justify="right")
+    for r in rows:
+        for side in ("demo", "fastsim"):
+            g = r[side]
+            if g is None:
+                continue
+            ok = "[green]success[/green]" if g["success"] else "[red]failed[/red]"
+            cells = [
+                str(r["seed"]) if side == "demo" else "",
+                "real stack" if side == "demo" else "fast time",
+                ok,
+                _fmt(g.get("wall_s", g.get("sim_wall_s")), ".0f"),
+                _fmt(g.get("flight_time_s"), ".1f"),
+                _fmt(g.get("e_dist_m"), ".3f"),
+                _fmt(g.get("e_sim"), ".4f"),
+                f"{_fmt(g.get('min_obstacle_clearance_centre_m'), '.3f')} / "
+                f"{_fmt(g.get('min_obstacle_clearance_body_m'), '.3f')}",
+                _fmt(g.get("min_drone_distance_m")),
+            ]
+            if fc is not None:
+                cells.append(_fmt(g.get("formation_change_reached_s"), ".1f"))
+            cells += [
+                _fmt(g.get("plan_ms_median", g.get("replan_ms_median")), ".1f"),
+                f"{g.get('depth_frames', '-')} / {g.get('depth_frames_skipped', '-')}"
+                if side == "demo"
+                else "",
+            ]
+            t.add_row(*cells)
+    console.print(t)
+    s = report["summary"]
+    line = f"real stack: {s['demo']['success']} of {seeds} seeds succeeded"
+    if fc is not None:
+        line += f", {s['demo']['reached_within_10_s']} reached the new shape within 10 s"
+    if not no_fastsim:
+        line += f"; fast time: {s['fastsim']['success']} of {seeds}"
+    console.print(line)
+    console.print(
+        f"e_sim: mean over the cluttered span; new shape: e_sim < {FORMATION_REACHED_E_SIM}"
+    )
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
+        console.print(f"wrote {json_path}")

@@ -1,0 +1,41 @@
+"""``swarm-gcs bench demo``: how a run over seeds is judged, and a demo that fails is reported
+(the flights themselves are benchmarks, not tests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from gcs.bench_demo import run_demo_seed, summarise
+
+
+def _row(seed: int, ok: bool, reached: float | None, collisions: int = 0) -> dict[str, Any]:
+    side = {"success": ok, "collisions": collisions, "formation_change_reached_s": reached}
+    return {"seed": seed, "demo": dict(side), "fastsim": dict(side)}
+
+
+def test_every_seed_must_succeed() -> None:
+    rows = [_row(1, True, None), _row(2, True, None)]
+    s = summarise(rows, change=False)
+    assert s["demo"] == {"flown": 2, "success": 2, "collisions": 0}
+    assert s["demo_target_met"]
+    rows.append(_row(3, False, None))
+    s = summarise(rows, change=False)
+    assert s["demo"]["success"] == 2 and not s["demo_target_met"]
+    assert not summarise([], change=False)["demo_target_met"]
+
+
+def test_a_change_must_reach_the_new_shape_within_10_s() -> None:
+    ok = [_row(1, True, 6.0), _row(2, True, 10.0)]
+    s = summarise(ok, change=True)
+    assert s["demo"]["reached_within_10_s"] == 2 and s["demo_target_met"]
+    for bad in (_row(3, True, 10.5), _row(3, True, None), _row(3, False, 4.0)):
+        s = summarise([*ok, bad], change=True)
+        assert s["demo"]["reached_within_10_s"] == 2 and not s["demo_target_met"], bad
+
+
+def test_a_failed_demo_is_reported_with_its_error(tmp_path: Path) -> None:
+    r = run_demo_seed(1, ["--formation", "no-such-formation"], tmp_path / "f", 120.0)
+    assert r["success"] is False and r["exit_code"] != 0
+    assert "no-such-formation" in r["error"]
+    assert r["min_obstacle_clearance_centre_m"] is None
