@@ -105,6 +105,9 @@ log = logging.getLogger("onboard.service")
 
 S = FlightState
 _OK = (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
+HOLDING_STILL_M = 0.01
+"""A plan whose positions over the monitor's horizon stay within this (and whose velocity is
+nil now) holds still: the monitor does not brake it (see ``monitor_step``)."""
 
 
 @dataclass(frozen=True)
@@ -250,6 +253,7 @@ class FlightService:
             "plans_failed": 0,
             "monitor_replans": 0,
             "monitor_brakes": 0,
+            "monitor_holding": 0,
             "frames": 0,
             "frames_rejected": 0,
             "frames_missed": 0,
@@ -710,9 +714,18 @@ class FlightService:
             self._ask_replan()
         if action != "brake":
             return f"{action}: {problem}"
+        pp, vv, aa = traj.state(now)
+        ahead = self.agent.planned(monitor_times(g, self.cfg.planning.monitor_horizon_s))
+        if float(np.ptp(ahead, axis=0).max()) < HOLDING_STILL_M and np.linalg.norm(vv) < 0.05:
+            # the plan in control already holds still: a braking stop would be the same hover,
+            # and counting it as a failed plan would put off every retry, whose plan may back
+            # out (a drone stopped inside the check distance hovered there until it gave up)
+            self.counters["monitor_holding"] += 1
+            if it.state is S.FORMATION_FLIGHT:
+                self._ask_replan()
+            return f"holding: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
-        pp, vv, aa = traj.state(now)
         # a conflict ahead: the hardest stop within the acceleration limit
         self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2, peak_fraction=1.0))
         self._results.put(("monitor_brake", problem))
