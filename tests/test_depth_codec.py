@@ -277,7 +277,14 @@ def test_subscriber_counts_rejections_and_keeps_going(
         pub.put("t/sim/2/pose", b"\x00garbage")
         pub.put("t/sim/2/depth", _image(stamp=5.0).to_bytes())
         pub.put("t/sim/2/depth", _image(stamp=4.0).to_bytes())  # older than the one kept
-        _wait(lambda: sub.counters()["depth.out-of-order"] == 1, "the last frame")
+        # poses and depth frames come through separate subscribers: one stream's callbacks may
+        # run after the other's (seen in CI: the bad pose counted after the last frame)
+        _wait(
+            lambda: (
+                sub.counters()["depth.out-of-order"] == 1 and sub.counters()["pose.malformed"] == 1
+            ),
+            "the last frame and the bad pose",
+        )
         c = sub.counters()
         for reason in bad:
             assert c[f"depth.{reason}"] == 1, (reason, c)
