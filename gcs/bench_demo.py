@@ -231,7 +231,8 @@ def bench_demo(
     from onboard.config import ConfigError, load_formation
     from onboard.service.config import load_onboard_config
 
-    console = Console(quiet=quiet, highlight=False)
+    # a wide table when written to a file or a pipe (rich's default there is 80 columns)
+    console = Console(quiet=quiet, highlight=False, width=None if sys.stdout.isatty() else 180)
     try:
         fc = parse_change(change)
     except ValueError as e:
