@@ -241,7 +241,8 @@ class FlightService:
         self._monitor_brake_at = -math.inf
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
-        self._monitor_problem: tuple[str, float] = ("", math.inf)
+        # the conflict found for _monitor_key, and whether that plan holds still
+        self._monitor_problem: tuple[str, float, bool] = ("", math.inf, False)
         self._plan_ms: list[float] = []
         self._plan_status = ""
         self._plan_stamp: float | None = None
@@ -702,8 +703,9 @@ class FlightService:
             if out.any() and ts[int(np.argmax(out))] < at:
                 problem, at = "geofence", ts[int(np.argmax(out))]
             self._monitor_key = (fld, view, plan, g)
-            self._monitor_problem = (problem, float(at))
-        problem, at = self._monitor_problem
+            still = float(np.ptp(pos, axis=0).max()) < HOLDING_STILL_M
+            self._monitor_problem = (problem, float(at), still)
+        problem, at, still = self._monitor_problem
         if not problem:
             return ""
         action = monitor_action(
@@ -715,8 +717,7 @@ class FlightService:
         if action != "brake":
             return f"{action}: {problem}"
         pp, vv, aa = traj.state(now)
-        ahead = self.agent.planned(monitor_times(g, self.cfg.planning.monitor_horizon_s))
-        if float(np.ptp(ahead, axis=0).max()) < HOLDING_STILL_M and np.linalg.norm(vv) < 0.05:
+        if still and np.linalg.norm(vv) < 0.05:
             # the plan in control already holds still: a braking stop would be the same hover,
             # and counting it as a failed plan would put off every retry, whose plan may back
             # out (a drone stopped inside the check distance hovered there until it gave up)
