@@ -1010,18 +1010,18 @@ def _change_formation(
     agents: Sequence[DroneAgent],
     mon: FlightMonitor,
 ) -> dict[str, Any]:
-    """Give every drone its slot of ``tpl`` (minimum total distance from ``pos`` to the
-    template placed at their centroid, as the ground station assigns) and the goal centre plus
-    that slot's offset; the monitor scores the new shape from now on. Returns the record of
-    the change (``SimResult.formation_change``)."""
-    from gcs.formations import hungarian_slots, place
+    """Give every drone its slot of ``tpl`` as the ground station assigns it
+    (``FormationAssigner``: the template at the drones' centroid, slots by minimum total
+    distance from ``pos``) and the goal centre plus that slot's offset; the monitor scores the
+    new shape from now on. Returns the record of the change (``SimResult.formation_change``)."""
+    from gcs.formations import FormationAssigner
 
+    a = FormationAssigner(clock=lambda: t, lead_s=0.0).assign(tpl, dict(enumerate(pos)))
     pts = np.asarray(tpl.points, dtype=np.float64)
-    slot_of, _cost = hungarian_slots(pos, place(pts, pos.mean(axis=0), 1.0, 0.0))
-    offsets = pts - pts.mean(axis=0)
-    new_goals = goals.mean(axis=0) + offsets[slot_of]
+    slot_of = np.array([a.slots[i] for i in range(len(agents))])
+    new_goals = goals.mean(axis=0) + a.offsets_m[slot_of]
     for i, ag in enumerate(agents):
-        ag.set_formation(pts, int(slot_of[i]), goal=new_goals[i])
+        ag.set_formation(pts, int(slot_of[i]), a.epoch, goal=new_goals[i])
     mon.retarget(new_goals, pts[slot_of])
     return {
         "name": tpl.name,
