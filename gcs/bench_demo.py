@@ -115,17 +115,13 @@ def run_fastsim_seed(
         formation_change=None if change is None else (load_formation(change[0]), change[1]),
     )
     r = run_sim(cfg)
-    t = r.tracks
-    cx = t.pos[:, :, 0].mean(axis=1) if t.pos.shape[0] else np.zeros(0)
-    lo, hi = r.cluttered_x
-    inside = (cx >= lo) & (cx <= hi)
     return {
         "success": bool(r.success),
         "arrived": int(np.sum(r.arrived)),
         "collisions": int(r.collisions),
         "flight_time_s": _num(r.flight_time_s),
-        "e_sim": _num(np.mean(t.e_sim[inside])) if np.any(inside) else None,
-        "e_dist_m": _num(np.mean(t.e_dist[inside])) if np.any(inside) else None,
+        "e_sim": _num(r.e_sim_mean_cluttered),
+        "e_dist_m": _num(r.e_dist_mean_cluttered),
         "min_obstacle_clearance_centre_m": _num(r.min_obstacle_clearance_m),
         "min_drone_distance_m": _num(r.min_drone_distance_m),
         "max_speed_m_s": _num(r.max_speed_m_s),

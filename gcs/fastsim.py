@@ -304,6 +304,8 @@ class SimResult:
     e_sim_max: float
     e_sim_mean_cluttered: float
     """Mean e_sim while the swarm's centroid is inside the cluttered x span."""
+    e_dist_mean_cluttered: float
+    """Mean e_dist over the same samples."""
     e_dist_mean: float
     e_dist_max: float
     flight_time_s: float
@@ -359,6 +361,7 @@ class SimResult:
             "e_sim_mean": _num(self.e_sim_mean),
             "e_sim_max": _num(self.e_sim_max),
             "e_sim_mean_cluttered": _num(self.e_sim_mean_cluttered),
+            "e_dist_mean_cluttered": _num(self.e_dist_mean_cluttered),
             "e_dist_mean": _num(self.e_dist_mean),
             "e_dist_max": _num(self.e_dist_max),
             "flight_time_s": _num(self.flight_time_s),
@@ -1072,6 +1075,7 @@ def result_from_monitor(
         e_sim_mean=float(np.mean(e)) if e.size else math.nan,
         e_sim_max=float(np.max(e)) if e.size else math.nan,
         e_sim_mean_cluttered=float(np.mean(e[inside])) if np.any(inside) else math.nan,
+        e_dist_mean_cluttered=float(np.mean(ed[inside])) if np.any(inside) else math.nan,
         e_dist_mean=float(np.mean(ed)) if ed.size else math.nan,
         e_dist_max=float(np.max(ed)) if ed.size else math.nan,
         flight_time_s=t,
