@@ -81,7 +81,7 @@ from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask
 from onboard.planner.kernels import BAND_OK, band_state
-from onboard.planner.params import PlannerParams
+from onboard.planner.params import PlannerParams, reform_params
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
 
@@ -209,8 +209,8 @@ class PlanReport:
     quiet_peers: tuple[int, ...] = ()
     """Peers quiet but not (yet) silent: avoided at their ghosts too, still in the formation."""
     reforming: bool = False
-    """Planned within ``PlannerParams.reform_s`` of a formation change: without the lead
-    slow-down."""
+    """Planned within ``PlannerParams.reform_s`` of a formation change: with
+    ``params.reform_params`` (the lead slow-down from the centroid, a stronger formation term)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -1242,7 +1242,7 @@ class DroneAgent:
         self, formation: np.ndarray, slot: int, n_avoided: int, reforming: bool = False
     ) -> FormationPlanner:
         """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached);
-        ``reforming``: without the lead slow-down (``PlannerParams.reform_s``)."""
+        ``reforming``: with ``reform_params`` (``PlannerParams.reform_s``)."""
         key = (slot, formation.tobytes(), n_avoided, reforming)
         hit = self._planners.get(key)
         if hit is not None:
@@ -1251,7 +1251,7 @@ class DroneAgent:
             self._planners.clear()
         params = self.params
         if reforming:
-            params = dataclasses.replace(params, lead_slowdown_m=0.0)
+            params = reform_params(params)
         if n_avoided == 0:
             planner = FormationPlanner(params, formation, slot)
         else:

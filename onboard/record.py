@@ -133,7 +133,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 "formation_epoch": {"type": "integer"},
                 "reforming": {
                     "type": "boolean",
-                    "description": "within reform_s of a formation change: no lead slow-down",
+                    "description": "within reform_s of a formation change (with reform_params)",
                 },
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},

@@ -19,7 +19,7 @@ from onboard.config import (
 )
 from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
-from onboard.planner.params import PlannerParams
+from onboard.planner.params import PlannerParams, reform_params
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
@@ -195,7 +195,7 @@ def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
         ag.set_formation(tri, i, goal=goal_origin + tri[i])
     # the drone whose new slot is the front is the slowest member: with the lead slow-down
     # (the default) the others waited for it while their paths crossed (the triangle reached
-    # after ~35 s); re-forming flies without it for reform_s
+    # after ~35 s); re-forming measures the lead from the centroid for reform_s
     _fly(agents, 6.05, 7.0)
     assert all(ag.last is not None and ag.last.reforming for ag in agents)
     track2, closest2 = _fly(agents, 7.05, 30.0)
@@ -263,3 +263,35 @@ def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
         )
     with pytest.raises(ValueError, match="lead_deadband_m"):
         PlannerParams(lead_deadband_m=-1.0)
+
+
+def test_while_reforming_the_lead_is_measured_from_the_centroid_and_the_shape_pulls_harder() -> (
+    None
+):
+    """The situation above, planned as a drone does for ``reform_s`` after a formation change
+    (``reform_params``): the lead from the centroid (5/3 m, not the slowest member's 3 m) and
+    the formation weight scaled; with ``reform_lead_from_centroid`` off, no slow-down at all."""
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    base = PlannerParams(lead_slowdown_m=4.0, lead_deadband_m=1.0, lead_min_speed_frac=0.1)
+    assert base.lead_from_slowest and base.reform_lead_from_centroid
+    params = reform_params(base)
+    assert params.w_formation == pytest.approx(base.w_formation * base.reform_formation_scale)
+    assert base.reform_formation_scale > 1.0  # the default pulls harder
+    problem = FormationPlanner(params, LINE3, slot=1).prepare(
+        0.0, sp, ZERO, ZERO, goal, peers, EMPTY
+    )
+    v = float(problem.prob[3][obj.P_V_MAX])
+    lead = 5.0 / 3.0
+    assert v == pytest.approx(base.v_max_m_s * base.limit_margin * (1.0 - (lead - 1.0) / 4.0))
+    off = reform_params(dataclasses.replace(base, reform_lead_from_centroid=False))
+    problem = FormationPlanner(off, LINE3, slot=1).prepare(0.0, sp, ZERO, ZERO, goal, peers, EMPTY)
+    assert float(problem.prob[3][obj.P_V_MAX]) == pytest.approx(base.v_max_m_s * base.limit_margin)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="reform_formation_scale"):
+            PlannerParams(reform_formation_scale=bad)
+    assert (
+        load_planner_params(**parse_override("reform_formation_scale=2")).reform_formation_scale
+        == 2.0
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -122,13 +123,31 @@ class PlannerParams:
     swarm target's reference: a drone left behind slows every drone ahead of it, not only by
     its share of the centroid."""
     reform_s: float = 10.0
-    """After a formation change in flight (a new template, slot or epoch), the lead slow-down
-    (``lead_slowdown_m``) is off for this long (the flight's first assignment is not a change).
-    While the swarm re-shapes, every drone is off its new slot by design: slowing the drones
-    ahead for the one farthest from its slot stalls the change (measured: three drones, line
-    -> triangle at 1 m/s with the lead slow-down from the slowest member, 2.0 / 1.0 m: the
-    triangle reached after ~35 s instead of ~16 s, the swarm shrunk to a knot of crossing
-    drones). ``DroneAgent`` applies it; the planner itself has no notion of time since."""
+    """For this long after a formation change in flight (a new template, slot or epoch; the
+    flight's first assignment is not a change) a drone plans with ``reform_params``: the lead
+    slow-down measured from the centroid reference (``reform_lead_from_centroid``) and the
+    formation weight scaled by ``reform_formation_scale``. While the swarm re-shapes, every
+    drone is off its new slot by design: slowing the drones ahead for the one farthest from its
+    slot stalls the change (measured: three drones, line -> triangle at 1 m/s with the lead
+    slow-down from the slowest member, 2.0 / 1.0 m: the triangle reached after ~35 s instead of
+    ~16 s, the swarm shrunk to a knot of crossing drones). ``DroneAgent`` applies it; the
+    planner itself has no notion of time since."""
+    reform_lead_from_centroid: bool = True
+    """While re-forming (``reform_s``): keep the lead slow-down, measured from the centroid
+    reference instead of the slowest member (``lead_from_slowest`` off): a drone ahead of its new
+    slot waits, one behind is not held back by the drone farthest from its slot. False: no lead
+    slow-down while re-forming (the rule until 2026-11-24). Without it, drones ahead of their new
+    slot flew on at full speed and those behind could never catch up: in the fast-time
+    hexagon-7 -> rectangle-7 change in forest-medium the along-path offsets from the new slots
+    grew over the 10 s (BENCHMARKS.md section 10, eleventh session)."""
+    reform_formation_scale: float = 3.0
+    """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
+    the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
+    ahead, 15 s at 0.5 m/s). Measured with ``reform_lead_from_centroid`` (fast time,
+    forest-medium seeds 1-5, mapped at 5 frames/s, hexagon-7 -> rectangle-7 at 20 s): new shape
+    after median 8.7 s at 1.0 -> 4.9 s at 3.0. Ten times the weight for the whole flight breaks
+    the speed limit and folds other forests (``lead_slowdown_m``); for 10 s it did not raise the
+    top speed there. 1.0: unchanged."""
     swarm_target: str = "centroid"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
     2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
@@ -260,6 +279,11 @@ class PlannerParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if not (np.isfinite(self.reform_formation_scale) and self.reform_formation_scale > 0):
+            raise ValueError(
+                "reform_formation_scale must be a positive number, "
+                f"got {self.reform_formation_scale!r}"
+            )
         if not 0.0 < self.lead_min_speed_frac <= 1.0:
             raise ValueError(
                 f"lead_min_speed_frac must be in (0, 1], got {self.lead_min_speed_frac!r}"
@@ -320,3 +344,17 @@ class PlannerParams:
         """The band J_z and the A* fallback keep to: ``z_limits_m`` shrunk by the margin."""
         lo, hi = self.z_limits_m
         return lo + self.altitude_margin_m, hi - self.altitude_margin_m
+
+
+def reform_params(params: PlannerParams) -> PlannerParams:
+    """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
+    the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
+    the centroid reference (``reform_lead_from_centroid``), else off."""
+    lead = (
+        {"lead_from_slowest": False}
+        if params.reform_lead_from_centroid
+        else {"lead_slowdown_m": 0.0}
+    )
+    return dataclasses.replace(
+        params, w_formation=params.w_formation * params.reform_formation_scale, **lead
+    )
