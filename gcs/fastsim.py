@@ -774,6 +774,8 @@ def run_sim(
     state_bus: Any = state_plain if state_faulty is None else state_faulty
     sensed = [SensedWorld(world, cfg.sensing_radius_m) for _ in range(n)]
     eyes = _mapped_perception(cfg, world, starts, goals) if cfg.perception == "mapped" else None
+    from onboard.sensors.simulated import look_velocity
+
     maps: list[MapSource] = (
         list(sensed) if eyes is None else [MappedView(sensed[i], eyes[i]) for i in range(n)]
     )
@@ -934,7 +936,7 @@ def run_sim(
             next_state_s += cfg.state_period_s
         if eyes is not None and t >= next_frame_s - EPS_T:
             for i, ag in enumerate(agents):
-                eyes[i].observe(t, pos[i], ag.current.sample(t, order=1), ag.goal)
+                eyes[i].observe(t, pos[i], look_velocity(ag.current, t, pos[i]), ag.goal)
             next_frame_s += 1.0 / cfg.camera_rate_hz
         if monitors and k % monitor_every == 0:
             for i, ag in enumerate(agents):

@@ -14,7 +14,13 @@ from click.testing import CliRunner
 from gcs.bench_mapping import bench_mapping, perception_options, perception_overrides
 from gcs.fastsim import SimConfig, run_sim
 from onboard.config import load_formation, load_world_spec
-from onboard.sensors.simulated import SimulatedPerception, heading_yaw
+from onboard.planner.trajectory import Trajectory
+from onboard.sensors.simulated import (
+    LOOK_AHEAD_S,
+    SimulatedPerception,
+    heading_yaw,
+    look_velocity,
+)
 from onboard.world import World
 
 
@@ -43,6 +49,30 @@ def test_small_flight_on_mapped_fields() -> None:
     assert r.success and r.collisions == 0
     assert r.min_obstacle_clearance_m > 0.2
     assert r.to_json()["config"]["perception"] == "mapped"
+
+
+def test_camera_looks_where_the_trajectory_goes_next() -> None:
+    # flying +x now, turning to +y: the camera already looks into the turn, not along the
+    # velocity of the moment
+    c = np.zeros((2, 6, 3))
+    c[0, 0] = (0.0, 0.0, 1.0)  # 0.5 m/s along +x for 1 s
+    c[0, 1] = (0.5, 0.0, 0.0)
+    c[1, 0] = (0.5, 0.0, 1.0)  # then 0.5 m/s along +y
+    c[1, 1] = (0.0, 0.5, 0.0)
+    turn = Trajectory(0.0, c, np.array([1.0, 3.0]))
+    t = 0.8
+    p, v, _ = turn.state(t)
+    look = look_velocity(turn, t, p)
+    np.testing.assert_allclose(look, (turn.sample(t + LOOK_AHEAD_S) - p) / LOOK_AHEAD_S)
+    yaw_now = heading_yaw(v, p, None, 0.0)
+    yaw_look = heading_yaw(look, p, None, 0.0)
+    assert yaw_look > yaw_now + 0.3
+    # a hover looks towards the goal
+    hover = Trajectory.hover(np.array([0.0, 0.0, 1.0]), 0.0, 5.0)
+    g = np.array([0.0, -4.0, 1.0])
+    assert heading_yaw(look_velocity(hover, 1.0, hover.sample(1.0)), hover.sample(1.0), g, 0.0) == (
+        -np.pi / 2
+    )
 
 
 def test_drone_camera_faces_where_it_flies() -> None:

@@ -935,3 +935,25 @@ def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     assert obstacle_conflict(out_then_closer, ts, 100.0, limit)[1] == ts[0]
     inside_the_obstacle = np.linspace(-0.05, 0.4, 10)
     assert obstacle_conflict(inside_the_obstacle, ts, 100.0, limit)[1] == ts[0]
+
+
+def test_the_setpoint_yaw_looks_where_the_drone_will_be_in_a_second(tmp_path: Path) -> None:
+    # the vehicle's yaw lags its setpoint: facing along the velocity of the moment, a drone
+    # turning a corner would plan into space its camera never saw (refused as unobserved)
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    p0 = h.ap.position.copy()
+    t0 = h.clock.t
+    c = np.zeros((2, 6, 3))
+    c[0, 0] = p0  # 0.5 m/s along +x (east) for 1 s, then along +y (north)
+    c[0, 1] = (0.5, 0.0, 0.0)
+    c[1, 0] = p0 + (0.5, 0.0, 0.0)
+    c[1, 1] = (0.0, 0.5, 0.0)
+    turn = Trajectory(t0, c, np.array([1.0, 3.0]))
+    h.svc._control(turn)
+    sp = h.svc.sample_setpoint(t0 + 0.8)
+    assert sp is not None
+    ahead = turn.sample(t0 + 1.8) - turn.sample(t0 + 0.8)
+    assert sp.yaw_rad == pytest.approx(math.atan2(ahead[1], ahead[0]))
+    assert sp.yaw_rad > 1.0  # along the velocity it would be 0 (east)
+    np.testing.assert_allclose(sp.velocity_m_s, (0.5, 0.0, 0.0))

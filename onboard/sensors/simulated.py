@@ -1,9 +1,10 @@
 """One simulated drone's perception: a D435 on the drone, looking where it flies, feeding its
 own ``LocalMapper``. Used by the fast-time simulation (``SimConfig.perception = 'mapped'``).
 
-The camera is mounted level, looking forward; the drone's yaw follows its horizontal velocity
-(towards its goal while it hovers, unchanged once there). The simulation passes time and state
-in; the object only adds up its own render and ingest times (``perf_counter``) for reports.
+The camera is mounted level, looking forward; the drone's yaw follows the direction to where its
+trajectory takes it in ``LOOK_AHEAD_S`` (towards its goal while it hovers, unchanged once
+there). The simulation passes time and state in; the object only adds up its own render and
+ingest times (``perf_counter``) for reports.
 """
 
 from __future__ import annotations
@@ -19,10 +20,23 @@ from onboard.mapping.esdf import EsdfField
 from onboard.mapping.mapper import LocalMapper
 from onboard.mapping.occupancy import OccupancyParams
 from onboard.mapping.simcam import D435_TYPICAL, SimCameraParams, SimulatedDepthCamera
+from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
 _MOVING_M_S = 0.1
 _GOAL_NEAR_M = 0.3
+LOOK_AHEAD_S = 1.0
+"""The camera looks where the drone will be this long ahead on its trajectory (the planner's
+``check_known_s``, the part of a plan that must lie in observed space), not along its velocity
+of the moment: in a turn the camera, whose yaw lags the setpoint, then sees the space the
+drone turns into before the next replan asks for it to be observed."""
+
+
+def look_velocity(trajectory: Trajectory, t_s: float, position: np.ndarray) -> np.ndarray:
+    """The mean velocity of the next ``LOOK_AHEAD_S`` on ``trajectory`` from ``position`` at
+    ``t_s`` (what ``heading_yaw`` turns the camera along)."""
+    ahead = trajectory.sample(t_s + LOOK_AHEAD_S)
+    return np.subtract(ahead, position, dtype=np.float64) / LOOK_AHEAD_S
 
 
 def heading_yaw(

@@ -64,7 +64,7 @@ from onboard.agent import (
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
-from onboard.sensors.simulated import heading_yaw
+from onboard.sensors.simulated import heading_yaw, look_velocity
 from onboard.service.config import OnboardConfig
 from onboard.service.logs import event
 from onboard.service.planning import (
@@ -331,9 +331,10 @@ class FlightService:
             return None
         traj = self.agent.advance(t_s)
         p, v, a = traj.state(t_s)
-        # the camera looks where the drone flies, or towards its goal while it waits (the same
-        # policy as the simulated drones: what the planner needs observed is ahead)
-        self._yaw = heading_yaw(v, p, self.agent.goal, self._yaw)
+        # the camera looks where the drone will be in a second, or towards its goal while it
+        # waits (the same policy as the simulated drones: what the planner needs observed is
+        # ahead, and the vehicle's yaw lags its setpoint in a turn)
+        self._yaw = heading_yaw(look_velocity(traj, t_s, p), p, self.agent.goal, self._yaw)
         self.counters["setpoints_sampled"] += 1
         rec = self.recorder
         if rec is not None:
