@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import click
@@ -17,6 +18,8 @@ from onboard.config import load_formation, load_world_spec
 from onboard.planner.trajectory import Trajectory
 from onboard.sensors.simulated import (
     LOOK_AHEAD_S,
+    SWEEP_PERIOD_S,
+    SWEEP_RAD,
     SimulatedPerception,
     heading_yaw,
     look_velocity,
@@ -73,6 +76,31 @@ def test_camera_looks_where_the_trajectory_goes_next() -> None:
     assert heading_yaw(look_velocity(hover, 1.0, hover.sample(1.0)), hover.sample(1.0), g, 0.0) == (
         -np.pi / 2
     )
+
+
+def test_a_drone_holding_still_short_of_its_goal_looks_around() -> None:
+    p = np.zeros(3)
+    behind = np.array([-3.0, 0.0, 0.0])  # the goal's direction is pi: the swing wraps
+    yaws = [heading_yaw(np.zeros(3), p, behind, 0.0, t) for t in np.arange(0.0, 6.0, 0.05)]
+    assert all(-np.pi <= y <= np.pi for y in yaws)
+    off = [math.remainder(y - np.pi, 2 * np.pi) for y in yaws]
+    assert max(off) == pytest.approx(SWEEP_RAD, abs=1e-3)
+    assert min(off) == pytest.approx(-SWEEP_RAD, abs=1e-3)
+    assert off[0] == pytest.approx(0.0, abs=1e-12)  # it starts facing the goal
+    rate = np.max(np.abs(np.diff(off))) / 0.05
+    assert rate <= 2 * np.pi / SWEEP_PERIOD_S * SWEEP_RAD + 1e-6 < np.radians(60.0)
+    # moving, or at the goal: no swing
+    assert heading_yaw(np.array([0.5, 0.0, 0.0]), p, behind, 0.0, 1.5) == 0.0
+    assert heading_yaw(np.zeros(3), p, np.array([0.1, 0.0, 0.0]), 0.7, 1.5) == 0.7
+    # the camera of a simulated drone that holds still sees the sides of where it waits
+    w = World(np.array([[0.0, 2.5, 0.3, 0.0, 2.5]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    goal = np.array([5.0, 0.0, 1.0])
+    still = SimulatedPerception(w, skip_pixel=4)
+    for k in range(31):
+        still.observe(k / 5.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), goal)
+    probe = np.array([[0.0, 2.5 - 0.3 - 0.5, 1.0]])  # 90 deg left of the goal's direction
+    d, _ = still.mapper.field().distance(probe)
+    assert abs(d[0] - 0.5) < 0.15
 
 
 def test_drone_camera_faces_where_it_flies() -> None:

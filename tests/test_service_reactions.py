@@ -15,6 +15,7 @@ from onboard.agent import DroneAgent, PlanReport
 from onboard.config import merge_mappings
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
+from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
 from onboard.service.config import default_config_path, load_onboard_config
 from onboard.service.fakes import (
     FakeAutopilot,
@@ -957,3 +958,15 @@ def test_the_setpoint_yaw_looks_where_the_drone_will_be_in_a_second(tmp_path: Pa
     assert sp.yaw_rad == pytest.approx(math.atan2(ahead[1], ahead[0]))
     assert sp.yaw_rad > 1.0  # along the velocity it would be 0 (east)
     np.testing.assert_allclose(sp.velocity_m_s, (0.5, 0.0, 0.0))
+    # holding still short of its goal, it looks around the goal's direction (east here)
+    t1 = t0 + 5.0
+    h.svc._control(Trajectory.hover(p0, t1, 10.0))
+    h.svc.agent.set_goal(p0 + (6.0, 0.0, 0.0), replan=False)
+    yaws = []
+    for t in np.arange(t1, t1 + SWEEP_PERIOD_S, 0.1):
+        sp = h.svc.sample_setpoint(float(t))
+        assert sp is not None
+        np.testing.assert_allclose(sp.position_m, p0)
+        yaws.append(sp.yaw_rad)
+    assert max(yaws) == pytest.approx(SWEEP_RAD, abs=0.01)
+    assert min(yaws) == pytest.approx(-SWEEP_RAD, abs=0.01)

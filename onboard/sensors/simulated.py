@@ -2,9 +2,10 @@
 own ``LocalMapper``. Used by the fast-time simulation (``SimConfig.perception = 'mapped'``).
 
 The camera is mounted level, looking forward; the drone's yaw follows the direction to where its
-trajectory takes it in ``LOOK_AHEAD_S`` (towards its goal while it hovers, unchanged once
-there). The simulation passes time and state in; the object only adds up its own render and
-ingest times (``perf_counter``) for reports.
+trajectory takes it in ``LOOK_AHEAD_S`` (while it holds still short of its goal, towards the
+goal and swinging either side of it, ``SWEEP_RAD``; unchanged once there). The simulation passes
+time and state in; the object only adds up its own render and ingest times (``perf_counter``)
+for reports.
 """
 
 from __future__ import annotations
@@ -39,18 +40,39 @@ def look_velocity(trajectory: Trajectory, t_s: float, position: np.ndarray) -> n
     return np.subtract(ahead, position, dtype=np.float64) / LOOK_AHEAD_S
 
 
+SWEEP_RAD = math.radians(50.0)
+"""A drone that holds still short of its goal (``heading_yaw`` with a time) swings its camera
+this far either side of the goal's direction: with the D435's 87 deg field of view it then sees
+the sides (+-93 deg), where the ways around whatever stopped it lie. Plans must not enter
+unobserved space (the planner's ``check_known_s``); facing only the goal, a drone stopped by a
+trunk had every way round refused as "enters unobserved space" until it gave up (the 7-drone
+demo, forest-medium seeds 2 and 5, BENCHMARKS.md section 10)."""
+SWEEP_PERIOD_S = 6.0
+"""One swing left, right and back: at most 52 deg/s, a sixth of PX4's default MC_YAWRATE_MAX
+(and 30 frames a swing at the 7-drone demo's 5 frames/s)."""
+
+
 def heading_yaw(
-    velocity: np.ndarray, position: np.ndarray, goal: np.ndarray | None, previous: float
+    velocity: np.ndarray,
+    position: np.ndarray,
+    goal: np.ndarray | None,
+    previous: float,
+    t_s: float | None = None,
 ) -> float:
     """Yaw (rad, ENU) the drone faces: along its horizontal velocity when moving, else towards
-    its goal when not there, else ``previous``."""
+    its goal when not there (swinging ``SWEEP_RAD`` either side of it over ``SWEEP_PERIOD_S``
+    when the time ``t_s`` is given), else ``previous``."""
     v = np.asarray(velocity, dtype=np.float64)
     if math.hypot(v[0], v[1]) > _MOVING_M_S:
         return math.atan2(v[1], v[0])
     if goal is not None:
         d = np.asarray(goal, dtype=np.float64) - np.asarray(position, dtype=np.float64)
         if math.hypot(d[0], d[1]) > _GOAL_NEAR_M:
-            return math.atan2(d[1], d[0])
+            yaw = math.atan2(d[1], d[0])
+            if t_s is not None:
+                swing = SWEEP_RAD * math.sin(2.0 * math.pi * t_s / SWEEP_PERIOD_S)
+                yaw = math.remainder(yaw + swing, 2.0 * math.pi)  # in [-pi, pi]
+            return yaw
     return previous
 
 
@@ -80,7 +102,7 @@ class SimulatedPerception:
         self, t_s: float, position: np.ndarray, velocity: np.ndarray, goal: np.ndarray | None
     ) -> None:
         """Take one frame at time t_s from the drone's state and add it to the map."""
-        self.yaw = heading_yaw(velocity, position, goal, self.yaw)
+        self.yaw = heading_yaw(velocity, position, goal, self.yaw, t_s)
         t0 = time.perf_counter()
         frame = self.camera.capture(position, look_rotation(self.yaw), t_s)
         t1 = time.perf_counter()

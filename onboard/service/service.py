@@ -331,10 +331,11 @@ class FlightService:
             return None
         traj = self.agent.advance(t_s)
         p, v, a = traj.state(t_s)
-        # the camera looks where the drone will be in a second, or towards its goal while it
-        # waits (the same policy as the simulated drones: what the planner needs observed is
-        # ahead, and the vehicle's yaw lags its setpoint in a turn)
-        self._yaw = heading_yaw(look_velocity(traj, t_s, p), p, self.agent.goal, self._yaw)
+        # the camera looks where the drone will be in a second (the vehicle's yaw lags its
+        # setpoint in a turn), or, holding still short of its goal, around the goal's direction
+        # (the same policy as the simulated drones: what the planner needs observed is ahead)
+        look = look_velocity(traj, t_s, p)
+        self._yaw = heading_yaw(look, p, self.agent.goal, self._yaw, t_s)
         self.counters["setpoints_sampled"] += 1
         rec = self.recorder
         if rec is not None:
