@@ -144,10 +144,11 @@ class PlannerParams:
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
     ahead, 15 s at 0.5 m/s). Measured with ``reform_lead_from_centroid`` (fast time,
-    forest-medium seeds 1-5, mapped at 5 frames/s, hexagon-7 -> rectangle-7 at 20 s): new shape
-    after median 8.7 s at 1.0 -> 4.9 s at 3.0. Ten times the weight for the whole flight breaks
-    the speed limit and folds other forests (``lead_slowdown_m``); for 10 s it did not raise the
-    top speed there. 1.0: unchanged."""
+    forest-medium seeds 1-5, mapped at 5 frames/s, change 20 s after the start; BENCHMARKS.md
+    section 10, eleventh session): hexagon-7 -> rectangle-7, the new shape after median 8.7 s at
+    1.0 and 4.9 s at 3.0 (4 of 5 within 10 s either way); hexagon-7 -> arrow-7, 3 of 5 within
+    10 s at 1.0 and 1 of 5 at 3.0. Chosen for the rectangle, which the 7-drone demo's change
+    flies; not settled for other shapes. 1.0: unchanged."""
     swarm_target: str = "centroid"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
     2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
