@@ -48,8 +48,8 @@ unobserved space (the planner's ``check_known_s``); facing only the goal, a dron
 trunk had every way round refused as "enters unobserved space" until it gave up (the 7-drone
 demo, forest-medium seeds 2 and 5, BENCHMARKS.md section 10)."""
 SWEEP_PERIOD_S = 6.0
-"""One swing left, right and back: at most 52 deg/s, a sixth of PX4's default MC_YAWRATE_MAX
-(and 30 frames a swing at the 7-drone demo's 5 frames/s)."""
+"""One swing left, right and back: at most 52 deg/s (the mock's yaw-rate limit, after PX4's
+MC_YAWRATE_MAX, is 200 deg/s), and 30 frames a swing at the 7-drone demo's 5 frames/s."""
 
 
 def heading_yaw(
