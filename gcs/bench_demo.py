@@ -237,8 +237,9 @@ def bench_demo(
         n = load_formation(formation).n
         if n != drones:
             raise ConfigError(f"{formation} has {n} points for {drones} drones")
-        if fc is not None and load_formation(fc[0]).n != drones:
-            raise ConfigError(f"{fc[0]} has {load_formation(fc[0]).n} points for {drones} drones")
+        n_new = load_formation(fc[0]).n if fc is not None else drones
+        if fc is not None and n_new != drones:
+            raise ConfigError(f"{fc[0]} has {n_new} points for {drones} drones")
         service = load_onboard_config(None, drone_id=0)
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
