@@ -54,7 +54,6 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     sdes = normalized_adjacency(formation, mask)
     prm = np.zeros(obj.N_PRM)
     prm[obj.P_D_OBS] = 0.9
-    prm[obj.P_D_OBS_NEAR] = 0.7
     prm[obj.P_D_SWARM] = 0.9
     prm[obj.P_Z_SCALE] = 0.5
     prm[obj.P_V_MAX] = 0.5
@@ -69,7 +68,6 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     for key, idx in (
         ("time", obj.P_W_TIME),
         ("obstacle", obj.P_W_OBS),
-        ("obstacle_near", obj.P_W_OBS_NEAR),
         ("swarm", obj.P_W_SWARM),
         ("feasibility", obj.P_W_FEAS),
         ("uniformity", obj.P_W_UNIF),
@@ -135,36 +133,6 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
         assert costs[obj.TERM_NAMES.index(name)] > 0.0, f"{term} not active in the test setup"
     assert _rel_err(gc, _num_grad(f_c, c0, 1e-6)) <= RTOL
     assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
-
-
-@pytest.mark.parametrize("far", [0.0, 50.0])
-def test_obstacle_near_barrier_adds_its_cubic_with_its_gradient(far: float) -> None:
-    # the near barrier alone and on top of the far term: the obstacle cost grows by exactly the
-    # barrier's integral (the far term is unchanged), and the gradients stay exact
-    weights = {"obstacle": far, "obstacle_near": 500.0}
-    M, head, tail, q, T, prob, fld = _setup(11, weights)
-    m = Minco(M)
-    m.set_conditions(head, tail)
-    m.set_parameters(q, T)
-    c0 = m.c.copy()
-    costs = np.zeros(obj.N_TERMS)
-    gc = np.zeros_like(c0)
-    gT = np.zeros(M)
-    obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
-    with_near = costs[obj.C_O]
-    assert with_near > 0.0
-    _, _, _, _, _, prob_far, _ = _setup(11, {"obstacle": far})
-    costs_far = np.zeros(obj.N_TERMS)
-    obj.cost_c_T(c0, T, prob_far, fld, np.zeros_like(c0), np.zeros(M), costs_far)
-    assert costs_far[obj.C_O] < with_near  # the barrier is active in this set-up
-    num_c = _num_grad(
-        lambda cc: obj.cost_c_T(cc, T, prob, fld, np.zeros_like(c0), np.zeros(M), costs), c0, 1e-6
-    )
-    assert _rel_err(gc, num_c) <= RTOL
-    num_T = _num_grad(
-        lambda TT: obj.cost_c_T(c0, TT, prob, fld, np.zeros_like(c0), np.zeros(M), costs), T, 1e-6
-    )
-    assert _rel_err(gT, num_T) <= RTOL
 
 
 @pytest.mark.parametrize(

@@ -66,9 +66,7 @@ P_FORM_STRIDE = 14  # J_f on every stride-th constraint point (trapezoid on that
 P_W_ALT = 15  # J_z: weight of the altitude band penalty
 P_Z_LO = 16  # J_z: positions below this z are penalised
 P_Z_HI = 17  # J_z: positions above this z are penalised
-P_W_OBS_NEAR = 18  # J_o's near barrier: weight of max(d_near - d, 0)^3, on top of the far term
-P_D_OBS_NEAR = 19  # d_near of that barrier
-N_PRM = 20
+N_PRM = 18
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -151,8 +149,6 @@ def sampled_costs(
     n_form = Sdes.shape[0]
     w_obs = prm[P_W_OBS]
     d_obs = prm[P_D_OBS]
-    w_near = prm[P_W_OBS_NEAR]
-    d_near = prm[P_D_OBS_NEAR]
     w_sw = prm[P_W_SWARM]
     d_sw2 = prm[P_D_SWARM] * prm[P_D_SWARM]
     zs2 = prm[P_Z_SCALE] * prm[P_Z_SCALE]
@@ -221,9 +217,8 @@ def sampled_costs(
             gtau = 0.0
             pen = 0.0
 
-            # J_o: obstacle, max(d_thr - d, 0)^3 (Eq. 14-19), plus a steep barrier
-            # w_near max(d_near - d, 0)^3 close to the safety check's distance (not in the paper)
-            if w_obs > 0.0 or w_near > 0.0:
+            # J_o: obstacle, max(d_thr - d, 0)^3 (Eq. 14-19)
+            if w_obs > 0.0:
                 dist, gx, gy, gz = field_eval(
                     kind,
                     grid,
@@ -238,16 +233,9 @@ def sampled_costs(
                     der[0, 2],
                 )
                 viol = d_obs - dist
-                po = 0.0
-                k3 = 0.0
                 if viol > 0.0:
                     po = w_obs * viol * viol * viol
                     k3 = w_obs * 3.0 * viol * viol
-                vnear = d_near - dist
-                if vnear > 0.0:
-                    po += w_near * vnear * vnear * vnear
-                    k3 += w_near * 3.0 * vnear * vnear
-                if po > 0.0:
                     gder[0, 0] -= k3 * gx
                     gder[0, 1] -= k3 * gy
                     gder[0, 2] -= k3 * gz

@@ -40,13 +40,6 @@ class PlannerParams:
     """J_o: weight of max(d_thr - d, 0)^3 over constraint points."""
     obstacle_clearance_m: float = 0.6
     """d_thr of J_o: distance to obstacle surfaces below which points are penalised."""
-    w_obstacle_near: float = 0.0
-    """J_o's near barrier (not in the paper): weight of max(d_near - d, 0)^3 over the same
-    constraint points, on top of the far term. The far term's cubic is soft close to the
-    safety check: the formation pull wins down to ``check_obstacle_m``. 0 disables."""
-    obstacle_near_m: float = 0.36
-    """d_near of J_o's near barrier: a little above ``check_obstacle_m``, so that the check is a
-    last resort."""
     w_swarm: float = 5.0e4
     """J_r: weight of max(D_r^2 - d^2, 0)^3 against every peer at the same global time."""
     swarm_clearance_m: float = 0.75
@@ -269,8 +262,6 @@ class PlannerParams:
         nonneg = (
             "w_time",
             "w_obstacle",
-            "w_obstacle_near",
-            "obstacle_near_m",
             "w_swarm",
             "w_feasibility",
             "w_uniform",

@@ -313,8 +313,6 @@ class FormationPlanner:
         prm[obj.P_W_TIME] = p.w_time
         prm[obj.P_W_OBS] = p.w_obstacle
         prm[obj.P_D_OBS] = p.obstacle_clearance_m
-        prm[obj.P_W_OBS_NEAR] = p.w_obstacle_near
-        prm[obj.P_D_OBS_NEAR] = p.obstacle_near_m
         prm[obj.P_W_SWARM] = p.w_swarm
         prm[obj.P_D_SWARM] = p.swarm_clearance_m
         prm[obj.P_Z_SCALE] = p.swarm_z_scale
