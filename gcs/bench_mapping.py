@@ -123,7 +123,8 @@ class MappingBenchConfig:
     ``band_margin_m`` (``OccupancyParams.for_band``)."""
     band_m: tuple[float, float] = (0.3, 3.1)
     """The planner's altitude band (``PlannerParams.z_limits_m``' default)."""
-    band_margin_m: float = 0.4
+    band_margin_m: float = 0.45
+    """The service's ``mapping.window_band_margin_m`` default."""
 
 
 def flight_path(
@@ -604,7 +605,7 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
 @click.option(
     "--band-margin",
     "band_margin_m",
-    default=0.4,
+    default=0.45,
     show_default=True,
     type=click.FloatRange(min=0.0, min_open=True),
     help="Window margin below and above the band [m] (--window band).",

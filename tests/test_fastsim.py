@@ -146,7 +146,8 @@ def test_planner_params_own_the_speed_limit() -> None:
 
 
 def test_refused_attempts_are_counted_by_reason() -> None:
-    """A plan that must enter unobserved space at once: both attempts are refused for it, and
+    """A plan that must enter unobserved space at once: every attempt (the first, the A*
+    retry, the rescue: its A* path kept less than the rescue's 0.4 m) is refused for it, and
     the flight's counter reads that off the planner's own message."""
     from gcs.fastsim import REFUSAL_KEYS, count_refusals
     from onboard.planner.field import AnalyticField, GridField
@@ -165,11 +166,13 @@ def test_refused_attempts_are_counted_by_reason() -> None:
     assert res.status == PlanStatus.EMERGENCY
     counts = dict.fromkeys(REFUSAL_KEYS, 0)
     count_refusals(res.message, counts)
-    assert counts == {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 2, "unobserved": 2}
+    assert counts == {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 3, "unobserved": 3}
+    assert "a* retry at the rescue levels" in res.message
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
     count_refusals("formation: obstacle clearance 0.18 m at t=1.70 s; roomier a* way: 0.2 -> "
                    "0.3 m; a* retry without formation: drone 3 at 0.40 m at t=0.50 s; previous: "
                    "obstacle clearance 0.1 m at t=0.10 s", counts)  # fmt: skip
-    assert (counts["attempts"], counts["obstacle"], counts["drone"]) == (4, 1, 1)
+    assert (counts["attempts"], counts["obstacle"], counts["drone"]) == (2, 1, 1)
 
 
 def test_a_flight_reports_its_refusals(small_flight: tuple[SimResult, list[PlanCall]]) -> None:

@@ -107,14 +107,14 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 def test_service_maps_the_band_window(tmp_path: Path) -> None:
     cfg = load_onboard_config(_write(tmp_path, ""))
-    assert cfg.mapping.window_band_margin_m == pytest.approx(0.4)
-    assert cfg.map_params.shape == (110, 110, 36)
-    assert cfg.map_params.floor_z_m == pytest.approx(-0.1)
+    assert cfg.mapping.window_band_margin_m == pytest.approx(0.45)
+    assert cfg.map_params.shape == (110, 110, 38)
+    assert cfg.map_params.floor_z_m == pytest.approx(-0.2)
     # the shipped config file maps the same window
     assert load_onboard_config().map_params == cfg.map_params
-    # the band cut to the geofence: the window follows (0.3 .. 2.5 m, -0.1 .. 2.9 m)
+    # the band cut to the geofence: the window follows (0.3 .. 2.5 m, -0.2 .. 3.0 m)
     cut = load_onboard_config(_write(tmp_path, "geofence:\n  max_enu_m: [50, 50, 2.5]\n"))
-    assert cut.map_params.shape[2] == 30 and cut.map_params.floor_z_m == pytest.approx(-0.1)
+    assert cut.map_params.shape[2] == 32 and cut.map_params.floor_z_m == pytest.approx(-0.2)
     # null: the window as occupancy places it
     off = load_onboard_config(_write(tmp_path, "mapping:\n  window_band_margin_m: null\n"))
     assert off.map_params == off.mapping.occupancy == OccupancyParams()
@@ -127,7 +127,7 @@ def test_service_maps_the_band_window(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "where", "what"),
     [
-        ("mapping:\n  window_band_margin_m: 0.3\n", "mapping.window_band_margin_m", "0.37"),
+        ("mapping:\n  window_band_margin_m: 0.4\n", "mapping.window_band_margin_m", "0.45"),
         (
             "planner:\n  check_obstacle_m: 0.35\n",
             "mapping.window_band_margin_m",
@@ -136,7 +136,7 @@ def test_service_maps_the_band_window(tmp_path: Path) -> None:
         (
             "mapping:\n  occupancy: {size_m: [11, 11, 3.0]}\n",
             "mapping.occupancy.size_m",
-            "3.6 m tall",
+            "3.8 m tall",
         ),
         ("mapping:\n  occupancy: {floor_z_m: -0.3}\n", "mapping", "occupancy.floor_z_m"),
         ("mapping:\n  occupancy: {headroom_m: 0.5}\n", "mapping", "occupancy.headroom_m"),
@@ -155,7 +155,11 @@ def test_bench_mapping_compares_the_windows(tmp_path: Path) -> None:
     from gcs.bench_mapping import bench_mapping
 
     out = tmp_path / "w.json"
+    # a margin whose band window lies inside the floor window (-0.5 to 3.5 m), so that the two
+    # observe the same cells (the service's 0.45 m reaches 0.1 m above it)
     args = [
+        "--band-margin",
+        "0.4",
         "--world",
         "forest-small",
         "--skip-pixel",

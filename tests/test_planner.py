@@ -292,12 +292,14 @@ def _under_a_slab() -> AnalyticField:
 def test_plans_stay_inside_the_altitude_band() -> None:
     field = _under_a_slab()
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
-    unbounded = PlannerParams(v_max_m_s=1.0, w_altitude=0.0, z_limits_m=(-50.0, 50.0))
+    # an obstacle term that reaches 0.6 m: the slab pushes the plan down
+    far = {"w_obstacle": 5e4, "obstacle_clearance_m": 0.6}
+    unbounded = PlannerParams(v_max_m_s=1.0, w_altitude=0.0, z_limits_m=(-50.0, 50.0), **far)
     free = FormationPlanner(unbounded, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
     assert free.status == PlanStatus.OK
     ts = np.linspace(free.trajectory.t0_s, free.trajectory.t_end_s, 400)
     assert free.trajectory.sample(ts)[:, 2].min() < 0.3  # without the band it dips that low
-    params = PlannerParams(v_max_m_s=1.0)
+    params = PlannerParams(v_max_m_s=1.0, **far)
     assert params.z_limits_m == (0.3, 3.1)
     res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
     assert res.status == PlanStatus.OK, res.message
@@ -354,13 +356,20 @@ def test_bad_altitude_band_raises(kwargs: dict, match: str) -> None:
 
 
 def test_a_narrow_gap_is_left_for_a_roomier_way_with_the_comfort_clearance() -> None:
-    """Two trunks 0.5 m apart on the straight way: the optimiser alone threads the gap at
-    0.25 m (a check at 0.22 m allows it); with comfort_obstacle_m the A* way round is flown."""
+    """Two trunks 0.5 m apart on the straight way: the optimiser alone (its obstacle term from
+    0.6 m, the defaults before the twelfth session) threads the gap at 0.25 m (a check at
+    0.22 m allows it); with comfort_obstacle_m the A* way round (at 0.6 m) is flown."""
     field = AnalyticField(_world([[3.0, 0.5, 0.25, 0.0, 3.0], [3.0, -0.5, 0.25, 0.0, 3.0]]))
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([7.0, 0.0, 1.0])
 
     def closest(comfort: float) -> float:
-        params = PlannerParams(v_max_m_s=1.0, comfort_obstacle_m=comfort, check_obstacle_m=0.22)
+        params = PlannerParams(
+            v_max_m_s=1.0,
+            comfort_obstacle_m=comfort,
+            check_obstacle_m=0.22,
+            w_obstacle=5e4,
+            obstacle_clearance_m=0.6,
+        )
         res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
         assert res.status == PlanStatus.OK, res.message
         ts = np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 400)

@@ -28,8 +28,21 @@ from onboard.world import World
 
 LINE3 = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
 ZERO = np.zeros(3)
+# The scenarios below were built around the two-step ladder of the defaults before the twelfth
+# session (the optimiser's clearance 0.6 m, the check's 0.22 m) and its rescue levels: their
+# walls' gaps are sized for those, so they fly with them.
+LADDER_SETUP = {
+    "w_obstacle": 5e4,
+    "obstacle_clearance_m": 0.6,
+    "check_obstacle_m": 0.22,
+    "astar_clearances_m": (0.5, 0.4, 0.3),
+}
 TWO_STEP = (0.6, 0.22)
 RESCUE = (0.5, 0.4, 0.3)
+
+
+def _params(**kw: Any) -> PlannerParams:
+    return PlannerParams(**{**LADDER_SETUP, **kw})
 
 
 def _wall(narrow_half_gap_m: float, trunk_ahead: bool) -> World:
@@ -94,16 +107,18 @@ def _crossing(res: PlanResult, world: World) -> tuple[float, float]:
 
 
 def test_the_ladders_of_the_defaults_and_their_validation() -> None:
+    # the defaults: the optimiser's clearance a little above the check's, the rescue above both
     p = PlannerParams()
-    assert p.astar_ladder_m == TWO_STEP
-    assert p.astar_rescue_ladder_m == RESCUE
+    assert p.astar_ladder_m == (0.34, 0.3)
+    assert p.astar_rescue_ladder_m == (0.5, 0.4)
+    assert _params().astar_ladder_m == TWO_STEP and _params().astar_rescue_ladder_m == RESCUE
     assert PlannerParams(astar_clearances_m=()).astar_rescue_ladder_m == ()
-    # levels outside (check, optimiser) are left out; the ordinary ladder never changes
-    odd = PlannerParams(astar_clearances_m=(0.7, 0.45, 0.1))
-    assert odd.astar_rescue_ladder_m == (0.45,)
+    # levels at or under the check's distance are left out; the ordinary ladder never changes
+    odd = _params(astar_clearances_m=(0.7, 0.45, 0.22, 0.1))
+    assert odd.astar_rescue_ladder_m == (0.7, 0.45)
     assert odd.astar_ladder_m == TWO_STEP
-    single = PlannerParams(obstacle_clearance_m=0.22)
-    assert single.astar_ladder_m == (0.22,) and single.astar_rescue_ladder_m == ()
+    single = PlannerParams(obstacle_clearance_m=0.3)
+    assert single.astar_ladder_m == (0.3,) and single.astar_rescue_ladder_m == (0.5, 0.4)
     with pytest.raises(ValueError, match="astar_clearances_m must hold positive"):
         PlannerParams(astar_clearances_m=(0.5, -0.1))
     with pytest.raises(ValueError, match="astar_clearances_m must hold positive"):
@@ -116,7 +131,7 @@ def test_the_ladders_of_the_defaults_and_their_validation() -> None:
 
 def test_prepare_takes_a_ladder_and_says_which_clearance_its_path_keeps() -> None:
     field = _gap_unobserved(_wall(0.3, False))
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
     start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
     two = planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, force_astar=True)
     assert two.astar_clearance_m == 0.22  # no path at 0.6 m: the narrow gap at the check's
@@ -145,7 +160,7 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     hover = Trajectory.hover(start, 0.0, 3.0)
 
     def plan(levels: tuple[float, ...], previous: Trajectory | None) -> PlanResult:
-        params = PlannerParams(v_max_m_s=1.0, astar_clearances_m=levels)
+        params = _params(v_max_m_s=1.0, astar_clearances_m=levels)
         planner = FormationPlanner(params, LINE3, slot=1)
         res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, previous)
         if res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION):
@@ -186,7 +201,7 @@ def test_a_refused_rescue_keeps_the_hover_and_counts_as_a_refusal(
     start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
     hover = Trajectory.hover(start, 0.0, 3.0)
     # the ladder alone: no A* retry with the formation term before the one without
-    params = PlannerParams(v_max_m_s=1.0, astar_keeps_formation=False)
+    params = _params(v_max_m_s=1.0, astar_keeps_formation=False)
     planner = FormationPlanner(params, LINE3, slot=1)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, hover)
     assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
@@ -222,14 +237,14 @@ def test_a_previous_trajectory_that_still_moves_is_kept_before_the_rescue(
     assert np.linalg.norm(back.end_position - start) >= KEEP_MOVING_M
     # the default first retries from A* with the formation term (one more refused attempt,
     # the same search), then without it, and keeps the trajectory that still moves
-    default = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    default = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
     res = default.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
     assert res.status == PlanStatus.KEPT_PREVIOUS and res.trajectory is back
     assert res.message.count("drone 7 at") == 3 and "rescue" not in res.message
     assert "a* retry: drone 7" in res.message and "a* retry without formation" in res.message
     ladders.clear()
     # the ladder alone
-    params = PlannerParams(v_max_m_s=1.0, astar_keeps_formation=False)
+    params = _params(v_max_m_s=1.0, astar_keeps_formation=False)
     planner = FormationPlanner(params, LINE3, slot=1)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
     assert res.status == PlanStatus.KEPT_PREVIOUS
@@ -260,7 +275,7 @@ def test_an_ordinary_replan_never_searches_the_intermediate_levels(
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([8.0, 0.0, 1.0])
 
     def plan(levels: tuple[float, ...]) -> PlanResult:
-        params = PlannerParams(v_max_m_s=1.0, astar_clearances_m=levels)
+        params = _params(v_max_m_s=1.0, astar_clearances_m=levels)
         return FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
 
     res = plan(RESCUE)
@@ -284,7 +299,7 @@ def test_no_rescue_when_the_a_star_path_kept_the_optimisers_clearance(
     exact = AnalyticField(World.empty(0.0))
     grid = GridField.from_function(exact.distance, [-2.0, -2.0, 0.0], [8.0, 2.0, 2.0], 0.1)
     field = GridField(grid.values, grid.origin, grid.res, known=grid.cell_centres()[..., 0] < 0.1)
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
     res = planner.plan(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([6.0, 0, 1]), [], field)
     assert res.status == PlanStatus.EMERGENCY
     assert "rescue" not in res.message
@@ -310,7 +325,7 @@ def test_a_canceled_replan_makes_no_rescue_attempt(
         return solve(self, x_start, lb_prm)
 
     monkeypatch.setattr(Problem, "solve", cancel_second)
-    planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
     hover = Trajectory.hover(start, 0.0, 3.0)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, hover)
     assert res.status == PlanStatus.KEPT_PREVIOUS

@@ -36,10 +36,19 @@ class PlannerParams:
     # --- cost weights (lambda of Eq. 10) ------------------------------------------------------
     w_time: float = 40.0
     """J_t: weight of the total duration."""
-    w_obstacle: float = 5.0e4
-    """J_o: weight of max(d_thr - d, 0)^3 over constraint points."""
-    obstacle_clearance_m: float = 0.6
-    """d_thr of J_o: distance to obstacle surfaces below which points are penalised."""
+    w_obstacle: float = 1.0e8
+    """J_o: weight of max(d_thr - d, 0)^3 over constraint points. Short and steep (with
+    ``obstacle_clearance_m`` 0.34), where the public code has 5e4 from 0.5 m (ours was 5e4 from
+    0.6 m): the soft cubic let the formation pull win down to the safety check (every table
+    flight passed a trunk at 0.220-0.245 m, the optimiser's own solutions, no refusal), and a
+    longer range moves every drone off its slot around every trunk. With the check at 0.3 m:
+    5e4 from 0.6 m gave medium e_sim 0.0293; 2e5 from 0.6: 0.0165; 1e6 from 0.45: 0.0119; 1e8
+    from 0.36: 0.0100; 1e8 from 0.34: 0.0092 (0.0088 at the old 0.22 m margin; BENCHMARKS.md
+    section 8, twelfth session)."""
+    obstacle_clearance_m: float = 0.34
+    """d_thr of J_o: distance to obstacle surfaces below which points are penalised; a little
+    above ``check_obstacle_m`` so that the check is a last resort. Also the A* retries' first
+    clearance (``astar_ladder_m``)."""
     w_swarm: float = 5.0e4
     """J_r: weight of max(D_r^2 - d^2, 0)^3 against every peer at the same global time."""
     swarm_clearance_m: float = 0.75
@@ -75,13 +84,13 @@ class PlannerParams:
     scaling), w times the squared offset error."""
 
     # --- acceptance and fallbacks --------------------------------------------------------------
-    check_obstacle_m: float = 0.22
-    """A trajectory is unsafe where it comes closer than this to an obstacle surface. The
-    table's closest approaches sit at this value (0.220 m; 54 of 60 flights below 0.3 m): the
-    warm start keeps a narrow gap chosen when it was far. 0.3 with ``comfort_obstacle_m`` 0.4
-    and ``astar_keeps_formation`` kept every table flight >= 0.300 m, but mean e_sim went from
-    0.0107 / 0.0209 / 0.0218 to 0.0132 / 0.0457 / 0.0297 with one medium forest folding to 0.34
-    (drones taking different gaps), so it is not the default (BENCHMARKS.md section 8)."""
+    check_obstacle_m: float = 0.3
+    """A trajectory is unsafe where it comes closer than this to an obstacle surface (the
+    drone's body, 0.2 m, plus 0.1 m). It was 0.22 m, and the table's closest approaches sat at
+    that value (the soft obstacle term, see ``w_obstacle``): 2 cm from touching. With the
+    short steep J_o every table flight keeps >= 0.300 m (BENCHMARKS.md section 8, twelfth
+    session). On a mapped field the obstacles are also inflated by the map's
+    ``inflation_m``."""
     check_drone_m: float = 0.45
     """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
     check_step_s: float = 0.05
@@ -187,13 +196,14 @@ class PlannerParams:
     mean e_sim 0.0168 / 0.0242 / 0.0332 without, 0.0162 / 0.0176 / 0.0274 with)."""
     astar_resolution_m: float = 0.2
     """Cell size of the A* fallback search."""
-    astar_clearances_m: tuple[float, ...] = (0.5, 0.4, 0.3)
+    astar_clearances_m: tuple[float, ...] = (0.5, 0.4)
     """Rescue levels of the A* fallback, largest first. The A* attempts of a replan look for a
     path at ``obstacle_clearance_m``, else at ``check_obstacle_m`` (``astar_ladder_m``). Only
     when every attempt of the replan was refused by the safety check and the A* retry's path
-    keeps just the check's distance, one more attempt (without the formation term) starts from
-    an A* path at the largest of these levels that lie between the two and find a path
-    (``astar_rescue_ladder_m``); it is flown if the check accepts it. A safe previous
+    keeps less than the smallest of them, one more attempt (without the formation term) starts
+    from an A* path at the largest of these levels above ``check_obstacle_m`` that finds a path
+    (``astar_rescue_ladder_m``; with the default 0.34 / 0.3 ladder, 0.5 and 0.4); it is flown if
+    the check accepts it. A safe previous
     trajectory that still moves the drone is kept before trying it (as before the rescue
     existed), one that holds the drone where it is (a hover) only after it failed too. A path
     at the check's own distance threads gaps that the optimised trajectory cannot pass with
@@ -335,10 +345,11 @@ class PlannerParams:
     @property
     def astar_rescue_ladder_m(self) -> tuple[float, ...]:
         """The clearances of the rescue attempt's A* search, largest first: the levels of
-        ``astar_clearances_m`` strictly between ``check_obstacle_m`` and
-        ``obstacle_clearance_m`` (others are left out); () when there is no rescue."""
-        top, check = self.obstacle_clearance_m, self.check_obstacle_m
-        return tuple(float(c) for c in self.astar_clearances_m if check < c < top)
+        ``astar_clearances_m`` above ``check_obstacle_m`` (others are left out; they may lie
+        above ``obstacle_clearance_m``: the optimiser's clearance is kept a little above the
+        check's); () when there is no rescue."""
+        check = self.check_obstacle_m
+        return tuple(float(c) for c in self.astar_clearances_m if c > check)
 
     @property
     def altitude_band_inner_m(self) -> tuple[float, float]:

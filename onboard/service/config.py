@@ -271,20 +271,21 @@ class MappingSection:
     esdf_rate_hz: float = 10.0
     """The planner's field is rebuilt at least this often while frames arrive."""
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
-    window_band_margin_m: float | None = 0.4
+    window_band_margin_m: float | None = 0.45
     """The window's vertical extent follows the planner's altitude band (``planner.z_limits_m``
     after the geofence cut): from this far below the band to this far above it (whole cells),
     held there while the drone flies in the band, and the ESDF computed only for the layers
     the band interpolates from (``OccupancyParams.for_band``; the map the service uses is
-    ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives a window from -0.1 to
-    3.5 m (the top of the 4 m window from 0.5 m below the ground, ``occupancy.floor_z_m``,
-    without its four layers under the ground, which hold nothing) and a field from 0.2 to
-    3.2 m (30 of the old 40 layers; outside it the planner reads unknown space, as beyond the
-    window), whose cells are bit for bit the whole window's: 18 % less CPU per ESDF refresh
-    (``bench mapping --compare-windows``, forest-medium: 26.7-26.9 -> 22.0-22.2 ms, pair
-    ratio 0.82; the dropped layers alone gave 0.94); and a window that no longer rises off the
-    ground when the drone climbs above 2.5 m. At least
-    ``planner.check_obstacle_m + occupancy.inflation_m + occupancy.resolution_m / 2`` (0.37 m):
+    ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives a window from -0.2 to
+    3.6 m (38 layers of 0.1 m, where the 4 m window from 0.5 m below the ground,
+    ``occupancy.floor_z_m``, has 40, three of them under the ground, holding nothing) and a
+    field from 0.2 to 3.2 m (30 of the old 40 layers; outside it the planner reads unknown
+    space, as beyond the window), whose cells are bit for bit the whole window's: with a
+    0.4 m margin (window -0.1 to 3.5 m), 18 % less CPU per ESDF refresh (``bench mapping
+    --compare-windows``, forest-medium: 26.7-26.9 -> 22.0-22.2 ms, pair ratio 0.82; the
+    dropped layers alone gave 0.94); and a window that no longer rises off the ground when
+    the drone climbs above 2.5 m. At least
+    ``planner.check_obstacle_m + occupancy.inflation_m + occupancy.resolution_m / 2`` (0.45 m):
     no obstacle outside the window can then fail the safety check from inside the band.
     ``occupancy.size_m``'s z is then the most the window may take; ``occupancy.floor_z_m``,
     ``headroom_m`` and ``esdf_z_m`` must be left at their defaults. null: the window as
