@@ -203,9 +203,9 @@ class PlannerParams:
     keeps less than the smallest of them, one more attempt (without the formation term) starts
     from an A* path at the largest of these levels above ``check_obstacle_m`` that finds a path
     (``astar_rescue_ladder_m``; with the default 0.34 / 0.3 ladder, 0.5 and 0.4); it is flown if
-    the check accepts it. A safe previous
-    trajectory that still moves the drone is kept before trying it (as before the rescue
-    existed), one that holds the drone where it is (a hover) only after it failed too. A path
+    the check accepts it. A safe previous trajectory that still moves the drone is kept before
+    trying it (as before the rescue existed), one that holds the drone where it is (a hover)
+    only after it failed too. A path
     at the check's own distance threads gaps that the optimised trajectory cannot pass with
     the check's margin (its obstacle term trades centimetres against the others; a mapped gap
     is narrower than the true one): in the mapped flight of forest-medium seed 3, a drone in

@@ -277,8 +277,8 @@ class MappingSection:
     held there while the drone flies in the band, and the ESDF computed only for the layers
     the band interpolates from (``OccupancyParams.for_band``; the map the service uses is
     ``OnboardConfig.map_params``). The default band 0.3-3.1 m gives a window from -0.2 to
-    3.6 m (38 layers of 0.1 m, where the 4 m window from 0.5 m below the ground,
-    ``occupancy.floor_z_m``, has 40, three of them under the ground, holding nothing) and a
+    3.6 m (38 layers of 0.1 m, two of them under the ground, which hold nothing; the 4 m
+    window from 0.5 m below the ground, ``occupancy.floor_z_m``, has 40) and a
     field from 0.2 to 3.2 m (30 of the old 40 layers; outside it the planner reads unknown
     space, as beyond the window), whose cells are bit for bit the whole window's: with a
     0.4 m margin (window -0.1 to 3.5 m), 18 % less CPU per ESDF refresh (``bench mapping
