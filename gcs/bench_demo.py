@@ -234,12 +234,10 @@ def bench_demo(
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
-        n = load_formation(formation).n
-        if n != drones:
-            raise ConfigError(f"{formation} has {n} points for {drones} drones")
-        n_new = load_formation(fc[0]).n if fc is not None else drones
-        if fc is not None and n_new != drones:
-            raise ConfigError(f"{fc[0]} has {n_new} points for {drones} drones")
+        for name in (formation,) if fc is None else (formation, fc[0]):
+            n = load_formation(name).n
+            if n != drones:
+                raise ConfigError(f"{name} has {n} points for {drones} drones")
         service = load_onboard_config(None, drone_id=0)
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
