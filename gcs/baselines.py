@@ -25,7 +25,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gcs.fastsim import SimConfig, SimResult, default_time_limit_s, result_from_monitor
+from gcs.fastsim import (
+    SimConfig,
+    SimResult,
+    build_flight,
+    default_time_limit_s,
+    result_from_monitor,
+)
 from gcs.monitor import FlightMonitor, MonitorConfig
 from onboard.world import World
 
@@ -114,7 +120,7 @@ def run_virtual_structure(
     """Fly ``cfg.formation`` through ``cfg.world`` with the virtual-structure controller."""
     vp = params or VirtualStructureParams()
     wall0 = time.perf_counter()
-    world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
+    world, starts, goals = build_flight(cfg)
     t_limit = (
         cfg.time_limit_s
         if cfg.time_limit_s is not None

@@ -118,6 +118,10 @@ def _sim_table(r: SimResult) -> Table:
     t.add_row("min obstacle clearance", f"{_fmt(r.min_obstacle_clearance_m)} m")
     t.add_row("min drone distance", f"{_fmt(r.min_drone_distance_m)} m")
     t.add_row("max speed", f"{_fmt(r.max_speed_m_s, '.2f')} m/s")
+    z = r.tracks.pos[:, :, 2]
+    if z.size:
+        spread = float(np.max(z.max(axis=1) - z.min(axis=1)))
+        t.add_row("altitude", f"{z.min():.2f} to {z.max():.2f} m (spread at most {spread:.2f} m)")
     t.add_row(
         "e_sim mean / max",
         f"{_fmt(r.e_sim_mean, '.4f')} / {_fmt(r.e_sim_max, '.4f')}"
@@ -193,6 +197,15 @@ _world_opt = click.option(
     help="World name (config/worlds) or YAML/JSON file.",
 )
 _seed_opt = click.option("--seed", default=1, show_default=True, help="Seed of the world.")
+_start_z_jitter_opt = click.option(
+    "--start-z-jitter",
+    "start_z_jitter",
+    type=click.FloatRange(0.0, 0.5),
+    default=0.0,
+    show_default=True,
+    help="Every drone starts up to this far [m] above or below its start altitude (seeded): "
+    "exactly level starts hide a formation that tilts.",
+)
 _vmax_opt = click.option(
     "--v-max",
     "v_max",
@@ -258,6 +271,7 @@ _set_opt = click.option(
 )
 @click.option("--check", is_flag=True, help="Exit with status 1 unless the flight succeeded.")
 @perception_options
+@_start_z_jitter_opt
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def sim(
     formation: str,
@@ -277,6 +291,7 @@ def sim(
     perception: str,
     camera_rate_hz: float,
     camera_skip_pixel: int,
+    start_z_jitter: float,
     quiet: bool,
 ) -> None:
     """Fly a formation through a world in fast simulated time and score the flight."""
@@ -301,7 +316,9 @@ def sim(
             if v_max is None and not _sets_v_max(sets):  # the scenario's speed, unless given
                 cfg = cfg.with_v_max(sc.v_max_m_s)
         cfg = dataclasses.replace(
-            cfg, **perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
+            cfg,
+            start_z_jitter_m=start_z_jitter,
+            **perception_overrides(perception, camera_rate_hz, camera_skip_pixel),
         )
         if change is not None:
             cfg = dataclasses.replace(cfg, formation_change=_formation_change(change))
@@ -529,6 +546,7 @@ _FLIGHT_KEYS = (
 @_planner_opt
 @_set_opt
 @click.option("--jobs", default=1, show_default=True, help="Flights run in parallel processes.")
+@_start_z_jitter_opt
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
 )
@@ -550,6 +568,7 @@ def bench_table(
     planner_file: Path | None,
     sets: tuple[str, ...],
     jobs: int,
+    start_z_jitter: float,
     json_path: Path | None,
     plots_dir: Path | None,
     quiet: bool,
@@ -585,6 +604,7 @@ def bench_table(
                 params,
                 jobs,
                 progress=lambda done, _n: bar.update(task, completed=done),
+                start_z_jitter_m=start_z_jitter,
             )
         except (ConfigError, ValueError) as e:
             raise click.ClickException(str(e)) from e
@@ -593,7 +613,8 @@ def bench_table(
         title=f"{form.name}, {trials} trials per cell, v_max {params.v_max_m_s} m/s "
         "(paper in brackets)"
     )
-    for col in ("scenario", "method", "success %", "e_dist (m)", "e_sim", "min obst. m", "time s"):
+    cols = ("scenario", "method", "success %", "e_dist (m)", "e_sim", "min obst. m", "z spread m")
+    for col in (*cols, "time s"):
         t.add_column(col, justify="right" if col not in ("scenario", "method") else "left")
 
     def pv(x: float | None, spec: str) -> str:
@@ -611,6 +632,7 @@ def bench_table(
             f"{pv(row['e_dist'], '.2f')}{paper_d}",
             f"{pv(row['e_sim'], '.4f')}{paper_e}",
             _fmt(row["min_obstacle_clearance_m"], ".2f"),
+            _fmt(row["z_spread_max_m"], ".2f"),
             pv(row["flight_time_s"], ".1f"),
         )
     console.print(t)

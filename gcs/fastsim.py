@@ -112,6 +112,12 @@ class SimConfig:
     seeded with ``fault_seed``); receivers then keep the newest trajectory of each sender, as
     the Zenoh inbox does. None: the plain in-memory bus."""
     fault_seed: int = 0
+    start_z_jitter_m: float = 0.0
+    """Each drone starts up to this far (uniform, drawn from the seed) above or below its start
+    altitude. A real vehicle never holds its altitude to the millimetre; started exactly level,
+    a level formation flies exactly level (the formation term's vertical gradient is zero by
+    symmetry), which hides a shape that tilts as soon as anything breaks the symmetry (issue
+    #10: on the real stack, half a hexagon climbed to 3 m). 0: exact starts."""
     stuck_drones: dict[int, float] = field(default_factory=dict)
     """Drone id -> time: from then on its vehicle hovers where it is (a stuck airframe) and the
     drone keeps publishing that hover every ``replan_period_s``."""
@@ -195,6 +201,8 @@ class SimConfig:
             raise ValueError("plan_ahead_s, bus_delay_s and sensing_radius_m must be >= 0")
         if self.time_limit_s is not None and not self.time_limit_s > 0.0:
             raise ValueError("time_limit_s must be > 0")
+        if not (math.isfinite(self.start_z_jitter_m) and 0.0 <= self.start_z_jitter_m <= 0.5):
+            raise ValueError(f"start_z_jitter_m must be in [0, 0.5], got {self.start_z_jitter_m!r}")
         if self.perception not in PERCEPTIONS:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if not self.camera_rate_hz > 0.0 or self.camera_skip_pixel < 1:
@@ -735,6 +743,18 @@ class SafetyMonitor:
         return f"brake: {problem}"
 
 
+def build_flight(cfg: SimConfig) -> tuple[World, np.ndarray, np.ndarray]:
+    """(world, starts, goals) of ``cfg``'s flight: the world spec built from the seed, the
+    starts moved by ``start_z_jitter_m`` (drawn from a stream of its own, so that the world
+    and the goals are those of the same seed without jitter)."""
+    world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
+    if cfg.start_z_jitter_m > 0.0:
+        rng = np.random.default_rng((cfg.seed, 0x7A))
+        starts = starts.copy()
+        starts[:, 2] += rng.uniform(-cfg.start_z_jitter_m, cfg.start_z_jitter_m, len(starts))
+    return world, starts, goals
+
+
 def run_sim(
     cfg: SimConfig,
     recorder: Callable[[PlanCall], None] | None = None,
@@ -748,7 +768,7 @@ def run_sim(
     from onboard.planner.planner import PeerTrajectory
 
     wall0 = time.perf_counter()
-    world, starts, goals = cfg.world.build(cfg.seed, cfg.formation)
+    world, starts, goals = build_flight(cfg)
     n = cfg.formation.n
     params = cfg.params
     t_limit = (

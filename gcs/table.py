@@ -73,6 +73,9 @@ class TrialResult:
     e_dist_rms_m: float
     e_sim: float
     e_sim_whole_flight: float
+    z_spread_max_m: float
+    """The largest altitude difference between two drones at one sample (a level formation
+    that tilts shows here; the metrics do not see it)."""
     flight_time_s: float
     path_length_m: float
     replan_ms_median: float
@@ -123,11 +126,16 @@ def run_trial(
     world: WorldSpec,
     base: PlannerParams,
     keep_result: bool,
+    start_z_jitter_m: float = 0.0,
 ) -> tuple[TrialResult, SimResult | None]:
     """Fly one trial with one method (speed limit: ``base.v_max_m_s``); the full SimResult only
-    when ``keep_result``."""
+    when ``keep_result``. ``start_z_jitter_m``: ``SimConfig.start_z_jitter_m``."""
     cfg = SimConfig(
-        formation=formation, world=world, seed=seed, planner=method_params(method, base)
+        formation=formation,
+        world=world,
+        seed=seed,
+        planner=method_params(method, base),
+        start_z_jitter_m=start_z_jitter_m,
     )
     if method == "zhou":
         from gcs.baselines import run_virtual_structure
@@ -153,12 +161,19 @@ def run_trial(
         e_dist_rms_m=s["e_dist_rms_m"],
         e_sim=s["e_sim"],
         e_sim_whole_flight=res.e_sim_mean,
+        z_spread_max_m=z_spread_max(res),
         flight_time_s=res.flight_time_s,
         path_length_m=s["path_length_m"],
         replan_ms_median=res.replan_ms["median"],
         wall_s=res.sim_wall_s,
     )
     return row, (res if keep_result else None)
+
+
+def z_spread_max(result: SimResult) -> float:
+    """The largest altitude difference between two drones over the recorded samples."""
+    z = result.tracks.pos[:, :, 2]
+    return float(np.max(z.max(axis=1) - z.min(axis=1))) if z.size else 0.0
 
 
 def _mean(values: Sequence[float]) -> float | None:
@@ -191,6 +206,7 @@ def summarize(rows: Sequence[TrialResult]) -> list[dict[str, Any]]:
                 "min_obstacle_clearance_m": min(r.min_obstacle_clearance_m for r in rs),
                 "min_drone_distance_m": min(r.min_drone_distance_m for r in rs),
                 "max_speed_m_s": max(r.max_speed_m_s for r in rs),
+                "z_spread_max_m": max(r.z_spread_max_m for r in rs),
                 "collisions": sum(r.collisions for r in rs),
                 "flight_time_s": _mean([r.flight_time_s for r in ok]),
                 "path_length_m": _mean([r.path_length_m for r in ok]),
@@ -218,10 +234,13 @@ def run_table(
     base: PlannerParams | None = None,
     jobs: int = 1,
     progress: Callable[[int, int], None] | None = None,
+    start_z_jitter_m: float = 0.0,
 ) -> tuple[dict[str, Any], dict[tuple[str, str], SimResult]]:
     """Run every (world, method, trial) with the planner parameters ``base`` (default
     config/planner.yaml; its ``v_max_m_s`` is the speed limit of every method); returns (report,
-    the first trial's SimResult of every (world label, method) for the plots)."""
+    the first trial's SimResult of every (world label, method) for the plots).
+    ``start_z_jitter_m``: every flight's drones start up to this far off their start altitude
+    (``SimConfig.start_z_jitter_m``)."""
     if trials < 1:
         raise ValueError("trials must be >= 1")
     for m in methods:
@@ -229,7 +248,7 @@ def run_table(
             raise ValueError(f"unknown method {m!r}; choose from {METHODS}")
     params = base if base is not None else load_planner_params()
     jobs_args = [
-        (m, label, k, seed + k, formation, spec, params, k == 0)
+        (m, label, k, seed + k, formation, spec, params, k == 0, start_z_jitter_m)
         for label, spec in worlds
         for k in range(trials)
         for m in methods
@@ -258,6 +277,7 @@ def run_table(
         "worlds": [label for label, _ in worlds],
         "wall_s": time.perf_counter() - t0,
         "jobs": jobs,
+        "start_z_jitter_m": start_z_jitter_m,
         "definitions": {
             "success": "all drones within 0.5 m of their goals at rest before the time limit, "
             "no centre within 0.2 m of an obstacle surface, no two centres within 0.4 m",

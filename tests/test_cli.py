@@ -216,6 +216,7 @@ def test_bench_table_small(tmp_path: Path) -> None:
             "min_obstacle_clearance_m",
             "min_drone_distance_m",
             "flight_time_s",
+            "z_spread_max_m",
         ):
             assert key in row
         assert 0.0 <= row["success_rate"] <= 1.0 and row["trials"] == 2
@@ -259,3 +260,14 @@ def test_world_export_round_trip(tmp_path: Path) -> None:
         b, sb, gb = load_world_spec(out).build(0, form)
         for x, y in ((a.cylinders, b.cylinders), (a.rings, b.rings), (sa, sb), (ga, gb)):
             np.testing.assert_allclose(x, y, atol=1e-6)
+
+
+def test_start_z_jitter_is_checked_and_flown() -> None:
+    bad = CliRunner().invoke(main, ["sim", *SMALL, "--start-z-jitter", "0.6", "-q"])
+    assert bad.exit_code == 2 and "--start-z-jitter" in bad.output
+    out = CliRunner().invoke(main, ["sim", *SMALL, "--start-z-jitter", "0.05", "--time-limit", "3"])
+    assert out.exit_code == 0, out.output
+    # the starts are off 1 m by up to 5 cm, and the table says how far apart the drones flew
+    line = next(x for x in out.output.splitlines() if "altitude" in x)
+    lo, hi = (float(v) for v in line.split("│")[2].split("m")[0].split(" to "))
+    assert 0.95 <= lo < hi <= 1.05

@@ -65,6 +65,8 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     # a band narrower than the trajectory's climb from 1.0 to 1.2 m: J_z active on both sides
     prm[obj.P_Z_LO] = 1.05
     prm[obj.P_Z_HI] = 1.12
+    prm[obj.P_Z_HOLD] = 1.3  # above the whole climb (1.0 -> 1.2): the hold pulls every point up
+    prm[obj.P_HOLD_KNEE] = 0.2  # quadratic near the end of the climb, linear before
     for key, idx in (
         ("time", obj.P_W_TIME),
         ("obstacle", obj.P_W_OBS),
@@ -73,6 +75,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         ("uniformity", obj.P_W_UNIF),
         ("formation", obj.P_W_FORM),
         ("altitude", obj.P_W_ALT),
+        ("altitude-hold", obj.P_W_HOLD),
     ):
         prm[idx] = weights.get(key, 0.0)
     prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation)
@@ -107,6 +110,7 @@ TERMS = {
     "uniformity": {"uniformity": 30.0},
     "formation": {"formation": 1e3},
     "altitude": {"altitude": 1e4},
+    "altitude-hold": {"altitude-hold": 50.0},
 }
 
 
@@ -129,7 +133,7 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
     gT = np.zeros(M)
     obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
     if term != "energy+time":
-        name = term
+        name = "altitude" if term == "altitude-hold" else term  # J_z holds both
         assert costs[obj.TERM_NAMES.index(name)] > 0.0, f"{term} not active in the test setup"
     assert _rel_err(gc, _num_grad(f_c, c0, 1e-6)) <= RTOL
     assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
@@ -188,6 +192,7 @@ def test_whole_objective_gradient_in_q_and_tau(seed: int) -> None:
         "uniformity": 30.0,
         "formation": 1e3,
         "altitude": 1e4,
+        "altitude-hold": 50.0,
     }
     M, head, tail, q, T, prob, fld = _setup(seed, weights)
     x = np.concatenate([q.ravel(), tau_from_T(T)])

@@ -292,8 +292,9 @@ def _under_a_slab() -> AnalyticField:
 def test_plans_stay_inside_the_altitude_band() -> None:
     field = _under_a_slab()
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
-    # an obstacle term that reaches 0.6 m: the slab pushes the plan down
-    far = {"w_obstacle": 5e4, "obstacle_clearance_m": 0.6}
+    # an obstacle term that reaches 0.6 m: the slab pushes the plan down (no altitude hold:
+    # the band alone bounds the dive)
+    far = {"w_obstacle": 5e4, "obstacle_clearance_m": 0.6, "w_altitude_hold": 0.0}
     unbounded = PlannerParams(v_max_m_s=1.0, w_altitude=0.0, z_limits_m=(-50.0, 50.0), **far)
     free = FormationPlanner(unbounded, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
     assert free.status == PlanStatus.OK

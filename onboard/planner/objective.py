@@ -66,7 +66,10 @@ P_FORM_STRIDE = 14  # J_f on every stride-th constraint point (trapezoid on that
 P_W_ALT = 15  # J_z: weight of the altitude band penalty
 P_Z_LO = 16  # J_z: positions below this z are penalised
 P_Z_HI = 17  # J_z: positions above this z are penalised
-N_PRM = 18
+P_W_HOLD = 18  # J_z: weight of the altitude hold, (z - z_hold)^2
+P_Z_HOLD = 19  # J_z: the altitude held (the drone's goal altitude)
+P_HOLD_KNEE = 20  # J_z: the hold is quadratic up to this deviation, linear beyond
+N_PRM = 21
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -140,7 +143,11 @@ def sampled_costs(
     J_u: variance of the squared distances between consecutive constraint points; J_z, not in
     the paper: w max(z_lo - z, 0)^3 + w max(z - z_hi, 0)^3 on the constraint points, which keeps
     the trajectory inside the altitude band where the distance field knows nothing: below the
-    ground and above the map window, an ESDF reports free space).
+    ground and above the map window, an ESDF reports free space; plus the altitude hold, a
+    Huber penalty of e = z - z_hold: w_hold e^2 up to |e| = knee, then w_hold knee (2|e| - knee):
+    the formation metric does not change when the shape is tilted, so without it nothing keeps
+    a level formation level once tracking errors break the symmetry; linear beyond the knee,
+    its pull is bounded where an obstacle asks for a climb or a descent).
     """
     head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask, fpts = prob
     kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
@@ -164,6 +171,9 @@ def sampled_costs(
     w_alt = prm[P_W_ALT]
     z_lo = prm[P_Z_LO]
     z_hi = prm[P_Z_HI]
+    w_hold = prm[P_W_HOLD]
+    z_hold = prm[P_Z_HOLD]
+    knee = prm[P_HOLD_KNEE]
 
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
@@ -256,6 +266,19 @@ def sampled_costs(
                     gder[0, 2] += w_alt * 3.0 * above * above
                     pen += pz
                     costs[C_Z] += wq * pz
+            if w_hold > 0.0:  # J_z: altitude hold, Huber in z - z_hold
+                off = der[0, 2] - z_hold
+                if off > knee:
+                    ph = w_hold * knee * (2.0 * off - knee)
+                    gder[0, 2] += 2.0 * w_hold * knee
+                elif off < -knee:
+                    ph = w_hold * knee * (-2.0 * off - knee)
+                    gder[0, 2] -= 2.0 * w_hold * knee
+                else:
+                    ph = w_hold * off * off
+                    gder[0, 2] += 2.0 * w_hold * off
+                pen += ph
+                costs[C_Z] += wq * ph
 
             # J_d: feasibility (velocity, acceleration, jerk)
             if w_fe > 0.0:

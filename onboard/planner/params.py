@@ -229,6 +229,21 @@ class PlannerParams:
     w_altitude: float = 1.0e7
     """J_z: weight of max(z_lo - z, 0)^3 + max(z - z_hi, 0)^3 over constraint points, with
     (z_lo, z_hi) the band shrunk by ``altitude_margin_m``."""
+    w_altitude_hold: float = 1.0e5
+    """J_z's altitude hold: weight of (z - z_goal)^2 over the constraint points, z_goal the
+    altitude of the drone's goal (moved into the band). The formation metric is invariant to
+    rotation, so a level formation tilted costs nothing more. Flown exactly, its drones stay
+    level (the vertical gradient is zero by symmetry), but any altitude error breaks the
+    symmetry and the shape tilts to ease its spacing between the trunks: with drones started
+    up to 5 cm off 1 m, every one of 6 medium forests tilted the hexagon to 0.4-3.0 m (over the
+    2.5-3 m trunks, and over the map's top) within seconds; on the real stack half the swarm
+    climbed to 3 m (issue #10). With 1e5 the spread stayed under 0.1 m (BENCHMARKS §10). 0: off
+    (a 3-D shape is held too: each drone holds its own goal's altitude)."""
+    altitude_hold_knee_m: float = 0.1
+    """The altitude hold is quadratic up to this deviation from the goal's altitude and linear
+    beyond (its pull stops growing at 2 ``w_altitude_hold`` times this): a fixed pull is
+    enough to keep a level shape level, and a bounded one yields to an obstacle that asks for
+    a climb or a descent instead of squeezing the plan against it."""
     altitude_margin_m: float = 0.1
     """J_z starts this far inside ``z_limits_m``, so the optimiser's solution stays inside the
     band the safety check enforces (a soft penalty balances the other terms slightly past where
@@ -253,6 +268,7 @@ class PlannerParams:
             "horizon_m",
             "piece_length_m",
             "obstacle_clearance_m",
+            "altitude_hold_knee_m",
             "swarm_clearance_m",
             "swarm_z_scale",
             "check_step_s",
@@ -283,6 +299,7 @@ class PlannerParams:
             "lead_deadband_m",
             "reform_s",
             "w_altitude",
+            "w_altitude_hold",
             "altitude_margin_m",
             "comfort_obstacle_m",
         )

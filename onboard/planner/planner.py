@@ -327,6 +327,8 @@ class FormationPlanner:
         prm[obj.P_FORM_STRIDE] = p.formation_stride
         prm[obj.P_W_ALT] = p.w_altitude
         prm[obj.P_Z_LO], prm[obj.P_Z_HI] = p.altitude_band_inner_m
+        prm[obj.P_W_HOLD] = p.w_altitude_hold  # P_Z_HOLD: set per problem (the goal's z)
+        prm[obj.P_HOLD_KNEE] = p.altitude_hold_knee_m
         prm.setflags(write=False)
         return prm
 
@@ -678,6 +680,9 @@ class FormationPlanner:
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
+        if p.w_altitude_hold > 0.0:
+            prm = prm.copy()
+            prm[obj.P_Z_HOLD] = gl[2]
         pt0 = pack.t0 - t_start_s
         prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts)
         problem = Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
