@@ -487,14 +487,14 @@ class Demo:
             raise DemoError("a formation needs at least 2 drones")
         try:
             self.template = load_template(cfg.formation)
+            templates = [self.template]
             if cfg.formation_change is not None:
-                load_template(cfg.formation_change[0])
+                templates.append(load_template(cfg.formation_change[0]))
         except FormationError as e:
             raise DemoError(str(e)) from e
-        if self.template.n != cfg.drones:
-            raise DemoError(
-                f"formation {self.template.name} has {self.template.n} points, not {cfg.drones}"
-            )
+        for t in templates:  # the change's too: before anything starts, not once in flight
+            if t.n != cfg.drones:
+                raise DemoError(f"formation {t.name} has {t.n} points, not {cfg.drones}")
         self.spec = load_world_spec(cfg.world)
         self.out = Path(cfg.out_dir)
         self.out.mkdir(parents=True, exist_ok=True)

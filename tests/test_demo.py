@@ -73,6 +73,11 @@ def test_parse_change_and_config_errors(tmp_path: Path) -> None:
     with pytest.raises(DemoError, match="no file named 'nope'"):
         Demo(DemoConfig(drones=3, formation="triangle-3", formation_change=("nope", 1.0),
                         out_dir=tmp_path / "b"))  # fmt: skip
+    # a change to a shape of another size is refused before anything starts
+    with pytest.raises(DemoError, match="rectangle-7 has 7 points, not 3"):
+        Demo(DemoConfig(drones=3, formation="triangle-3", formation_change=("rectangle-7", 8.0),
+                        out_dir=tmp_path / "c"))  # fmt: skip
+    assert not (tmp_path / "c").exists()
 
 
 def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path) -> None:
