@@ -223,8 +223,8 @@ def bench_demo(
     from rich.console import Console
     from rich.table import Table
 
-    from gcs.demo import DemoConfig, default_depth_rate, parse_change
-    from onboard.config import ConfigError, load_formation
+    from gcs.demo import DemoConfig, DemoError, default_depth_rate, demo_templates, parse_change
+    from onboard.config import ConfigError
     from onboard.service.config import load_onboard_config
 
     # a wide table when written to a file or a pipe (rich's default there is 80 columns)
@@ -234,12 +234,9 @@ def bench_demo(
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
-        for name in (formation,) if fc is None else (formation, fc[0]):
-            n = load_formation(name).n
-            if n != drones:
-                raise ConfigError(f"{name} has {n} points for {drones} drones")
+        demo_templates(drones, formation, fc)  # the demo's own check, before the first seed
         service = load_onboard_config(None, drone_id=0)
-    except ConfigError as e:
+    except (DemoError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate)
     rate = default_depth_rate(demo_cfg)

@@ -120,7 +120,7 @@ def _sim_table(r: SimResult) -> Table:
     t.add_row("max speed", f"{_fmt(r.max_speed_m_s, '.2f')} m/s")
     z = r.tracks.pos[:, :, 2]
     if z.size:
-        spread = float(np.max(z.max(axis=1) - z.min(axis=1)))
+        spread = r.tracks.z_spread_max()
         t.add_row("altitude", f"{z.min():.2f} to {z.max():.2f} m (spread at most {spread:.2f} m)")
     t.add_row(
         "e_sim mean / max",

@@ -49,6 +49,7 @@ import numpy as np
 from gcs.formations import FormationError, load_template
 from gcs.station import CommandOutcome, GroundStation, StationConfig
 from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
+from onboard.config import Formation
 
 log = logging.getLogger(__name__)
 
@@ -456,6 +457,24 @@ class FlightLog:
         return {"e_dist_m": mean(self.e_dist), "e_sim": mean(self.e_sim)}
 
 
+def demo_templates(
+    drones: int, formation: str, change: tuple[str, float] | None
+) -> list[Formation]:
+    """The flight's formation template and the change's (when there is one), each with one
+    point per drone: checked before anything starts, not once the change is assigned in
+    flight. DemoError names the template that cannot be read or has another size."""
+    try:
+        templates = [load_template(formation)]
+        if change is not None:
+            templates.append(load_template(change[0]))
+    except FormationError as e:
+        raise DemoError(str(e)) from e
+    for t in templates:
+        if t.n != drones:
+            raise DemoError(f"formation {t.name} has {t.n} points, not {drones}")
+    return templates
+
+
 def default_depth_rate(cfg: DemoConfig) -> float:
     """Depth frames per second and drone: ``cfg.depth_rate_hz``, else what this 2-core machine
     renders and maps in real time for the swarm's size (10 up to 4 drones, 5 above)."""
@@ -485,16 +504,7 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
-        try:
-            self.template = load_template(cfg.formation)
-            templates = [self.template]
-            if cfg.formation_change is not None:
-                templates.append(load_template(cfg.formation_change[0]))
-        except FormationError as e:
-            raise DemoError(str(e)) from e
-        for t in templates:  # the change's too: before anything starts, not once in flight
-            if t.n != cfg.drones:
-                raise DemoError(f"formation {t.name} has {t.n} points, not {cfg.drones}")
+        self.template = demo_templates(cfg.drones, cfg.formation, cfg.formation_change)[0]
         self.spec = load_world_spec(cfg.world)
         self.out = Path(cfg.out_dir)
         self.out.mkdir(parents=True, exist_ok=True)

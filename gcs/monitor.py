@@ -33,6 +33,13 @@ class Tracks:
     e_sim: np.ndarray
     e_dist: np.ndarray
 
+    def z_spread_max(self) -> float:
+        """The largest altitude difference between two drones at one sample (0 without
+        samples): a level formation that tilts shows here, the formation metrics do not see
+        it."""
+        z = self.pos[:, :, 2]
+        return float(np.max(z.max(axis=1) - z.min(axis=1))) if z.size else 0.0
+
 
 @dataclass(frozen=True)
 class MonitorConfig:

@@ -74,8 +74,7 @@ class TrialResult:
     e_sim: float
     e_sim_whole_flight: float
     z_spread_max_m: float
-    """The largest altitude difference between two drones at one sample (a level formation
-    that tilts shows here; the metrics do not see it)."""
+    """``Tracks.z_spread_max``: the largest altitude difference between two drones."""
     flight_time_s: float
     path_length_m: float
     replan_ms_median: float
@@ -161,19 +160,13 @@ def run_trial(
         e_dist_rms_m=s["e_dist_rms_m"],
         e_sim=s["e_sim"],
         e_sim_whole_flight=res.e_sim_mean,
-        z_spread_max_m=z_spread_max(res),
+        z_spread_max_m=res.tracks.z_spread_max(),
         flight_time_s=res.flight_time_s,
         path_length_m=s["path_length_m"],
         replan_ms_median=res.replan_ms["median"],
         wall_s=res.sim_wall_s,
     )
     return row, (res if keep_result else None)
-
-
-def z_spread_max(result: SimResult) -> float:
-    """The largest altitude difference between two drones over the recorded samples."""
-    z = result.tracks.pos[:, :, 2]
-    return float(np.max(z.max(axis=1) - z.min(axis=1))) if z.size else 0.0
 
 
 def _mean(values: Sequence[float]) -> float | None:

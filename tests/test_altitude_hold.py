@@ -31,17 +31,12 @@ def _fly(**planner: float) -> SimResult:
     return run_sim(cfg)
 
 
-def _spread(res: SimResult) -> float:
-    z = res.tracks.pos[:, :, 2]
-    return float(np.max(z.max(axis=1) - z.min(axis=1)))
-
-
 def test_a_level_formation_stays_level_at_its_goal_altitude() -> None:
     res = _fly()
     assert res.success and res.collisions == 0
     assert res.min_obstacle_clearance_m >= 0.3
     z = res.tracks.pos[:, :, 2]
-    assert _spread(res) < 0.15
+    assert res.tracks.z_spread_max() < 0.15
     # within the start jitter of the goals' 1 m, all flight long
     assert np.all(np.abs(z - 1.0) <= JITTER_M + 0.03)
 
@@ -49,7 +44,7 @@ def test_a_level_formation_stays_level_at_its_goal_altitude() -> None:
 def test_without_the_hold_the_same_flight_tilts() -> None:
     """The control: the same starts without the hold; the metric does not see the tilt."""
     res = _fly(w_altitude_hold=0.0)
-    assert _spread(res) > 1.0
+    assert res.tracks.z_spread_max() > 1.0
 
 
 def test_start_jitter_moves_only_the_start_altitudes() -> None:

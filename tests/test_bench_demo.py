@@ -39,3 +39,22 @@ def test_a_failed_demo_is_reported_with_its_error(tmp_path: Path) -> None:
     assert r["success"] is False and r["exit_code"] != 0
     assert "no-such-formation" in r["error"]
     assert r["min_obstacle_clearance_centre_m"] is None
+
+
+def test_a_formation_of_another_size_is_refused_before_the_first_seed(tmp_path: Path) -> None:
+    """The demo's own size check (``gcs.demo.demo_templates``), on the flight's formation and
+    on the change's, before any process starts or any flight directory is made."""
+    from click.testing import CliRunner
+
+    from gcs.cli import main
+
+    base = ["bench", "demo", "--seeds", "1", "--drones", "3", "--no-fastsim"]
+    for extra, name in (
+        (["--formation", "hexagon-7"], "hexagon-7"),
+        (["--formation", "triangle-3", "--formation-change", "rectangle-7@8"], "rectangle-7"),
+    ):
+        out_dir = tmp_path / name
+        res = CliRunner().invoke(main, [*base, *extra, "--out", str(out_dir)])
+        assert res.exit_code == 1, res.output
+        assert f"formation {name} has 7 points, not 3" in res.output
+        assert not out_dir.exists() and "seed 1" not in res.output
