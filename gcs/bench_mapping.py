@@ -125,6 +125,8 @@ class MappingBenchConfig:
     """The planner's altitude band (``PlannerParams.z_limits_m``' default)."""
     band_margin_m: float = 0.45
     """The service's ``mapping.window_band_margin_m`` default."""
+    occluded_fill_m: float | None = None
+    """``OccupancyParams.occluded_fill_m`` (None: its default)."""
 
 
 def flight_path(
@@ -179,6 +181,51 @@ def _error_stats(err: np.ndarray) -> dict[str, float | None]:
     }
 
 
+NEAR_PROBE_RADIUS_M = 1.5
+NEAR_SURFACE_M = 0.6
+
+
+def near_probe_offsets(res_m: float = 0.05) -> np.ndarray:
+    """Offsets (K, 3) of a horizontal disc of ``NEAR_PROBE_RADIUS_M`` around the camera, on a
+    ``res_m`` grid: where the drone's next plans lie."""
+    g = np.arange(-NEAR_PROBE_RADIUS_M, NEAR_PROBE_RADIUS_M + 1e-9, res_m)
+    x, y = np.meshgrid(g, g)
+    keep = x**2 + y**2 <= NEAR_PROBE_RADIUS_M**2
+    return np.stack([x[keep], y[keep], np.zeros(int(np.count_nonzero(keep)))], axis=1)
+
+
+def near_overestimate(
+    field: Any, world: Any, centre: np.ndarray, offsets: np.ndarray, inflation_m: float
+) -> Any:
+    """How much further than the truth the planning field puts the obstacles beside the drone:
+    at the observed points of ``centre + offsets`` within ``NEAR_SURFACE_M`` of an obstacle
+    surface, the field's value minus (the exact distance less the field's ``inflation_m``). Above
+    0 the map has an obstacle short; above 0.1 m the drone's radius no longer covers it."""
+    p = centre + offsets
+    exact, _ = world.distance(p)
+    near = (exact > 0.0) & (exact < NEAR_SURFACE_M)
+    p, exact = p[near], exact[near]
+    known = field.is_known(p)
+    p, exact = p[known], exact[known]
+    if p.shape[0] == 0:
+        return np.zeros(0)
+    d, _ = field.distance(p)
+    return d - (exact - inflation_m)
+
+
+def _overestimate_stats(e: np.ndarray) -> dict[str, float | None]:
+    if e.size == 0:
+        return {"n": 0, "p50": None, "p95": None, "p99": None, "max": None, "over_0.1": None}
+    return {
+        "n": int(e.size),
+        "p50": float(np.percentile(e, 50)),
+        "p95": float(np.percentile(e, 95)),
+        "p99": float(np.percentile(e, 99)),
+        "max": float(np.max(e)),
+        "over_0.1": float(np.mean(e > 0.1)),
+    }
+
+
 WINDOWS = ("floor", "band")
 
 
@@ -190,6 +237,8 @@ def window_params(cfg: MappingBenchConfig, window: str | None = None) -> Any:
     occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
     if cfg.no_return_m is not None:
         occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
+    if cfg.occluded_fill_m is not None:
+        occ = dataclasses.replace(occ, occluded_fill_m=cfg.occluded_fill_m)
     w = cfg.window if window is None else window
     if w == "band":
         return occ.for_band(cfg.band_m[0], cfg.band_m[1], cfg.band_margin_m)
@@ -401,7 +450,7 @@ def run_mapping_bench(
     ply_path: Path | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the JSON-able report."""
-    from onboard.mapping import LocalMapper, look_rotation
+    from onboard.mapping import EsdfBuilder, LocalMapper, look_rotation
     from onboard.mapping.evaluate import esdf_errors
 
     world, pos, yaw, cam = _flight(cfg)
@@ -421,6 +470,11 @@ def run_mapping_bench(
     errors_free: list[np.ndarray] = []
     errors_occ: list[np.ndarray] = []
     errors_band: list[np.ndarray] = []
+    over_near: list[np.ndarray] = []
+    errors_filled: list[np.ndarray] = []
+    fill = occ.occluded_fill_cells
+    observed_builder = EsdfBuilder()
+    probes = near_probe_offsets()
     recent: list[Any] = []
     keep = int(round(5.0 * cfg.rate_hz))  # frames of the last 5 s define "observed"
     error_every = max(1, int(round(cfg.error_every_s * cfg.rate_hz)))
@@ -449,8 +503,11 @@ def run_mapping_bench(
             esdf_cpu_ms.append((time.thread_time() - c3) * 1e3)
             esdf_ms.append((time.perf_counter() - t3) * 1e3)
             if (k + 1) % error_every == 0:
+                # the accuracy of the distances to what was observed (the field without the
+                # shadow fill, whose distances are lower on purpose beside unobserved space)
+                observed = field if fill == 0 else observed_builder.build(mapper.map, fill_cells=0)
                 e = esdf_errors(
-                    field,
+                    observed,
                     world,
                     recent[::3],
                     cfg.skip_pixel,
@@ -459,8 +516,18 @@ def run_mapping_bench(
                 )
                 errors_free.append(e.free)
                 errors_occ.append(e.occupied)
+                errors_filled.append(
+                    esdf_errors(
+                        field,
+                        world,
+                        recent[::3],
+                        cfg.skip_pixel,
+                        band_m=cfg.error_band_m,
+                        max_range_m=occ.max_ray_m,
+                    ).all
+                )
                 eb = esdf_errors(
-                    band_crop(field, cfg.band_m),
+                    band_crop(observed, cfg.band_m),
                     world,
                     recent[::3],
                     cfg.skip_pixel,
@@ -468,6 +535,11 @@ def run_mapping_bench(
                     max_range_m=occ.max_ray_m,
                 )
                 errors_band.append(eb.all)
+                over_near.append(
+                    near_overestimate(
+                        mapper.planning_field(), world, pos[k], probes, occ.inflation_m
+                    )
+                )
         if progress is not None:
             progress(k + 1, n)
     from gcs.bench import machine_info
@@ -483,6 +555,7 @@ def run_mapping_bench(
             **_window_summary(occ),
             "resolution_m": occ.resolution_m,
             "no_return_m": occ.no_return_m,
+            "occluded_fill_m": occ.occluded_fill_m,
         },
         "render_ms": _stats(render_ms),
         "ingest_ms": _stats(ingest_ms),
@@ -497,6 +570,12 @@ def run_mapping_bench(
         "esdf_error_m": _error_stats(np.concatenate([err_f, err_o])),
         "esdf_error_band_m": _error_stats(
             np.concatenate(errors_band) if errors_band else np.zeros(0)
+        ),
+        "esdf_error_filled_m": _error_stats(
+            np.concatenate(errors_filled) if errors_filled else np.zeros(0)
+        ),
+        "near_overestimate_m": _overestimate_stats(
+            np.concatenate(over_near) if over_near else np.zeros(0)
         ),
         "esdf_error_free_m": _error_stats(err_f),
         "esdf_error_occupied_m": _error_stats(err_o),
@@ -562,6 +641,22 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     show_default=True,
     type=click.IntRange(min=0),
     help="Rectangular holes per frame.",
+)
+@click.option(
+    "--rate",
+    "rate_hz",
+    default=30.0,
+    show_default=True,
+    type=click.FloatRange(min=0.0, min_open=True),
+    help="Depth frames per second (the flight is at 0.5 m/s).",
+)
+@click.option(
+    "--occluded-fill",
+    "occluded_fill_m",
+    default=None,
+    type=click.FloatRange(0.0, 1.0),
+    help="Never-observed cells this close to an obstacle count as occupied [m] (0: none) "
+    "[default: the mapper's, 0.2].",
 )
 @click.option(
     "--esdf-every",
@@ -633,6 +728,8 @@ def bench_mapping(
     noise_1m: float,
     dropout: float,
     holes: int,
+    rate_hz: float,
+    occluded_fill_m: float | None,
     esdf_every: int,
     no_return_m: float | None,
     max_frames: int,
@@ -658,6 +755,8 @@ def bench_mapping(
         noise_std_1m_m=noise_1m,
         dropout=dropout,
         holes=holes,
+        rate_hz=rate_hz,
+        occluded_fill_m=occluded_fill_m,
         esdf_every=esdf_every,
         no_return_m=no_return_m,
         max_frames=max_frames,
@@ -726,6 +825,7 @@ def bench_mapping(
         ("all observed", "esdf_error_m"),
         ("free", "esdf_error_free_m"),
         ("occupied", "esdf_error_occupied_m"),
+        ("all, shadows filled (planned on)", "esdf_error_filled_m"),
     ):
         s = report[key]
         etab.add_row(
@@ -738,6 +838,15 @@ def bench_mapping(
             _fmt(s["mean_signed"], "+.3f"),
         )
     console.print(etab)
+    ov = report["near_overestimate_m"]
+    console.print(
+        f"beside the drone (observed points within {NEAR_SURFACE_M} m of a surface, "
+        f"{NEAR_PROBE_RADIUS_M} m around it; {ov['n']}): the planning field reads the obstacle "
+        f"further than it is by p50 {_fmt(ov['p50'], '+.3f')}, p95 {_fmt(ov['p95'], '+.3f')}, "
+        f"p99 {_fmt(ov['p99'], '+.3f')} m; more than the inflation at "
+        f"{_fmt(None if ov['over_0.1'] is None else 100 * ov['over_0.1'], '.1f')} % "
+        f"(occluded fill {sc['occluded_fill_m']:g} m)"
+    )
     tg = report["targets"]["esdf_error_m.p95"]
     console.print(
         f"ESDF error p95 {_fmt(tg['value'], '.3f')} m (target <= {tg['target']} m: "

@@ -10,6 +10,8 @@ rolled window, and a window mapped from rendered depth frames of a small forest.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from numba import njit
@@ -29,6 +31,7 @@ from onboard.mapping.esdf import (
     _envelope_pass,
     _inside_local,
     esdf_kernel,
+    fill_occluded,
 )
 from onboard.planner.field import UNKNOWN_DISTANCE
 from onboard.world import World
@@ -243,8 +246,19 @@ def test_esdf_kernel_equals_the_plain_passes_on_a_mapped_forest() -> None:
     assert np.any(om.lo % np.array(om.shape) != 0)  # a rolled ring buffer
     for sub_cell in (True, False):
         _assert_same(om, sub_cell)
-    # and through the builder the service uses
+    # and through the builder the service uses: the transform of the map with the shadows of
+    # its obstacles filled (OccupancyParams.occluded_fill_m), the filled cells still unknown
+    assert om.params.occluded_fill_cells == 2
     f = EsdfBuilder().build(om, inflate_m=0.1)
-    ref = _reference(om, True, 0.1)
+    filled = copy.copy(om)
+    filled.logodds = np.empty_like(om.logodds)
+    queue = np.empty(om.logodds.size, dtype=np.int64)
+    n_occ, n_all = fill_occluded(om.logodds, om.lo, om.params.l_occ, 2, filled.logodds, queue)
+    assert n_all - n_occ > 100
+    ref = _reference(filled, True, 0.1)
     assert f.values.tobytes() == ref[1].tobytes()
     assert f.inflated(0.1).values.tobytes() == ref[2].tobytes()
+    known = ref[4].copy()
+    known.reshape(-1)[queue[n_occ:n_all]] = False
+    np.testing.assert_array_equal(f.known, known)
+    np.testing.assert_array_equal(f.known, _reference(om, True, 0.1)[4])

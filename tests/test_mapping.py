@@ -50,9 +50,11 @@ def _poses() -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _mapped(world: World, noise: float = 0.0) -> tuple[LocalMapper, list[DepthFrame]]:
+def _mapped(
+    world: World, noise: float = 0.0, params: OccupancyParams = SMALL
+) -> tuple[LocalMapper, list[DepthFrame]]:
     cam = SimulatedDepthCamera(world, params=SimCameraParams(noise_std_1m_m=noise), seed=3)
-    mapper = LocalMapper(SMALL, center=np.array([2.0, 0.0, 1.0]))
+    mapper = LocalMapper(params, center=np.array([2.0, 0.0, 1.0]))
     frames = []
     for k, (p, r) in enumerate(_poses()):
         f = cam.capture(p, r, 0.1 * k)
@@ -138,8 +140,12 @@ def test_intrinsics_defaults_are_the_d435() -> None:
 
 
 def test_esdf_matches_exact_distance_in_observed_space() -> None:
+    """The distances to what the camera saw (without the fill of the obstacles' shadows,
+    which only lowers them: ``test_mapping_occluded.py``)."""
     world = _scene()
-    mapper, frames = _mapped(world, noise=0.002)
+    mapper, frames = _mapped(
+        world, noise=0.002, params=dataclasses.replace(SMALL, occluded_fill_m=0.0)
+    )
     field = mapper.field()
     err = esdf_errors(field, world, frames, step=2, max_range_m=SMALL.max_ray_m)
     assert err.free.size > 5_000 and err.occupied.size > 1_000

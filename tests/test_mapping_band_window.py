@@ -80,7 +80,8 @@ def test_planning_field_in_the_band_is_the_taller_windows() -> None:
     assert _z_range(tall) == pytest.approx((-0.5, 3.5))
     assert _z_range(band) == pytest.approx((-0.1, 3.5))
     assert ft.known is not None and fb.known is not None
-    assert not np.any(ft.known[:, :, :4]) and not np.any(ft.occupied[:, :, :4])
+    # (the field fills the ground's shadow under it: OccupancyParams.occluded_fill_m)
+    assert not np.any(ft.known[:, :, :4]) and not np.any(tall.map.occupied()[:, :, :4])
     assert np.any(band.map.occupied()[:, :, 0])  # the ground is still in the window
     assert fb.origin[2] == pytest.approx(0.2) and fb.upper[2] == pytest.approx(3.2)
     # cell centres 0.25 .. 3.15 m: every one the planner interpolates from inside the band

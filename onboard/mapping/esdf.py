@@ -7,7 +7,10 @@ cell (outside, carrying the index of that cell along: a feature transform) and f
 occupied cell to the nearest non-occupied cell (inside); signed distance = outside - inside.
 Unknown cells count as free here, so the optimiser sees the distance to the nearest *known*
 obstacle everywhere (unknown space is free for it); the field's ``known`` mask tells the
-collision check which cells were observed.
+collision check which cells were observed. The exception is the shadow of an obstacle: unknown
+cells within ``OccupancyParams.occluded_fill_m`` of an occupied cell of their layer count as
+occupied (``fill_occluded``; still unknown in ``known``), so that the side of a trunk the
+camera never faced is not free space right beside the side it saw.
 
 Values sit at cell centres and are refined below the cell size (``sub_cell``, the default):
 every occupied cell remembers the mean of the measured surface points that fell into it, so a
@@ -490,6 +493,65 @@ envelope passes."""
 
 
 @njit(cache=True, nogil=True)
+def fill_occluded(
+    logodds: np.ndarray,
+    lo: np.ndarray,
+    l_occ: float,
+    cells: int,
+    out: np.ndarray,
+    queue: np.ndarray,
+) -> tuple[int, int]:
+    """``out`` = ``logodds`` (the ring buffer, same storage order) with every never-observed
+    cell within ``cells`` cells of an occupied cell in the same layer (Chebyshev distance in x
+    and y, in the window: never across its edges) set to ``l_occ``: occupied for the ESDF
+    (``OccupancyParams.occluded_fill_m``). Only sideways: the shadows of a level camera lie
+    behind what it saw, not above or below it, and each layer's fill depends on that layer
+    alone (a band window's layers get what a taller window's get). ``queue`` (int64, at least one
+    slot per cell) receives window-order flat indices ``(wi * ny + wj) * nz + wk``: the
+    occupied cells, then the filled ones. Returns (occupied, occupied + filled): the filled
+    cells are ``queue[occupied:occupied + filled]``."""
+    nx = logodds.shape[0]
+    ny = logodds.shape[1]
+    nz = logodds.shape[2]
+    n = np.array((nx, ny, nz), dtype=np.int64)
+    o = np.empty(3, dtype=np.int64)  # storage slot of window cell 0 per axis
+    for a in range(3):
+        r = lo[a] % n[a]
+        o[a] = r + n[a] if r < 0 else r
+    m = 0
+    for si in range(nx):
+        wi = si - o[0]
+        wi = wi + nx if wi < 0 else wi
+        for sj in range(ny):
+            wj = sj - o[1]
+            wj = wj + ny if wj < 0 else wj
+            for sk in range(nz):
+                v = logodds[si, sj, sk]
+                out[si, sj, sk] = v
+                if v >= l_occ:
+                    wk = sk - o[2]
+                    wk = wk + nz if wk < 0 else wk
+                    queue[m] = (wi * ny + wj) * nz + wk
+                    m += 1
+    n_occ = m
+    for f in range(n_occ):
+        w = queue[f]
+        wk = w % nz
+        wj = (w // nz) % ny
+        wi = w // (nz * ny)
+        sk = (wk + o[2]) % nz
+        for ai in range(max(wi - cells, 0), min(wi + cells + 1, nx)):
+            si = (ai + o[0]) % nx
+            for aj in range(max(wj - cells, 0), min(wj + cells + 1, ny)):
+                sj = (aj + o[1]) % ny
+                if out[si, sj, sk] < _UNKNOWN_BELOW:
+                    out[si, sj, sk] = l_occ
+                    queue[m] = (ai * ny + aj) * nz + wk
+                    m += 1
+    return n_occ, m
+
+
+@njit(cache=True, nogil=True)
 def esdf_kernel(
     logodds: np.ndarray,
     surf: np.ndarray,
@@ -737,6 +799,7 @@ class EsdfBuilder:
         self.sub_cell = sub_cell
         self._shape: tuple[int, int, int] | None = None
         self._bufs: tuple[np.ndarray, ...] = ()
+        self._fill_bufs: tuple[np.ndarray, ...] = ()  # fill_occluded's output and work
         self._pool: _OutputPool | None = None
         self._masks: tuple[np.ndarray, ...] = ()
         self._new_sets_before = 0  # of pools replaced after a change of shape
@@ -747,11 +810,17 @@ class EsdfBuilder:
         return self._new_sets_before + (self._pool.new_sets if self._pool is not None else 0)
 
     def build(
-        self, omap: OccupancyMap, stamp_s: float = math.nan, inflate_m: float | None = None
+        self,
+        omap: OccupancyMap,
+        stamp_s: float = math.nan,
+        inflate_m: float | None = None,
+        fill_cells: int | None = None,
     ) -> EsdfField:
         """The signed distance field of the map's current window (of its layers that
         ``esdf_layers`` names: the field's box is those layers'); with ``inflate_m``, its
-        ``inflated(inflate_m)`` is computed in the same pass (and returned by that call)."""
+        ``inflated(inflate_m)`` is computed in the same pass (and returned by that call).
+        ``fill_cells``: the shadow fill in cells (``fill_occluded``; None: the map's
+        ``occluded_fill_m``; 0: the transform of what was observed alone)."""
         shape = omap.shape
         k0, k1 = esdf_layers(omap)
         partial = (k0, k1) != (0, shape[2])
@@ -763,6 +832,7 @@ class EsdfBuilder:
                 np.empty(shape, dtype=np.float32),
                 np.empty((int(np.prod(shape)), 3), dtype=np.float32),
             )
+            self._fill_bufs = ()
             self._new_sets_before = self.new_sets
             self._pool = _OutputPool(out_shape)
             self._shape = shape
@@ -777,8 +847,20 @@ class EsdfBuilder:
         known, occ = self._masks if partial else (known_out, occ_out)
         res = omap.res
         offset = 0.5 * res if self.surface_offset_m is None else self.surface_offset_m
+        logodds = omap.logodds
+        fill = omap.params.occluded_fill_cells if fill_cells is None else int(fill_cells)
+        if fill > 0:
+            if not self._fill_bufs:
+                self._fill_bufs = (
+                    np.empty(shape, dtype=np.float32),
+                    np.empty(int(np.prod(shape)), dtype=np.int64),
+                )
+            logodds, queue = self._fill_bufs
+            n_occ, n_all = fill_occluded(
+                omap.logodds, omap.lo, omap.params.l_occ, fill, logodds, queue
+            )
         _n_occ, bad = esdf_kernel(
-            omap.logodds,
+            logodds,
             omap.surf,
             omap.lo,
             omap.params.l_occ,
@@ -800,6 +882,9 @@ class EsdfBuilder:
         )
         if bad:
             raise ValueError(f"ESDF refresh produced {bad} non-finite values (a bad map input)")
+        if fill > 0:
+            # filled cells are occupied for the distances but still unobserved for the checks
+            known.reshape(-1)[queue[n_occ:n_all]] = False
         if partial:
             known_out[...] = known[:, :, k0:k1]
             occ_out[...] = occ[:, :, k0:k1]
