@@ -513,24 +513,24 @@ def fill_occluded(
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
-    n = np.array((nx, ny, nz), dtype=np.int64)
-    o = np.empty(3, dtype=np.int64)  # storage slot of window cell 0 per axis
-    for a in range(3):
-        r = lo[a] % n[a]
-        o[a] = r + n[a] if r < 0 else r
+    # storage slot of each window index per axis (no modulo in the loops below)
+    sx = np.empty(nx, dtype=np.int64)
+    sy = np.empty(ny, dtype=np.int64)
+    sz = np.empty(nz, dtype=np.int64)
+    for sa, na, la in ((sx, nx, lo[0]), (sy, ny, lo[1]), (sz, nz, lo[2])):
+        r = la % na
+        r = r + na if r < 0 else r
+        for w in range(na):
+            v = r + w
+            sa[w] = v - na if v >= na else v
+    out[...] = logodds
     m = 0
-    for si in range(nx):
-        wi = si - o[0]
-        wi = wi + nx if wi < 0 else wi
-        for sj in range(ny):
-            wj = sj - o[1]
-            wj = wj + ny if wj < 0 else wj
-            for sk in range(nz):
-                v = logodds[si, sj, sk]
-                out[si, sj, sk] = v
-                if v >= l_occ:
-                    wk = sk - o[2]
-                    wk = wk + nz if wk < 0 else wk
+    for wi in range(nx):
+        si = sx[wi]
+        for wj in range(ny):
+            sj = sy[wj]
+            for wk in range(nz):
+                if logodds[si, sj, sz[wk]] >= l_occ:
                     queue[m] = (wi * ny + wj) * nz + wk
                     m += 1
     n_occ = m
@@ -539,11 +539,11 @@ def fill_occluded(
         wk = w % nz
         wj = (w // nz) % ny
         wi = w // (nz * ny)
-        sk = (wk + o[2]) % nz
+        sk = sz[wk]
         for ai in range(max(wi - cells, 0), min(wi + cells + 1, nx)):
-            si = (ai + o[0]) % nx
+            si = sx[ai]
             for aj in range(max(wj - cells, 0), min(wj + cells + 1, ny)):
-                sj = (aj + o[1]) % ny
+                sj = sy[aj]
                 if out[si, sj, sk] < _UNKNOWN_BELOW:
                     out[si, sj, sk] = l_occ
                     queue[m] = (ai * ny + aj) * nz + wk
