@@ -57,10 +57,11 @@ def test_norm3_is_numpys_norm() -> None:
     a = _spread(rng, 3 * 20000).reshape(-1, 3)
     mine = np.array([norm3(*row) for row in a])
     np.testing.assert_array_equal(mine, np.linalg.norm(a, axis=1))
-    # the 1-D norm is a BLAS dot product: equal here; a BLAS using FMA elsewhere may round
-    # the last bit differently
+    # the 1-D norm is a BLAS dot product, whose kernel depends on the host: equal to the last
+    # bit on some, within 1 ULP with an FMA kernel, 2 ULP with OpenBLAS's AVX-512 kernel
+    # (Cascade Lake)
     one = np.array([np.linalg.norm(row) for row in a[:2000]])
-    np.testing.assert_array_max_ulp(mine[:2000], one, maxulp=1)
+    np.testing.assert_array_max_ulp(mine[:2000], one, maxulp=2)
 
 
 def test_np_linspace_is_numpys() -> None:
@@ -343,7 +344,10 @@ def test_initial_guess_is_the_numpy_one() -> None:
                 want = _oracle_x0(params, t0, sp, sv, goal, field, previous, force)
                 got = planner.prepare(t0, sp, sv, ZERO, goal, [], field, previous,
                                       force_astar=force).x0  # fmt: skip
-                np.testing.assert_array_equal(got, want)
+                # the same path, times and branch; the last bits may differ with the host's
+                # vector kernels (1.3e-15 m at most on an AVX-512 Cascade Lake, bit-equal on
+                # earlier hosts); a different branch or path differs by centimetres
+                np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12)
             if previous is not None and previous.t_end_s > t0 + 0.2:
                 kinds["warm"] += 1
             elif segment_is_free(
