@@ -18,23 +18,17 @@ from onboard.mapping.simcam import D435_TYPICAL, SimulatedDepthCamera
 from onboard.world import World
 
 
-def _window_to_storage(omap: OccupancyMap, window: np.ndarray) -> None:
+def _slots(omap: OccupancyMap) -> tuple[np.ndarray, ...]:
+    """The ring buffer's storage slots of the window's cells, in window order."""
     g = np.stack(
         np.meshgrid(*[omap.lo[a] + np.arange(omap.shape[a]) for a in range(3)], indexing="ij"), -1
     )
-    omap.logodds[omap.storage_index(g.reshape(-1, 3))] = window.reshape(-1)
-
-
-def _storage_to_window(omap: OccupancyMap, storage: np.ndarray) -> np.ndarray:
-    g = np.stack(
-        np.meshgrid(*[omap.lo[a] + np.arange(omap.shape[a]) for a in range(3)], indexing="ij"), -1
-    )
-    return storage[omap.storage_index(g.reshape(-1, 3))].reshape(omap.shape)
+    return omap.storage_index(g.reshape(-1, 3))
 
 
 @pytest.mark.parametrize("cells", [1, 2, 3])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_fill_is_the_dilation_through_unknown_cells(cells: int, seed: int) -> None:
+def test_fill_is_the_layer_dilation_kept_to_unknown_cells(cells: int, seed: int) -> None:
     """The kernel against scipy's binary dilation by a square of 2 * cells + 1 in each layer,
     kept to the never-observed cells, in window order: the ring buffer's wrap (a window whose
     corner is not a multiple of its size) never carries a fill across the window's edges."""
@@ -45,14 +39,14 @@ def test_fill_is_the_dilation_through_unknown_cells(cells: int, seed: int) -> No
     state[:, 0, :] = 2  # a full slab at the window's y edge: nothing wraps to its other side
     window = np.where(state == 0, UNKNOWN_LOGODDS, np.where(state == 1, prm.l_min, prm.l_max))
     window = window.astype(np.float32)
-    _window_to_storage(omap, window)
+    omap.logodds[_slots(omap)] = window.reshape(-1)
     unknown = state == 0
     square = np.ones((2 * cells + 1, 2 * cells + 1, 1), bool)
     expect = (state == 2) | (ndimage.binary_dilation(state == 2, structure=square) & unknown)
     out = np.empty_like(omap.logodds)
     queue = np.empty(omap.logodds.size, np.int64)
     n_occ, n_all = fill_occluded(omap.logodds, omap.lo, prm.l_occ, cells, out, queue)
-    got = _storage_to_window(omap, out)
+    got = out[_slots(omap)].reshape(omap.shape)
     np.testing.assert_array_equal(got >= prm.l_occ, expect)
     assert n_occ == int(np.count_nonzero(state == 2))
     # the queue lists the filled cells (window order), each once
