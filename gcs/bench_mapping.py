@@ -477,6 +477,18 @@ def run_mapping_bench(
     probes = near_probe_offsets()
     recent: list[Any] = []
     keep = int(round(5.0 * cfg.rate_hz))  # frames of the last 5 s define "observed"
+
+    def errors_of(f: Any) -> Any:
+        """The field's errors in the space the recent frames observed."""
+        return esdf_errors(
+            f,
+            world,
+            recent[::3],
+            cfg.skip_pixel,
+            band_m=cfg.error_band_m,
+            max_range_m=occ.max_ray_m,
+        )
+
     error_every = max(1, int(round(cfg.error_every_s * cfg.rate_hz)))
     n = pos.shape[0]
     for k in range(n):
@@ -506,34 +518,11 @@ def run_mapping_bench(
                 # the accuracy of the distances to what was observed (the field without the
                 # shadow fill, whose distances are lower on purpose beside unobserved space)
                 observed = field if fill == 0 else observed_builder.build(mapper.map, fill_cells=0)
-                e = esdf_errors(
-                    observed,
-                    world,
-                    recent[::3],
-                    cfg.skip_pixel,
-                    band_m=cfg.error_band_m,
-                    max_range_m=occ.max_ray_m,
-                )
+                e = errors_of(observed)
                 errors_free.append(e.free)
                 errors_occ.append(e.occupied)
-                errors_filled.append(
-                    esdf_errors(
-                        field,
-                        world,
-                        recent[::3],
-                        cfg.skip_pixel,
-                        band_m=cfg.error_band_m,
-                        max_range_m=occ.max_ray_m,
-                    ).all
-                )
-                eb = esdf_errors(
-                    band_crop(observed, cfg.band_m),
-                    world,
-                    recent[::3],
-                    cfg.skip_pixel,
-                    band_m=cfg.error_band_m,
-                    max_range_m=occ.max_ray_m,
-                )
+                errors_filled.append(e.all if observed is field else errors_of(field).all)
+                eb = errors_of(band_crop(observed, cfg.band_m))
                 errors_band.append(eb.all)
                 over_near.append(
                     near_overestimate(
