@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 _NUM = {"type": "number"}
@@ -225,6 +226,30 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def _enc_hook(x: Any) -> Any:
+    """What msgspec cannot encode itself: numpy arrays and scalars as lists and numbers, other
+    mappings as dicts."""
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    if isinstance(x, Mapping):
+        return dict(x)
+    raise TypeError(f"cannot record a {type(x).__name__}")
+
+
+_ENCODER = msgspec.json.Encoder(enc_hook=_enc_hook)
+
+
+def encode_record(payload: Mapping[str, Any]) -> bytes:
+    """A record's payload as compact JSON, the value of ``json.dumps(_jsonable(payload),
+    separators=(",", ":"))`` (NaN and inf as null, numpy as lists and numbers, keys as
+    strings), about five times faster (msgspec; the flight service records ~70 messages a
+    second, the setpoints at 50 Hz among them). What msgspec refuses takes the json path."""
+    try:
+        return _ENCODER.encode(payload)
+    except (TypeError, msgspec.EncodeError):  # keys msgspec refuses (tuples), ints over 64 bits
+        return json.dumps(_jsonable(payload), separators=(",", ":")).encode()
+
+
 def flight_file_name(drone_id: int, t_s: float) -> str:
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(t_s))
     return f"drone{drone_id}-{stamp}.mcap"
@@ -348,7 +373,7 @@ class FlightRecorder:
             topic, t_s, payload = self._queue.popleft()
             seq = self._seq.get(topic, 0)
             self._seq[topic] = seq + 1
-            data = json.dumps(_jsonable(payload), separators=(",", ":")).encode()
+            data = encode_record(payload)
             ns = _ns(t_s)
             self._writer.add_message(self._channels[topic], ns, data, ns, seq)
             n += 1

@@ -7,9 +7,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 
-from onboard.record import SCHEMAS, FlightRecorder, flight_file_name, read_record
+from onboard.record import (
+    SCHEMAS,
+    FlightRecorder,
+    _jsonable,
+    encode_record,
+    flight_file_name,
+    read_record,
+)
 
 
 def _write_flight(path: Path) -> None:
@@ -143,3 +152,39 @@ def test_file_names_sort_by_time() -> None:
     a = flight_file_name(2, 1_700_000_000.0)
     b = flight_file_name(2, 1_700_000_100.0)
     assert a.startswith("drone2-") and a.endswith(".mcap") and a < b
+
+
+_leaf = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(min_value=-(2**70), max_value=2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=8),
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=4).map(np.array),
+    st.floats(allow_nan=True, allow_infinity=True, width=32).map(np.float32),
+    st.integers(min_value=-1000, max_value=1000).map(np.int64),
+)
+_payload = st.recursive(
+    _leaf,
+    lambda kids: st.one_of(
+        st.lists(kids, max_size=4),
+        st.tuples(kids, kids),
+        st.dictionaries(st.one_of(st.text(max_size=6), st.integers(-5, 5)), kids, max_size=4),
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.dictionaries(st.text(max_size=6), _payload, max_size=5))
+def test_fast_encoding_is_the_json_path(payload: dict) -> None:
+    """The records' encoder (msgspec) gives the value the plain json path gives: NaN and inf
+    as null, numpy as lists and numbers, integer keys as strings; over 64-bit integers (which
+    msgspec refuses) through the fallback."""
+    fast = encode_record(payload)
+    slow = json.dumps(_jsonable(payload), separators=(",", ":")).encode()
+    assert json.loads(fast, parse_constant=_no_constant) == json.loads(slow)
+
+
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"{name} in a record: not JSON")
