@@ -72,7 +72,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -553,6 +553,10 @@ class DroneAgent:
         self._flagged: dict[int, float] = {}  # peer -> heard time its silence was flagged at
         self._in_way: dict[int, float] = {}  # peer -> heard time its quiet ghosts were in the way
         self._looked: dict[int, float] = {}  # peer -> its newest heard time at the last look
+        # what ``_ghosts`` and ``_deviation`` last computed per peer, with what it came from
+        # (``peer_view`` runs 20-40 times a second, a peer's messages change at 10 Hz)
+        self._ghost_cache: dict[int, tuple[tuple[Any, ...], np.ndarray]] = {}
+        self._deviation_cache: dict[int, tuple[_Heard, _Seen, np.ndarray | None]] = {}
         self._spells: dict[int, deque[tuple[float, float]]] = {}  # peer -> (look, spell)
         self._spell_max: dict[int, float] = {}  # peer -> longest spell kept (None: recompute)
         self._spell_stale: set[int] = set()  # peers whose longest spell left the window
@@ -909,12 +913,17 @@ class DroneAgent:
         seen = self._seen.get(pid)
         if st is None or st.position is None or seen is None:
             return None
+        cached = self._deviation_cache.get(pid)
+        if cached is not None and cached[0] is st and cached[1] is seen:
+            return cached[2]
+        out: np.ndarray | None = st.position
         tr = seen.msg.trajectory
         if st.stamp_s < tr.t0_s - EPS_T:
-            return None
-        if float(np.linalg.norm(st.position - tr.sample(st.stamp_s))) <= self.peer_deviation_m:
-            return None
-        return st.position
+            out = None
+        elif float(np.linalg.norm(st.position - tr.sample(st.stamp_s))) <= self.peer_deviation_m:
+            out = None
+        self._deviation_cache[pid] = (st, seen, out)
+        return out
 
     # --- the cycle --------------------------------------------------------------------------
 
@@ -1199,12 +1208,22 @@ class DroneAgent:
             tr = seen.msg.trajectory
             t_a = max(h, tr.t0_s)
             t_b = max(t_a, min(now, h + lim - self.peer_silence_s + self.ghost_window_s))
+            # the same messages and the same end: the same ghosts (once ``now`` is past the
+            # window's end, every look until the peer is heard again)
+            cached = self._ghost_cache.get(pid)
+            if cached is not None:
+                c_seen, c_state, c_a, c_b = cached[0]
+                if c_seen is seen and c_state is state and c_a == t_a and c_b == t_b:
+                    out.extend((pid, p) for p in cached[1])
+                    continue
             ts = np.append(np.arange(t_a, t_b, 0.02), t_b)
             pts = tr.sample(ts)
             if state is not None and state.position is not None and state.stamp_s >= h - EPS_T:
                 pts = np.vstack([state.position, pts])
-            for p in _spaced(pts, self.ghost_spacing_m):
-                out.append((pid, p))
+            ghosts = _spaced(pts, self.ghost_spacing_m)
+            ghosts.setflags(write=False)
+            self._ghost_cache[pid] = ((seen, state, t_a, t_b), ghosts)
+            out.extend((pid, p) for p in ghosts)
         return out
 
     def _split_peers(

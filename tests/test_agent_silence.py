@@ -209,3 +209,38 @@ def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_w
     assert rep.silent_peers == (1, 2) and rep.quiet_peers == () and rep.formation_peers == ()
     c = a.counters()
     assert c["quiet"] == 1 and c["silent"] == 1 and c["in_the_way"] == 1
+
+
+def test_the_peer_view_cache_never_serves_old_ghosts_or_positions() -> None:
+    """``peer_view`` keeps each quiet peer's ghosts and each peer's deviation check while the
+    messages they come from and the ghosts' time span stay the same. Through a quiet spell
+    (the window still growing, then past its end), a peer heard again at another place, a new
+    trajectory and a report off it, every view equals one computed without the caches."""
+    bus = InMemoryBus()
+    v = np.array([1.0, 0.0, 0.0])
+    a = _agent(bus, None, peer_deviation_m=0.3)
+    tr1 = _line(np.array([3.0, 0.0, 1.0]), v, 0.0)
+    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
+    a.heard(1, 0.0, tr1.sample(0.0))
+    looks = []
+    for k in range(1, 70):
+        t = round(k * 0.05, 9)
+        if k == 20:  # heard again, 0.5 m off its trajectory
+            a.heard(1, t, tr1.sample(t) + np.array([0.0, 0.5, 0.0]))
+        if k == 30:  # a new trajectory from where it is
+            tr2 = _line(tr1.sample(t) + np.array([0.0, 0.5, 0.0]), -v, t)
+            bus.publish(TrajectoryMsg(1, 1, 1, tr2, valid_until_s=t + 3.0), t)
+        if k == 35:  # heard off the new one
+            a.heard(1, t, tr2.sample(t) + np.array([0.0, 0.0, 0.4]))
+        view = a.peer_view(t)
+        again = a.peer_view(t)  # from the caches
+        a._ghost_cache.clear()
+        a._deviation_cache.clear()
+        fresh = a.peer_view(t)
+        for got in (view, again):
+            assert got.hover_ids == fresh.hover_ids and got.quiet == fresh.quiet
+            np.testing.assert_array_equal(got.hover_points, fresh.hover_points)
+        looks.append((view.quiet + view.silent, len(view.hover_ids), view.deviating))
+    assert (1,) in {q for q, _, _ in looks} and (1,) in {d for _, _, d in looks}
+    sizes = [n for q, n, _ in looks if q]
+    assert len(set(sizes)) > 1  # the ghosts grew with the window, then stayed
