@@ -353,6 +353,30 @@ def test_subscriber_of_one_vehicle_never_receives_the_others_frames(
         sub.close()
 
 
+def test_a_depth_only_subscriber_never_decodes_poses(
+    publisher: tuple[Any, ZenohEndpoints],
+) -> None:
+    """``poses=False`` (a flight service's depth source): the 50 Hz poses are not subscribed
+    to; each is published before a frame, so once frames arrive a pose would have too."""
+    pub, ep = publisher
+    sub = ZenohTruthSubscriber("t/dp", endpoints=ep, system_id=4, poses=False)
+    try:
+
+        def put_both() -> bool:
+            pub.put("t/dp/4/pose", _sample(4).to_bytes())
+            pub.put("t/dp/4/depth", _image(sid=4, stamp=time.monotonic()).to_bytes())
+            time.sleep(0.02)
+            return sub.depth_image(4) is not None
+
+        _wait(put_both, "a frame of vehicle 4")
+        for _ in range(5):
+            put_both()
+        c = sub.counters()
+        assert c["depth.rx"] >= 2 and c["pose.rx"] == 0 and sub.pose(4) is None
+    finally:
+        sub.close()
+
+
 @pytest.mark.parametrize("queue_len", [4, 2])
 def test_a_busy_reader_gets_the_frames_that_came_meanwhile_in_order(
     publisher: tuple[Any, ZenohEndpoints], queue_len: int

@@ -429,6 +429,8 @@ class ZenohTruthSubscriber:
     rejection reason, and ``error`` (an unexpected exception in a callback, logged).
     ``system_id``: subscribe to that vehicle's streams only (a flight service: the other
     vehicles' frames are neither sent to it nor decoded), else to every vehicle's.
+    ``poses``: also subscribe to the poses (False: depth frames only; a flight service has its
+    autopilot's estimate, and the 50 Hz poses would only be decoded and dropped).
     """
 
     def __init__(
@@ -442,6 +444,7 @@ class ZenohTruthSubscriber:
         limits: CodecLimits = DEFAULT_LIMITS,
         system_id: int | None = None,
         depth_queue: int = DEPTH_QUEUE,
+        poses: bool = True,
     ) -> None:
         if system_id is not None and (isinstance(system_id, bool) or not 0 < system_id < 256):
             raise ValueError(f"system_id must be a MAVLink system id 1..255, got {system_id!r}")
@@ -465,9 +468,10 @@ class ZenohTruthSubscriber:
         self._subs: list[Any] = []
         try:
             who = "*" if system_id is None else str(int(system_id))
-            self._subs.append(
-                session.declare_subscriber(f"{self.prefix}/{who}/pose", self._on_pose)
-            )
+            if poses:
+                self._subs.append(
+                    session.declare_subscriber(f"{self.prefix}/{who}/pose", self._on_pose)
+                )
             self._subs.append(
                 session.declare_subscriber(f"{self.prefix}/{who}/depth", self._on_depth)
             )
@@ -577,6 +581,10 @@ def open_depth_source(
     """A depth source of one vehicle's frames from the mock that owns its subscriber (closing
     the source closes the subscription, and the session unless ``session`` was given)."""
     sub = ZenohTruthSubscriber(
-        prefix, endpoints=endpoints or ZenohEndpoints(), session=session, system_id=system_id
+        prefix,
+        endpoints=endpoints or ZenohEndpoints(),
+        session=session,
+        system_id=system_id,
+        poses=False,
     )
     return TruthDepthSource(lambda after: sub.depth_after(system_id, after), on_close=sub.close)
