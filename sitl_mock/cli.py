@@ -135,7 +135,9 @@ def parse_signing(values: Sequence[str], require: bool) -> tuple[Any, ...]:
     "--depth-step",
     default=3,
     show_default=True,
-    help="Render every n-th pixel (the flight service ray casts every 3rd by default).",
+    help="A camera of every n-th pixel row and column of the D435's image (the same rays, an "
+    "n-times smaller image; the flight service ray casts every 3rd pixel of the D435's by "
+    "default, so every pixel of this one).",
 )
 @click.option(
     "--depth-idle-rate",

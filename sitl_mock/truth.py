@@ -167,15 +167,23 @@ class DepthCamera(Protocol):
 
 
 def simulated_d435(world: Any, seed: int = 0, step: int = 1) -> DepthCamera:
-    """The perception work's simulated D435 over ``world``.
+    """The perception work's simulated D435 over ``world``; with ``step`` > 1, the camera of
+    every ``step``-th pixel row and column of its image (``CameraIntrinsics.decimated``: the
+    same rays, a ``step``-times smaller image). A flight service that would ray cast every
+    ``step``-th pixel of the full image casts every pixel of this one: rendering, encoding,
+    sending and decoding a frame cost about 1 / step^2 of the full image's, and the map gets
+    the same rays.
 
     Raises RuntimeError when ``onboard.mapping`` does not provide it.
     """
     try:
-        from onboard.mapping.simcam import SimCameraParams, SimulatedDepthCamera
+        from onboard.mapping.camera import CameraIntrinsics
+        from onboard.mapping.simcam import SimulatedDepthCamera
     except ImportError as e:  # pragma: no cover - present in this tree
         raise RuntimeError(f"no simulated depth camera available: {e}") from e
-    return SimulatedDepthCamera(world, params=SimCameraParams(step=step), seed=seed)
+    return SimulatedDepthCamera(
+        world, CameraIntrinsics().decimated(step), seed=seed, decimation=step
+    )
 
 
 class DepthStreamer:
@@ -265,6 +273,7 @@ class DepthStreamer:
                     )
                 },
                 render_step=frame.render_step,
+                decimation=frame.decimation,
             )
             for sink in self.sinks:
                 sink.publish_depth(img)

@@ -35,7 +35,7 @@ def test_disarmed_vehicles_get_frames_at_the_idle_rate() -> None:
     assert sink.depth[2].stamp_s == pytest.approx(1.0) and sink.depth[1].stamp_s == 4.0
     poses[2] = _sample(2, 5.0, armed=True)  # vehicle 2 armed for take-off: full rate
     assert s.render_once() == 1 and sink.depth[2].stamp_s == pytest.approx(5.0)
-    assert sink.depth[2].depth_m.shape == (480, 640)
+    assert sink.depth[2].depth_m.shape == (60, 80)  # every 8th pixel of 640 x 480
     # without an idle rate every vehicle gets every frame
     every = DepthStreamer(cams, lambda: dict(poses), [InMemoryTruth()], rate_hz=10.0)
     poses = {1: _sample(1, 6.0, armed=False), 2: _sample(2, 6.0, armed=False)}

@@ -59,6 +59,25 @@ class CameraIntrinsics:
         """Image shape (height, width) as numpy orders it."""
         return self.height, self.width
 
+    def decimated(self, step: int) -> CameraIntrinsics:
+        """The camera of every ``step``-th pixel row and column of this one (from pixel 0):
+        pixel (u, v) of the result is pixel (step u, step v) here, through the same ray
+        (pixel centres at integer coordinates, so fx, fy, cx and cy scale by 1 / step)."""
+        if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+            raise ValueError(f"step must be an integer >= 1, got {step!r}")
+        if step == 1:
+            return self
+        return CameraIntrinsics(
+            -(-self.width // step),
+            -(-self.height // step),
+            self.fx / step,
+            self.fy / step,
+            self.cx / step,
+            self.cy / step,
+            self.min_depth_m,
+            self.max_depth_m,
+        )
+
     def normalized_coords(self) -> tuple[np.ndarray, np.ndarray]:
         """x_n (width,) = (u - cx) / fx and y_n (height,) = (v - cy) / fy of pixel centres."""
         u = np.arange(self.width, dtype=np.float64)
@@ -96,6 +115,11 @@ class DepthFrame:
     """Only every render_step-th row and column holds a measurement (a simulated camera that
     renders a subset); the other pixels read 0 but are not "no return". A mapper casting a
     pixel grid that is not a subset of these refuses the frame."""
+    decimation: int = 1
+    """The image is every decimation-th pixel row and column of the camera's own
+    (``intrinsics`` are those of the smaller image, ``CameraIntrinsics.decimated``): a mapper
+    told to cast every n-th pixel of the camera casts every (n / decimation)-th of this one,
+    and refuses the frame when n is not a multiple of it."""
 
 
 class FrameRejected(ValueError):

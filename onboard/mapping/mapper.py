@@ -51,7 +51,8 @@ class LocalMapper:
     ) -> IngestResult:
         """Validate a frame, centre the window on its camera (unless ``recenter`` is False;
         the camera must then lie inside the window) and ray cast it, every ``step``-th pixel
-        (default ``params.skip_pixel``).
+        of the camera's image (default ``params.skip_pixel``; of a decimated frame, every
+        (step / decimation)-th of its own).
 
         Refused (``accepted`` False, map unchanged): wrong shape or dtype, non-finite time or
         pose, a time older than the last accepted frame. Masked (pixels ignored): NaN, inf,
@@ -67,8 +68,16 @@ class LocalMapper:
             self.rejected += 1
             return IngestResult(False, "frame older than the last accepted one")
         cast = self.params.skip_pixel if step is None else int(step)
+        dec = frame.decimation
+        if cast % dec:
+            self.rejected += 1
+            return IngestResult(
+                False,
+                f"frame of every {dec}th pixel of the camera but cast every {cast}th: "
+                f"the cast step (depth.step) must be a multiple of the decimation",
+            )
         render = frame.render_step
-        if render > 1 and cast % render:
+        if render > 1 and (cast // dec) % render:
             # the pixels between the rendered ones read 0: cast, they would clear free space
             self.rejected += 1
             return IngestResult(
@@ -84,7 +93,7 @@ class LocalMapper:
         period = self.params.no_return_period_s
         no_return = t >= self._next_no_return_s - 0.1 * period
         res = self.map.ingest_depth(
-            depth, frame.intrinsics, frame.position, frame.rotation, cast, no_return
+            depth, frame.intrinsics, frame.position, frame.rotation, cast, no_return, dec
         )
         if res.accepted:
             self.last_stamp_s = t

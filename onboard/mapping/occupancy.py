@@ -978,10 +978,14 @@ class OccupancyMap:
         rotation: np.ndarray,
         step: int | None = None,
         no_return: bool = True,
+        decimation: int = 1,
     ) -> IngestResult:
         """Ray cast a depth image (float32 metres along the optical axis) taken from the pose:
         0 is "no return" (free space along the ray, cut as the module docstring says, unless
         ``no_return`` is False); NaN, inf, negative and below-minimum values mark nothing.
+        ``step`` and the parameters in pixels are the camera's: of an image of its every
+        ``decimation``-th pixel (``intrinsics`` that image's), every (step / decimation)-th
+        pixel is cast, so that it marks what the full image would (step a multiple of it).
 
         The camera centre must be inside the window (``recenter`` first); otherwise the frame
         is refused. See ``LocalMapper.ingest`` for frame validation."""
@@ -997,10 +1001,15 @@ class OccupancyMap:
         k = p.skip_pixel if step is None else int(step)
         if k < 1:
             raise ValueError(f"step must be >= 1, got {k}")
+        dec = int(decimation)
+        if dec < 1 or k % dec:
+            raise ValueError(f"step {k} must be a multiple of the decimation {dec}")
         # no-return rays and the depth blocks on the skip grid only (a simulated frame renders
-        # nothing else), blocks of at least 8 pixels
+        # nothing else), blocks of at least 8 pixels; in the camera's pixels, then this image's
         k_nr = k * -(-p.no_return_step // k)
         block = k * -(-8 // k)
+        radius_blocks = -(-p.no_return_radius_px // block)
+        k, k_nr, block = k // dec, k_nr // dec, block // dec
         shape = (-(-d.shape[0] // block), -(-d.shape[1] // block))
         if self._blocks[0].shape != shape:
             self._blocks = tuple(np.empty(shape, dtype=np.float32) for _ in range(3))
@@ -1027,7 +1036,7 @@ class OccupancyMap:
             p.no_return_margin_m,
             p.no_return_min_valid,
             block,
-            -(-p.no_return_radius_px // block),
+            radius_blocks,
             *self._blocks,
         )
         self.frames += 1

@@ -71,7 +71,13 @@ class SimulatedDepthCamera:
         intrinsics: CameraIntrinsics | None = None,
         params: SimCameraParams | None = None,
         seed: int = 0,
+        decimation: int = 1,
     ) -> None:
+        if isinstance(decimation, bool) or not isinstance(decimation, int) or decimation < 1:
+            raise ValueError(f"decimation must be an integer >= 1, got {decimation!r}")
+        self.decimation = decimation
+        """``intrinsics`` are those of every decimation-th pixel of the real camera (the
+        frames say so: ``DepthFrame.decimation``)."""
         self.world = world
         self.intrinsics = intrinsics if intrinsics is not None else CameraIntrinsics()
         self.params = params if params is not None else SimCameraParams()
@@ -125,4 +131,5 @@ class SimulatedDepthCamera:
             np.array(rotation, dtype=np.float64),
             self.intrinsics,
             render_step=int(p.step),
+            decimation=self.decimation,
         )

@@ -49,6 +49,7 @@ REJECT_REASONS = (
 )
 _INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "min_depth_m", "max_depth_m")
 _HEADER_KEYS = {"system_id", "stamp_s", "position", "rotation", "intrinsics", "shape", "encoding"}
+_OPTIONAL_HEADER_KEYS = frozenset({"render_step", "decimation"})
 _POSE_KEYS = {
     "system_id",
     "t_s",
@@ -240,6 +241,9 @@ class DepthImage:
     render_step: int = 1
     """Only every render_step-th row and column was rendered (the rest reads 0); on the wire
     only when above 1."""
+    decimation: int = 1
+    """The image is every decimation-th pixel of the camera's (``DepthFrame.decimation``;
+    ``intrinsics`` are the smaller image's); on the wire only when above 1."""
 
     def to_bytes(self) -> bytes:
         """The wire form (raises ValueError for a non-finite stamp, pose or intrinsics)."""
@@ -253,6 +257,7 @@ class DepthImage:
                 "shape": list(self.depth_m.shape),
                 "encoding": DEPTH_ENCODING,
                 **({"render_step": int(self.render_step)} if self.render_step != 1 else {}),
+                **({"decimation": int(self.decimation)} if self.decimation != 1 else {}),
             },
             separators=(",", ":"),
             allow_nan=False,
@@ -277,7 +282,7 @@ class DepthImage:
         if 8 + n > len(data):
             raise DecodeError("truncated", f"header of {n} bytes, {len(data) - 8} left")
         h = _json(data[8 : 8 + n], "depth header")
-        _keys(h, _HEADER_KEYS | {"render_step"}, "depth header", frozenset({"render_step"}))
+        _keys(h, _HEADER_KEYS | _OPTIONAL_HEADER_KEYS, "depth header", _OPTIONAL_HEADER_KEYS)
         if h["encoding"] != DEPTH_ENCODING:
             raise DecodeError("wrong-version", f"encoding {h['encoding']!r}")
         shape = h["shape"]
@@ -309,6 +314,7 @@ class DepthImage:
             rotation=rot,
             intrinsics=intr,
             render_step=_integer("render_step", h.get("render_step", 1), 1, 64),
+            decimation=_integer("decimation", h.get("decimation", 1), 1, 64),
         )
 
     def to_depth_frame(self) -> DepthFrame:
@@ -325,7 +331,13 @@ class DepthImage:
             i.get("max_depth_m", 5.0),
         )
         return DepthFrame(
-            self.depth_m, self.stamp_s, self.position, self.rotation, intr, self.render_step
+            self.depth_m,
+            self.stamp_s,
+            self.position,
+            self.rotation,
+            intr,
+            self.render_step,
+            self.decimation,
         )
 
 

@@ -254,10 +254,12 @@ class DepthSection:
     sim_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     realsense_bag: str | None = None
     step: int = 3
-    """Ray cast every step-th pixel row and column (the simulated camera must render them:
-    ``swarm-sitl --depth-step`` the same). 3 rather than 2: ingest CPU per frame -37 % (6.7 ->
-    4.2 ms at 30 frames/s), ESDF error p95 / p99 0.080 / 0.143 -> 0.073 / 0.130 m, 1.5 % fewer
-    known and 10 % fewer occupied cells (``bench mapping``, forest-medium seed 1)."""
+    """Ray cast every step-th pixel row and column of the camera's image (of a decimated
+    frame, ``DepthFrame.decimation``, every (step / decimation)-th: ``swarm-sitl
+    --depth-step`` 3 sends that grid, and a step that is not a multiple of it is refused).
+    3 rather than 2: ingest CPU per frame -37 % (6.7 -> 4.2 ms at 30 frames/s), ESDF error
+    p95 / p99 0.080 / 0.143 -> 0.073 / 0.130 m, 1.5 % fewer known and 10 % fewer occupied
+    cells (``bench mapping``, forest-medium seed 1)."""
 
     def __post_init__(self) -> None:
         _in_range("rate_hz", self.rate_hz, 1.0, 90.0)
