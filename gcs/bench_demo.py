@@ -16,6 +16,7 @@ fast-time simulator measures.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -203,6 +204,9 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
               "after its start, where it has its goal).")  # fmt: skip
 @click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=None,
               help="Depth frames per second and drone [default: the demo's].")  # fmt: skip
+@click.option("--altitude-band", type=float, nargs=2, default=None, metavar="BELOW ABOVE",
+              help="The planner's altitude band around the cruise altitude [default: the "
+              "demo's]; 0 0: config/onboard.yaml's.")  # fmt: skip
 @click.option("--no-fastsim", is_flag=True, help="Fly only the real stack.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None,
@@ -214,7 +218,8 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def bench_demo(
     seeds: int, first_seed: int, drones: int, formation: str, world: str, change: str | None,
-    depth_rate: float | None, no_fastsim: bool, out_dir: Path | None, timeout_s: float,
+    depth_rate: float | None, altitude_band: tuple[float, float] | None, no_fastsim: bool,
+    out_dir: Path | None, timeout_s: float,
     json_path: Path | None, quiet: bool,
 ) -> None:  # fmt: skip
     """The end-to-end demo over seeds (1..N by default), each beside the fast-time simulator
@@ -223,8 +228,15 @@ def bench_demo(
     from rich.console import Console
     from rich.table import Table
 
-    from gcs.demo import DemoConfig, DemoError, default_depth_rate, demo_templates, parse_change
-    from onboard.config import ConfigError
+    from gcs.demo import (
+        DemoConfig,
+        DemoError,
+        default_band,
+        default_depth_rate,
+        demo_templates,
+        parse_change,
+    )
+    from onboard.config import ConfigError, load_world_spec
     from onboard.service.config import load_onboard_config
 
     # a wide table when written to a file or a pipe (rich's default there is 80 columns)
@@ -238,8 +250,20 @@ def bench_demo(
         service = load_onboard_config(None, drone_id=0)
     except (DemoError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
-    demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate)
+    demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate, altitude_band_m=altitude_band)
     rate = default_depth_rate(demo_cfg)
+    planner = service.planner
+    try:
+        band = default_band(demo_cfg)
+        if band is not None:  # the demo's band, for the fast-time flights too
+            spec = load_world_spec(world)
+            assert spec.start_center is not None
+            alt = float(spec.start_center[2])
+            planner = dataclasses.replace(
+                planner, z_limits_m=(round(alt - band[0], 6), round(alt + band[1], 6))
+            )
+    except (DemoError, ConfigError, ValueError) as e:
+        raise click.ClickException(str(e)) from e
     step = int(service.depth.step)
     base = (
         out_dir
@@ -249,6 +273,7 @@ def bench_demo(
     base.mkdir(parents=True, exist_ok=True)
     argv = ["--drones", str(drones), "--formation", formation, "--world", world]
     argv += ["--depth-rate", str(rate)]
+    argv += ["--altitude-band", *(str(x) for x in (band if band is not None else (0, 0)))]
     if change is not None:
         argv += ["--formation-change", change]
     load0 = os.getloadavg()
@@ -259,9 +284,7 @@ def bench_demo(
         row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
         if not no_fastsim:
             console.print(f"seed {seed}: fast-time flight ...")
-            row["fastsim"] = run_fastsim_seed(
-                seed, formation, world, fc, rate, step, service.planner
-            )
+            row["fastsim"] = run_fastsim_seed(seed, formation, world, fc, rate, step, planner)
         rows.append(row)
     report: dict[str, Any] = {
         "benchmark": "demo",
@@ -274,7 +297,8 @@ def bench_demo(
             "seeds": list(range(first_seed, first_seed + seeds)),
             "depth_rate_hz": rate,
             "depth_step": step,
-            "v_max_m_s": service.planner.v_max_m_s,
+            "v_max_m_s": planner.v_max_m_s,
+            "altitude_band_m": list(planner.z_limits_m),
             "fastsim_perception": None if no_fastsim else "mapped",
         },
         "rows": rows,

@@ -73,7 +73,9 @@ class DemoConfig:
     timeout is 4 frame periods (at least 0.5 s); sitl_nice: the mock's scheduling priority
     (it stands for the autopilots' own hardware: its clock and heartbeats must not starve
     behind the services; a negative value needs the privilege, else it is left at 0); v_max_m_s:
-    the planner's speed limit (None: config/onboard.yaml's); onboard_sets / sitl_sets: extra
+    the planner's speed limit (None: config/onboard.yaml's); altitude_band_m: the planner's
+    altitude band as (metres below, metres above) the cruise altitude (None: ``default_band``;
+    (0, 0): config/onboard.yaml's band); onboard_sets / sitl_sets: extra
     ``--set KEY=VALUE`` for every service / the mock; startup_timeout_s: until every service
     is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
     (None: from the route length and the speed limit); out_dir: the flight directory;
@@ -87,6 +89,7 @@ class DemoConfig:
     formation_change: tuple[str, float] | None = None
     altitude_m: float | None = None
     depth_rate_hz: float | None = None
+    altitude_band_m: tuple[float, float] | None = None
     sitl_nice: int = -5
     depth_step: int = 3
     v_max_m_s: float | None = None
@@ -483,6 +486,28 @@ def default_depth_rate(cfg: DemoConfig) -> float:
     return 10.0 if cfg.drones <= 4 else 5.0
 
 
+NARROW_BAND_M = (0.6, 0.8)
+"""The planner's altitude band above 4 drones, below and above the cruise altitude (0.4-1.8 m
+at the forests' 1 m): the drones hold their altitude within 0.1 m (``w_altitude_hold``), and
+the ESDF of that band costs about a third of the 0.3-3.1 m one's (13 against 38 ms a refresh,
+forest-medium, this machine), which 7 services mapping on 2 cores need."""
+
+
+def default_band(cfg: DemoConfig) -> tuple[float, float] | None:
+    """(below, above) the cruise altitude of the planner's altitude band, or None for the
+    onboard config's band: ``cfg.altitude_band_m`` ((0, 0) is None), else ``NARROW_BAND_M``
+    above 4 drones."""
+    band = cfg.altitude_band_m
+    if band is None:
+        return NARROW_BAND_M if cfg.drones > 4 else None
+    below, above = (float(x) for x in band)
+    if below == 0.0 and above == 0.0:
+        return None
+    if not (below > 0.0 and above > 0.0 and math.isfinite(below + above)):
+        raise DemoError(f"altitude band: expected two distances > 0 (below, above), got {band}")
+    return below, above
+
+
 GAVE_UP = ("emergency", "landing", "landed", "pilot", "link-lost")
 """Flight states in which a drone no longer flies the mission."""
 
@@ -504,6 +529,7 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
+        self.band = default_band(cfg)
         self.template = demo_templates(cfg.drones, cfg.formation, cfg.formation_change)[0]
         self.spec = load_world_spec(cfg.world)
         self.out = Path(cfg.out_dir)
@@ -791,7 +817,11 @@ class Demo:
 
     def _onboard_yaml(self, base_port: int, sitl_ep: str, prefix: str) -> str:
         cfg = self.cfg
-        planner = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
+        planner: dict[str, Any] = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
+        band = self.band
+        if band is not None:
+            alt = self.cruise_altitude_m()
+            planner["z_limits_m"] = [round(alt - band[0], 6), round(alt + band[1], 6)]
         # like PX4, each mock vehicle starts its local frame where it stands (its EKF origin):
         # every service is told where that is in the swarm frame
         origins = {str(i): p for i, p in enumerate(self.spawns)}
@@ -898,13 +928,20 @@ class Demo:
 
     # -- the mission --
 
+    def cruise_altitude_m(self) -> float:
+        """``cfg.altitude_m``, else the world's start height."""
+        if self.cfg.altitude_m is not None:
+            return float(self.cfg.altitude_m)
+        assert self.spec.start_center is not None
+        return float(self.spec.start_center[2])
+
     def fly(self) -> None:
         """Take off, form up, cross, (re-shape), land."""
         cfg, gs = self.cfg, self.gs
         assert gs is not None
         spec = self.spec
         assert spec.start_center is not None and spec.goal_center is not None
-        alt = float(cfg.altitude_m if cfg.altitude_m is not None else spec.start_center[2])
+        alt = self.cruise_altitude_m()
         ids = list(range(cfg.drones))
         self.t_takeoff = time.time()
         self._need(gs.takeoff(alt))
@@ -1235,6 +1272,11 @@ def demo_command() -> Any:
                   "5 above].")  # fmt: skip
     @click.option("--v-max", type=click.FloatRange(0.1, 3.0), default=None,
                   help="Planner speed limit [m/s] (default: config/onboard.yaml's).")  # fmt: skip
+    @click.option("--altitude-band", type=float, nargs=2, default=None,
+                  metavar="BELOW ABOVE",
+                  help="The planner's altitude band, metres below and above the cruise "
+                  "altitude [default: 0.6 0.8 above 4 drones, config/onboard.yaml's up to 4]; "
+                  "0 0: config/onboard.yaml's.")  # fmt: skip
     @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
                   default=None, help="Flight directory [default: flights/demo-TIME].")  # fmt: skip
     @click.option("--view", "view_port", type=int, default=None, metavar="PORT",
@@ -1254,7 +1296,8 @@ def demo_command() -> Any:
     @click.option("--quiet", "-q", is_flag=True, help="No progress display.")
     def demo(
         drones: int, formation: str, world: str, seed: int, change: str | None,
-        depth_rate: float | None, v_max: float | None, out_dir: Path | None, view_port: int | None,
+        depth_rate: float | None, v_max: float | None, altitude_band: tuple[float, float] | None,
+        out_dir: Path | None, view_port: int | None,
         onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], secure: bool,
         startup_timeout: float, as_json: bool, quiet: bool,
     ) -> None:  # fmt: skip
@@ -1269,6 +1312,7 @@ def demo_command() -> Any:
             out_dir=out_dir if out_dir is not None else DemoConfig().out_dir,
             drones=drones, formation=formation, world=world, seed=seed, formation_change=fc,
             depth_rate_hz=depth_rate, v_max_m_s=v_max, view_port=view_port,
+            altitude_band_m=altitude_band,
             onboard_sets=onboard_sets, sitl_sets=sitl_sets, startup_timeout_s=startup_timeout,
             secure=secure,
         )  # fmt: skip

@@ -100,6 +100,37 @@ def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path)
         Demo(DemoConfig(drones=3, formation="triangle-3", depth_rate_hz=0.5, out_dir=tmp_path))
 
 
+def test_the_altitude_band_by_fleet_size(tmp_path: Path) -> None:
+    """Above 4 drones the planner's band narrows around the cruise altitude (0.6 below, 0.8
+    above: 0.4-1.8 m at the forests' 1 m), which the services' map windows and ESDFs follow
+    (each service's own config check); (0, 0) keeps the onboard config's band; a band that is
+    not two positive distances is refused before anything starts."""
+    from onboard.service.config import load_onboard_config
+
+    cases = (
+        (3, "triangle-3", None, None),
+        (7, "hexagon-7", None, [0.4, 1.8]),
+        (7, "hexagon-7", (0.0, 0.0), None),
+        (3, "triangle-3", (0.5, 1.0), [0.5, 2.0]),
+    )
+    for k, (n, formation, band, z_limits) in enumerate(cases):
+        d = Demo(DemoConfig(drones=n, formation=formation, altitude_band_m=band,
+                            out_dir=tmp_path / str(k)))  # fmt: skip
+        d.world_file = d._world_file()
+        onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
+        assert onboard["planner"].get("z_limits_m") == z_limits
+        if z_limits is not None:
+            conf = tmp_path / f"{k}.yaml"
+            conf.write_text(json.dumps(onboard))
+            svc = load_onboard_config(conf, drone_id=0)
+            assert svc.planner.z_limits_m == tuple(z_limits)
+            lo, hi = svc.map_params.esdf_z_m
+            assert lo <= z_limits[0] and hi >= z_limits[1] and hi - lo < 2.5
+    for bad in ((-0.1, 0.8), (0.6, float("nan")), (0.0, 1.0)):
+        with pytest.raises(DemoError, match="altitude band"):
+            Demo(DemoConfig(drones=7, altitude_band_m=bad, out_dir=tmp_path / "bad"))
+
+
 def test_peer_latency_from_the_services_records(tmp_path: Path) -> None:
     """The target's figure (peer trajectory, publish -> the planner's inbox) as the demo reads
     it after a flight: each service's cumulative histogram in the 1 Hz ``/counters`` of its
