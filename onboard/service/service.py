@@ -291,6 +291,8 @@ class FlightService:
         that PX4's OFFBOARD needs streamed first, which must not count as the take-off reached."""
         self._warm_s = 0.0
         self._warming = warming
+        self._slot_offset: tuple[Any, np.ndarray | None] | None = None
+        """(assignment, this drone's slot point minus the template's centroid) (``_own_goal``)."""
         self._last_watchdog = -math.inf
 
     # ---- geometry helpers --------------------------------------------------------------------
@@ -301,11 +303,20 @@ class FlightService:
         a = m.assignment if m.assignment is not None else m.pending
         if a is None:
             return formation_goal
-        slot = a.slot_of(self.id)
-        if slot is None:
+        cached = self._slot_offset
+        if cached is not None and cached[0] is a:
+            offset = cached[1]
+        else:  # once per assignment (the main loop asks three times per step)
+            slot = a.slot_of(self.id)
+            if slot is None:
+                offset = None
+            else:
+                pts = np.asarray(a.points, dtype=np.float64)
+                offset = pts[slot] - pts.mean(axis=0)
+            self._slot_offset = (a, offset)
+        if offset is None:
             return formation_goal
-        pts = np.asarray(a.points, dtype=np.float64)
-        return formation_goal + pts[slot] - pts.mean(axis=0)
+        return formation_goal + offset
 
     # ---- trajectory in control (any thread) --------------------------------------------------
     def _control(self, traj: Trajectory) -> None:
