@@ -237,6 +237,23 @@ class PeerView:
     (``PlanReport.quiet_peers``)."""
 
 
+def same_peers(a: PeerView, b: PeerView) -> bool:
+    """Do two views hold the same peers: the same trajectory objects in the same slots, the
+    same hovers and the same quiet, silent and deviating peers (whatever their times)?"""
+    return (
+        len(a.trajectories) == len(b.trajectories)
+        and all(
+            p.drone_id == q.drone_id and p.slot == q.slot and p.trajectory is q.trajectory
+            for p, q in zip(a.trajectories, b.trajectories, strict=True)
+        )
+        and a.hover_ids == b.hover_ids
+        and a.silent == b.silent
+        and a.deviating == b.deviating
+        and a.quiet == b.quiet
+        and np.array_equal(a.hover_points, b.hover_points)
+    )
+
+
 def peer_conflict(
     view: PeerView, now_s: float, ts: np.ndarray, pos: np.ndarray, limit_m: float
 ) -> tuple[str, float]:

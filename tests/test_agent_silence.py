@@ -18,6 +18,7 @@ from onboard.agent import (
     SPELL_MARGIN_S,
     DroneAgent,
     StaticMap,
+    same_peers,
 )
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.comm.faults import BusFaults, FaultyBus
@@ -244,3 +245,29 @@ def test_the_peer_view_cache_never_serves_old_ghosts_or_positions() -> None:
     assert (1,) in {q for q, _, _ in looks} and (1,) in {d for _, _, d in looks}
     sizes = [n for q, n, _ in looks if q]
     assert len(set(sizes)) > 1  # the ghosts grew with the window, then stayed
+
+
+def test_views_of_the_same_peers_are_told_apart_from_changed_ones() -> None:
+    """``same_peers`` (the service keeps its view object while it holds): the same
+    trajectories and hovers at another time are the same peers; a new trajectory, a peer
+    fallen quiet (its ghosts) or off its trajectory are not."""
+    bus = InMemoryBus()
+    v = np.array([1.0, 0.0, 0.0])
+    a = _agent(bus, None, peer_deviation_m=0.3)
+    tr1 = _line(np.array([3.0, 0.0, 1.0]), v, 0.0)
+    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
+    a.heard(1, 0.0, tr1.sample(0.0))
+    v0 = a.peer_view(0.0)
+    a.heard(1, 0.1, tr1.sample(0.1))  # on its trajectory: nothing changes
+    v1 = a.peer_view(0.1)
+    assert v1 is not v0 and same_peers(v0, v1) and same_peers(v1, v0)
+    quiet = a.peer_view(0.7)  # nothing heard for 0.6 s: ghosts
+    assert quiet.hover_ids and not same_peers(v1, quiet)
+    a.heard(1, 0.8, tr1.sample(0.8) + np.array([0.0, 0.5, 0.0]))  # heard, off its path
+    off = a.peer_view(0.8)
+    assert off.deviating == (1,) and not same_peers(v1, off) and not same_peers(quiet, off)
+    tr2 = _line(tr1.sample(0.9), v, 0.9)
+    bus.publish(TrajectoryMsg(1, 1, 1, tr2, valid_until_s=3.9), 0.9)
+    a.heard(1, 0.9, tr2.sample(0.9))
+    new = a.peer_view(0.9)
+    assert new.deviating == () and new.hover_ids == () and not same_peers(v1, new)

@@ -60,6 +60,7 @@ from onboard.agent import (
     monitor_times,
     obstacle_conflict,
     peer_conflict,
+    same_peers,
 )
 from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -202,6 +203,7 @@ class FlightService:
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
         self.peer_view: PeerView | None = None
+        self._view_at = -math.inf  # when peer_view was last computed (it may be older)
         """The peers as the agent avoids them, at the last look (``peers_now``)."""
         self._logged_view: PeerView | None = None
         self._view_age_s = 0.5 / config.bus.state_rate_hz
@@ -751,10 +753,15 @@ class FlightService:
         states that have arrived are handed over); unless ``fresh``, a view less than half a
         state period old is reused (the monitor looks at 100 Hz, peers speak at 10 Hz)."""
         view = self.peer_view
-        if fresh or view is None or not 0.0 <= now - view.t_s < self._view_age_s:
+        if fresh or view is None or not 0.0 <= now - self._view_at < self._view_age_s:
             self._relay()
-            view = self.agent.peer_view(now)
-            self.peer_view = view
+            new = self.agent.peer_view(now)
+            self._view_at = now
+            # the same peers as before: the same object, so that the monitor, which does not
+            # look again at what it looked at (by identity), looks on its grid only
+            if view is None or not same_peers(view, new):
+                view = new
+                self.peer_view = view
         return view
 
     def _watch_peers(self, now: float) -> None:
