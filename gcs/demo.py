@@ -69,7 +69,7 @@ class DemoConfig:
     formation_change: (formation name, seconds after the goal was sent) or None;
     altitude_m: cruise altitude (None: the world's start height); depth_rate_hz: frames per
     second the mock renders per drone (the machine must sustain N times that; None: 10 up to
-    4 drones, 5 above, what a loaded 2-core machine sustains), the services' depth-lost
+    4 drones, 3 above, what a 2-core machine sustains), the services' depth-lost
     timeout is 4 frame periods (at least 0.5 s); sitl_nice: the mock's scheduling priority
     (it stands for the autopilots' own hardware: its clock and heartbeats must not starve
     behind the services; a negative value needs the privilege, else it is left at 0); v_max_m_s:
@@ -90,7 +90,7 @@ class DemoConfig:
     altitude_m: float | None = None
     depth_rate_hz: float | None = None
     altitude_band_m: tuple[float, float] | None = None
-    sitl_nice: int = -5
+    sitl_nice: int = -15
     depth_step: int = 3
     v_max_m_s: float | None = None
     spacing_m: float = 1.5
@@ -480,10 +480,10 @@ def demo_templates(
 
 def default_depth_rate(cfg: DemoConfig) -> float:
     """Depth frames per second and drone: ``cfg.depth_rate_hz``, else what this 2-core machine
-    renders and maps in real time for the swarm's size (10 up to 4 drones, 5 above)."""
+    renders and maps in real time for the swarm's size (10 up to 4 drones, 3 above)."""
     if cfg.depth_rate_hz is not None:
         return float(cfg.depth_rate_hz)
-    return 10.0 if cfg.drones <= 4 else 5.0
+    return 10.0 if cfg.drones <= 4 else 3.0
 
 
 NARROW_BAND_M = (0.6, 0.8)
@@ -1269,7 +1269,7 @@ def demo_command() -> Any:
                   help="Change formation this many seconds after the goal was sent.")  # fmt: skip
     @click.option("--depth-rate", type=click.FloatRange(1.0, 30.0), default=None,
                   help="Depth frames per second and drone [default: 10 up to 4 drones, "
-                  "5 above].")  # fmt: skip
+                  "3 above].")  # fmt: skip
     @click.option("--v-max", type=click.FloatRange(0.1, 3.0), default=None,
                   help="Planner speed limit [m/s] (default: config/onboard.yaml's).")  # fmt: skip
     @click.option("--altitude-band", type=float, nargs=2, default=None,
