@@ -212,17 +212,24 @@ def test_a_quiet_peer_stays_in_the_formation_and_asks_for_a_replan_only_in_our_w
     assert c["quiet"] == 1 and c["silent"] == 1 and c["in_the_way"] == 1
 
 
+def _one_peer_ahead() -> tuple[InMemoryBus, DroneAgent, Trajectory]:
+    """An agent (deviation limit 0.3 m) and peer 1, 3 m ahead flying +x at 1 m/s, whose
+    trajectory (sent at 0) and state at 0 it has."""
+    bus = InMemoryBus()
+    a = _agent(bus, None, peer_deviation_m=0.3)
+    tr1 = _line(np.array([3.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.0)
+    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
+    a.heard(1, 0.0, tr1.sample(0.0))
+    return bus, a, tr1
+
+
 def test_the_peer_view_cache_never_serves_old_ghosts_or_positions() -> None:
     """``peer_view`` keeps each quiet peer's ghosts and each peer's deviation check while the
     messages they come from and the ghosts' time span stay the same. Through a quiet spell
     (the window still growing, then past its end), a peer heard again at another place, a new
     trajectory and a report off it, every view equals one computed without the caches."""
-    bus = InMemoryBus()
+    bus, a, tr1 = _one_peer_ahead()
     v = np.array([1.0, 0.0, 0.0])
-    a = _agent(bus, None, peer_deviation_m=0.3)
-    tr1 = _line(np.array([3.0, 0.0, 1.0]), v, 0.0)
-    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
-    a.heard(1, 0.0, tr1.sample(0.0))
     looks = []
     for k in range(1, 70):
         t = round(k * 0.05, 9)
@@ -251,12 +258,8 @@ def test_views_of_the_same_peers_are_told_apart_from_changed_ones() -> None:
     """``same_peers`` (the service keeps its view object while it holds): the same
     trajectories and hovers at another time are the same peers; a new trajectory, a peer
     fallen quiet (its ghosts) or off its trajectory are not."""
-    bus = InMemoryBus()
+    bus, a, tr1 = _one_peer_ahead()
     v = np.array([1.0, 0.0, 0.0])
-    a = _agent(bus, None, peer_deviation_m=0.3)
-    tr1 = _line(np.array([3.0, 0.0, 1.0]), v, 0.0)
-    bus.publish(TrajectoryMsg(1, 0, 1, tr1, valid_until_s=3.0), 0.0)
-    a.heard(1, 0.0, tr1.sample(0.0))
     v0 = a.peer_view(0.0)
     a.heard(1, 0.1, tr1.sample(0.1))  # on its trajectory: nothing changes
     v1 = a.peer_view(0.1)
