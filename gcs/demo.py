@@ -489,8 +489,10 @@ def default_depth_rate(cfg: DemoConfig) -> float:
 NARROW_BAND_M = (0.6, 0.8)
 """The planner's altitude band above 4 drones, below and above the cruise altitude (0.4-1.8 m
 at the forests' 1 m): the drones hold their altitude within 0.1 m (``w_altitude_hold``), and
-the ESDF of that band costs about a third of the 0.3-3.1 m one's (13 against 38 ms a refresh,
-forest-medium, this machine), which 7 services mapping on 2 cores need."""
+an ESDF refresh of that band costs about 40 % less than of the 0.3-3.1 m one (``swarm-gcs bench
+mapping --window band --band LO HI --rate 5 --esdf-every 1 --max-frames 150``, forest-medium:
+23-27 against 41-43 ms median on the slowest host seen), which 7 services mapping on 2 cores
+need."""
 
 
 def default_band(cfg: DemoConfig) -> tuple[float, float] | None:
