@@ -619,16 +619,17 @@ def test_depth_frames_from_the_true_pose() -> None:
     run(f, 5.0, sp={0: (0.0, 0.0, -1.5)})
     assert f._depth is not None and f._depth.render_once() == 1
     img = truth.depth[1]
-    centre = img.depth_m[240, 320]
+    assert img.decimation == 4 and img.depth_m.shape == (120, 160)  # every 4th pixel
+    centre = img.depth_m[60, 80]  # pixel (320, 240) of the camera
     cam_y = img.position[1]
     assert centre == pytest.approx(3.0 - cam_y, abs=0.02)  # the box face, along the optical axis
     back = DepthImage.from_bytes(img.to_bytes())
     np.testing.assert_allclose(back.depth_m, img.depth_m, atol=6e-4)
-    assert check_frame(back.to_depth_frame()).shape == (480, 640)
+    assert check_frame(back.to_depth_frame()).shape == (120, 160)
     # the onboard side reads it as a depth source, with the camera pose alongside
     source = truth.depth_source(1)
     frame = source.read()
     assert frame is not None and source.read() is None
-    assert source.intrinsics.width == 640
+    assert source.intrinsics.width == 160 and frame.decimation == 4
     pos, rot = truth.pose_provider(1)(frame.stamp_s)
     np.testing.assert_allclose(rot, frame.rotation, atol=1e-12)

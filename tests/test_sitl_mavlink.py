@@ -571,7 +571,8 @@ def test_ground_truth_and_depth_over_zenoh() -> None:
     assert pose2 is not None and pose2.position_m[1] == pytest.approx(0.75)
     depth = check_frame(frame)
     # vehicle 1 on the ground at y = -0.75 facing north: the box face at y = 3
-    assert depth[240, 320] == pytest.approx(3.0 - frame.position[1], abs=0.01)
+    assert frame.decimation == 4 and depth.shape == (120, 160)  # every 4th pixel of 640 x 480
+    assert depth[60, 80] == pytest.approx(3.0 - frame.position[1], abs=0.01)
     position, rotation = sub.pose_provider(1)(frame.stamp_s)
     np.testing.assert_allclose(position, frame.position, atol=1e-9)
     np.testing.assert_allclose(rotation, frame.rotation, atol=1e-9)
