@@ -203,8 +203,8 @@ class FlightService:
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
         self.peer_view: PeerView | None = None
-        self._view_at = -math.inf  # when peer_view was last computed (it may be older)
         """The peers as the agent avoids them, at the last look (``peers_now``)."""
+        self._view_at = -math.inf  # when peer_view was last computed (it may be older)
         self._logged_view: PeerView | None = None
         self._view_age_s = 0.5 / config.bus.state_rate_hz
         self._agent_assignment: Assignment | None = None
@@ -750,8 +750,10 @@ class FlightService:
     # ---- peers (the main loop; the monitor) --------------------------------------------------
     def peers_now(self, now: float, fresh: bool = False) -> PeerView:
         """The peers as the agent avoids them at ``now`` (``DroneAgent.peer_view``, after the
-        states that have arrived are handed over); unless ``fresh``, a view less than half a
-        state period old is reused (the monitor looks at 100 Hz, peers speak at 10 Hz)."""
+        states that have arrived are handed over); unless ``fresh``, a view computed less than
+        half a state period ago is reused (the monitor looks at 100 Hz, peers speak at 10 Hz).
+        A new view that holds the same peers (``same_peers``) is not kept: the old object is
+        returned, whose ``t_s`` is then older than the look."""
         view = self.peer_view
         if fresh or view is None or not 0.0 <= now - self._view_at < self._view_age_s:
             self._relay()
