@@ -235,6 +235,7 @@ def bench_demo(
         default_depth_rate,
         demo_templates,
         parse_change,
+        planner_z_limits,
     )
     from onboard.config import ConfigError, load_world_spec
     from onboard.service.config import load_onboard_config
@@ -255,13 +256,9 @@ def bench_demo(
     planner = service.planner
     try:
         band = default_band(demo_cfg)
-        if band is not None:  # the demo's band, for the fast-time flights too
-            spec = load_world_spec(world)
-            assert spec.start_center is not None
-            alt = float(spec.start_center[2])
-            planner = dataclasses.replace(
-                planner, z_limits_m=(round(alt - band[0], 6), round(alt + band[1], 6))
-            )
+        z_limits = planner_z_limits(demo_cfg, load_world_spec(world))
+        if z_limits is not None:  # the demo's band, for the fast-time flights too
+            planner = dataclasses.replace(planner, z_limits_m=z_limits)
     except (DemoError, ConfigError, ValueError) as e:
         raise click.ClickException(str(e)) from e
     step = int(service.depth.step)

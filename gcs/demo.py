@@ -510,6 +510,24 @@ def default_band(cfg: DemoConfig) -> tuple[float, float] | None:
     return below, above
 
 
+def cruise_altitude_m(cfg: DemoConfig, spec: Any) -> float:
+    """``cfg.altitude_m``, else the start height of the world ``spec``."""
+    if cfg.altitude_m is not None:
+        return float(cfg.altitude_m)
+    assert spec.start_center is not None
+    return float(spec.start_center[2])
+
+
+def planner_z_limits(cfg: DemoConfig, spec: Any) -> tuple[float, float] | None:
+    """The planner's altitude band in metres (``default_band`` around ``cruise_altitude_m``),
+    or None for the onboard config's: what the services fly, and the fast-time twin too."""
+    band = default_band(cfg)
+    if band is None:
+        return None
+    alt = cruise_altitude_m(cfg, spec)
+    return round(alt - band[0], 6), round(alt + band[1], 6)
+
+
 GAVE_UP = ("emergency", "landing", "landed", "pilot", "link-lost")
 """Flight states in which a drone no longer flies the mission."""
 
@@ -531,9 +549,9 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
-        self.band = default_band(cfg)
         self.template = demo_templates(cfg.drones, cfg.formation, cfg.formation_change)[0]
         self.spec = load_world_spec(cfg.world)
+        self.z_limits = planner_z_limits(cfg, self.spec)
         self.out = Path(cfg.out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.swarm = cfg.swarm or f"demo{os.getpid()}"
@@ -820,10 +838,8 @@ class Demo:
     def _onboard_yaml(self, base_port: int, sitl_ep: str, prefix: str) -> str:
         cfg = self.cfg
         planner: dict[str, Any] = {} if cfg.v_max_m_s is None else {"v_max_m_s": cfg.v_max_m_s}
-        band = self.band
-        if band is not None:
-            alt = self.cruise_altitude_m()
-            planner["z_limits_m"] = [round(alt - band[0], 6), round(alt + band[1], 6)]
+        if self.z_limits is not None:
+            planner["z_limits_m"] = list(self.z_limits)
         # like PX4, each mock vehicle starts its local frame where it stands (its EKF origin):
         # every service is told where that is in the swarm frame
         origins = {str(i): p for i, p in enumerate(self.spawns)}
@@ -930,20 +946,13 @@ class Demo:
 
     # -- the mission --
 
-    def cruise_altitude_m(self) -> float:
-        """``cfg.altitude_m``, else the world's start height."""
-        if self.cfg.altitude_m is not None:
-            return float(self.cfg.altitude_m)
-        assert self.spec.start_center is not None
-        return float(self.spec.start_center[2])
-
     def fly(self) -> None:
         """Take off, form up, cross, (re-shape), land."""
         cfg, gs = self.cfg, self.gs
         assert gs is not None
         spec = self.spec
         assert spec.start_center is not None and spec.goal_center is not None
-        alt = self.cruise_altitude_m()
+        alt = cruise_altitude_m(cfg, spec)
         ids = list(range(cfg.drones))
         self.t_takeoff = time.time()
         self._need(gs.takeoff(alt))
