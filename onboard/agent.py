@@ -1056,6 +1056,10 @@ class DroneAgent:
         self.schedule(new)
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
+        if reforming and self.params.reform_replan_period_s > 0.0:
+            # the peers' re-shaping moves, each the answer to the others' last plans,
+            # converge in replans, not in seconds
+            self.request_replan(now + self.params.reform_replan_period_s)
         key = str(res.status.value)
         with self._cfg_lock:
             self.status_counts[key] = self.status_counts.get(key, 0) + 1

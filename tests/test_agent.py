@@ -69,6 +69,44 @@ def test_replan_grid_and_demand() -> None:
         a.replan(5.0)
 
 
+@pytest.mark.parametrize("period", [0.25, 0.0])
+def test_replans_faster_while_reforming(period: float) -> None:
+    """After a formation change in flight the agent replans every reform_replan_period_s
+    (on top of its grid) for reform_s, then on its grid alone; 0: on the grid throughout."""
+    params = PlannerParams(v_max_m_s=1.0, reform_s=2.0, reform_replan_period_s=period)
+    bus = InMemoryBus()
+    a = DroneAgent(
+        0,
+        params,
+        TRIANGLE,
+        0,
+        Trajectory.hover(np.array([0.0, 0, 1]), 0.0),
+        bus,
+        EMPTY,
+        goal=np.array([20.0, 0, 1]),
+        first_replan_s=0.0,
+    )
+    rep = a.step(0.0)
+    assert rep is not None and not rep.reforming and a.next_replan_s == pytest.approx(1.0)
+    a.set_formation(TRIANGLE[[0, 2, 1]], 0, goal=np.array([20.0, 0, 1]))
+    times = []
+    t = 0.0
+    while t < 6.0:
+        t = round(t + 0.05, 2)
+        rep = a.step(t)
+        if rep is not None:
+            times.append((t, rep.reforming))
+    # the change is planned at once (0.05); reform_s from there to 2.05
+    if period > 0:
+        # every 0.25 s after the last replan, the grid's own points (1.0, 2.0) among them
+        expect = [(t, True) for t in (0.05, 0.3, 0.55, 0.8, 1.0, 1.25, 1.5, 1.75, 2.0)]
+        expect += [(2.25, False), (3.0, False), (4.0, False), (5.0, False), (6.0, False)]
+    else:
+        expect = [(0.05, True), (1.0, True), (2.0, True), (3.0, False), (4.0, False)]
+        expect += [(5.0, False), (6.0, False)]
+    assert times == expect, times
+
+
 def test_trajectory_queue() -> None:
     bus = InMemoryBus()
     p0 = np.array([0.0, 0, 1])

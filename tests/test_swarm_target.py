@@ -19,6 +19,7 @@ from onboard.config import (
 )
 from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
+from onboard.planner.formation import similarity
 from onboard.planner.params import PlannerParams, reform_params
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -200,8 +201,15 @@ def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
     assert all(ag.last is not None and ag.last.reforming for ag in agents)
     track2, closest2 = _fly(agents, 7.05, 30.0)
     assert all(ag.last is not None and not ag.last.reforming for ag in agents)
+    # the triangle's shape (any yaw, any size: the metric's) within 9 s of the change (6.7 s
+    # measured with replans every reform_replan_period_s = 0.25 s while re-forming)
+    shaped = np.array([similarity(p, tri)[0] for p in track2]) < 0.01
+    assert shaped.any() and 1.0 + 0.05 * int(np.argmax(shaped)) < 9.0
+    # ... and its slots. The triangle is entered at the yaw nearest the line's and turned to
+    # the goals' on the way: the arrival measured 25.9 s (22.2 s with replans at 1 s only,
+    # whose triangle took 6.3 s), the drones 0.55 m apart at the closest
     reached = np.all(np.linalg.norm(track2 - (goal_origin + tri), axis=2) < 0.3, axis=1)
-    assert reached.any() and 7.05 + 0.05 * int(np.argmax(reached)) < 25.0
+    assert reached.any() and 7.05 + 0.05 * int(np.argmax(reached)) < 28.0
     end = track2[-1]
     np.testing.assert_allclose(end, goal_origin + tri, atol=0.3)
     assert min(closest, closest2) >= params.check_drone_m

@@ -149,6 +149,17 @@ class PlannerParams:
     slot flew on at full speed and those behind could never catch up: in the fast-time
     hexagon-7 -> rectangle-7 change in forest-medium the along-path offsets from the new slots
     grew over the 10 s (BENCHMARKS.md section 10, eleventh session)."""
+    reform_replan_period_s: float = 0.25
+    """While re-forming (``reform_s``), the agent replans at most this long after its last
+    replan (0: on its own grid only, ``replan_period_s``). Each drone's plan answers the plans
+    its peers last broadcast, so a move that every drone makes at once converges in replans
+    rather than in seconds. Fast time, forest-medium seeds 1-20, hexagon-7 -> rectangle-7 20 s
+    after the start, exact distances: the new shape within 10 s in 11 of 20 at the 1 s grid, 13
+    at 0.5 s, 15 at 0.25 s; hexagon-7 -> arrow-7 (seeds 1-10) 2 -> 6 of 10. The price: the shape
+    is entered at the yaw nearest the old one, and turning it to the goals' yaw afterwards
+    (the lead slow-down) made flights longer, mean 98 -> 109 s (BENCHMARKS.md section 10).
+    The agent's own parameter, kept here beside ``reform_s``; the planner has no notion of
+    it."""
     reform_formation_scale: float = 3.0
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
@@ -298,6 +309,7 @@ class PlannerParams:
             "lead_slowdown_m",
             "lead_deadband_m",
             "reform_s",
+            "reform_replan_period_s",
             "w_altitude",
             "w_altitude_hold",
             "altitude_margin_m",
