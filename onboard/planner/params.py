@@ -72,6 +72,18 @@ class PlannerParams:
     (0.539 m/s), with ``limit_margin`` 0.97 it keeps it within 2-3 %."""
     formation_stride: int = 2
     """J_f is evaluated on every formation_stride-th constraint point (kappa must divide)."""
+    target_speed_frac: float = 0.5
+    """The local target's end velocity: this fraction of J_d's speed limit (after the lead
+    slow-down), along the way from the target to the goal, when the goal lies beyond the target
+    by more than the braking distance; 0: every plan ends at rest at its target. The public
+    EGO-family planners end a local plan at the global path's speed there. At rest, every
+    plan a drone broadcasts slows down toward its end, each drone follows its peers' slowing
+    plans through the formation term, and the swarm's common speed decays: the triangle-3
+    flight through forest-small slowed to 0.05 m/s and never arrived (36 s without the
+    formation term); with 0.5 it arrives in 64.5 s, with 1.0 in 45.6 s. The table (3 x 20,
+    exact distances) at 0 / 0.5 / 1.0: mean e_sim 0.0047 / 0.0034 / 0.0067 (sparse), 0.0094 /
+    0.0078 / 0.0106 (medium), 0.0184 / 0.0152 / 0.0195 (dense), flights 91-102 / 108-109 /
+    88-94 s (BENCHMARKS.md section 8)."""
     tau_scale: float = 1.0
     """The solver sees tau / tau_scale: balances the time variables against the waypoints."""
     formation_penalty: str = "linear"
@@ -324,6 +336,8 @@ class PlannerParams:
                 "reform_formation_scale must be a positive number, "
                 f"got {self.reform_formation_scale!r}"
             )
+        if not (np.isfinite(self.target_speed_frac) and 0.0 <= self.target_speed_frac <= 1.0):
+            raise ValueError(f"target_speed_frac must be in [0, 1], got {self.target_speed_frac!r}")
         if not 0.0 < self.lead_min_speed_frac <= 1.0:
             raise ValueError(
                 f"lead_min_speed_frac must be in (0, 1], got {self.lead_min_speed_frac!r}"

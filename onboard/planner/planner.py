@@ -680,6 +680,15 @@ class FormationPlanner:
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
+        if p.target_speed_frac > 0.0:
+            # the local target passed at speed along the way on, as long as the goal lies far
+            # enough beyond it to stop there: plans that end at rest make every drone's
+            # prediction of its peers slow down, and the formation term follows them
+            on = gl - target
+            rest = float(np.linalg.norm(on))
+            v_end = float(prm[obj.P_V_MAX]) * p.target_speed_frac
+            if rest > 1e-6 and rest >= v_end * v_end / (2.0 * p.a_max_m_s2 * p.limit_margin):
+                tail[1] = v_end * on / rest
         if p.w_altitude_hold > 0.0:
             prm = prm.copy()
             prm[obj.P_Z_HOLD] = gl[2]
