@@ -59,6 +59,31 @@ def test_local_target_is_within_the_horizon() -> None:
     assert np.linalg.norm(end - start) == pytest.approx(5.0, abs=0.2)
 
 
+@pytest.mark.parametrize("frac", [0.5, 1.0, 0.0])
+def test_a_plan_ends_at_its_local_target_moving_on(frac: float) -> None:
+    """target_speed_frac: a plan to a local target short of the goal ends moving toward the
+    goal at that fraction of the speed limit (J_d's, with limit_margin); at the goal, at rest."""
+    params = PlannerParams(v_max_m_s=1.0, horizon_m=5.0, target_speed_frac=frac)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([0.0, 0.0, 1.0])
+    field = AnalyticField(_world([]))
+    far = planner.plan(0.0, start, ZERO, ZERO, np.array([40.0, 0, 1]), [], field)
+    assert far.status == PlanStatus.OK
+    tr = far.trajectory
+    v_end = frac * params.v_max_m_s * params.limit_margin
+    np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), [v_end, 0, 0], atol=1e-6)
+    assert _speeds(tr).max() <= 1.03 * params.v_max_m_s
+    near = planner.plan(0.0, start, ZERO, ZERO, np.array([3.0, 0, 1]), [], field)
+    assert near.status == PlanStatus.OK
+    np.testing.assert_allclose(
+        near.trajectory.sample(near.trajectory.t_end_s, order=1), ZERO, atol=1e-6
+    )
+    with pytest.raises(ValueError, match="target_speed_frac"):
+        PlannerParams(target_speed_frac=1.5)
+    with pytest.raises(ValueError, match="reform_replan_period_s"):
+        PlannerParams(reform_replan_period_s=-0.25)
+
+
 def test_plan_around_a_wall_of_trunks_keeps_clearance() -> None:
     # a wall across the line with a gap at y = 1.2
     wall = [[3.0, y, 0.3, 0.0, 3.0] for y in (-3.0, -2.0, -1.0, 0.0, 2.4, 3.4)]
