@@ -169,7 +169,8 @@ class PlannerParams:
     after the start, exact distances: the new shape within 10 s in 11 of 20 at the 1 s grid, 13
     at 0.5 s, 15 at 0.25 s; hexagon-7 -> arrow-7 (seeds 1-10) 2 -> 6 of 10. The price: the shape
     is entered at the yaw nearest the old one, and turning it to the goals' yaw afterwards
-    (the lead slow-down) made flights longer, mean 98 -> 109 s (BENCHMARKS.md section 10).
+    (the lead slow-down) made flights longer, mean 98 -> 109 s (104-106 s with
+    ``target_speed_frac`` 0.5; BENCHMARKS.md section 10).
     The agent's own parameter, kept here beside ``reform_s``; the planner has no notion of
     it."""
     reform_formation_scale: float = 3.0
