@@ -42,6 +42,26 @@ def test_boundary_conditions_and_waypoints(M: int) -> None:
         np.testing.assert_allclose(_derivs(c[i], m.T[i])[0], m.q[i], atol=1e-8)
 
 
+def test_a_trajectory_sampled_at_its_end_time_gives_its_end_state() -> None:
+    """At ``t_end_s`` (t0 plus the sum of the durations, rounded) the end state, not the hold
+    after it: a plan ending at speed is sampled there; a little later, the hold."""
+    hits = 0
+    for seed in range(40):
+        m = _random_minco(seed, 3)
+        tr = Trajectory(1.0e4 + 0.1 * seed, m.coeffs, m.T)
+        np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), m.tail[1], atol=1e-7)
+        p, v, a = tr.state(tr.t_end_s)
+        np.testing.assert_allclose(np.stack([p, v, a]), m.tail, atol=1e-6)
+        after = tr.sample(tr.t_end_s + 1e-6, order=1)
+        np.testing.assert_array_equal(after, np.zeros(3))
+        # the rounding this guards against: the piece search overshoots the last duration
+        rest = tr.t_end_s - tr.t0_s
+        for T in m.T[:-1]:
+            rest -= T
+        hits += rest > m.T[-1]
+    assert hits > 0, "no case where the piece search rounds past the end"
+
+
 def test_derivatives_zero_to_four_continuous_at_inner_waypoints() -> None:
     m = _random_minco(2, 6)
     c = m.coeffs

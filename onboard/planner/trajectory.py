@@ -14,6 +14,9 @@ import numpy as np
 from numba import njit
 
 N_COEFFS = 6  # degree 5
+END_TOL_S = 1e-9
+"""A time this little past a trajectory's end still samples its end state (rounding of the
+piece search), not the hold after it."""
 
 
 @njit(cache=True)
@@ -38,8 +41,9 @@ def eval_piecewise(
             t -= durations[i]
             i += 1
         if t > durations[i]:
+            # the end itself is inside: the subtractions above may leave t an ulp past it
+            inside = t - durations[i] <= END_TOL_S
             t = durations[i]
-            inside = False
     t2 = t * t
     t3 = t2 * t
     t4 = t3 * t
@@ -78,8 +82,9 @@ def _piece_at(durations: np.ndarray, t_rel: float) -> tuple[int, float, bool]:
             t -= durations[i]
             i += 1
         if t > durations[i]:
+            # the end itself is inside: the subtractions above may leave t an ulp past it
+            inside = t - durations[i] <= END_TOL_S
             t = durations[i]
-            inside = False
     return i, t, inside
 
 
