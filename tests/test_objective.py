@@ -59,6 +59,10 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     prm[obj.P_V_MAX] = 0.5
     prm[obj.P_A_MAX] = 0.3
     prm[obj.P_J_MAX] = 0.4
+    # the limits themselves, a little above the soft ones (J_d's steep part)
+    prm[obj.P_V_HARD] = 0.52
+    prm[obj.P_A_HARD] = 0.31
+    prm[obj.P_J_HARD] = 0.41
     prm[obj.P_FORM_MODE] = obj.FORM_MODES[mode]
     prm[obj.P_TAU_SCALE] = 1.0
     prm[obj.P_FORM_STRIDE] = stride
@@ -72,6 +76,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         ("obstacle", obj.P_W_OBS),
         ("swarm", obj.P_W_SWARM),
         ("feasibility", obj.P_W_FEAS),
+        ("feasibility-hard", obj.P_W_HARD),
         ("uniformity", obj.P_W_UNIF),
         ("formation", obj.P_W_FORM),
         ("altitude", obj.P_W_ALT),
@@ -107,6 +112,7 @@ TERMS = {
     "obstacle": {"obstacle": 50.0},
     "swarm": {"swarm": 50.0},
     "feasibility": {"feasibility": 20.0},
+    "feasibility-hard": {"feasibility": 20.0, "feasibility-hard": 2e3},
     "uniformity": {"uniformity": 30.0},
     "formation": {"formation": 1e3},
     "altitude": {"altitude": 1e4},
@@ -133,8 +139,14 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
     gT = np.zeros(M)
     obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
     if term != "energy+time":
-        name = "altitude" if term == "altitude-hold" else term  # J_z holds both
+        # J_z holds the altitude band and the hold; J_d both parts of the limits
+        name = {"altitude-hold": "altitude", "feasibility-hard": "feasibility"}.get(term, term)
         assert costs[obj.TERM_NAMES.index(name)] > 0.0, f"{term} not active in the test setup"
+    if term == "feasibility-hard":
+        soft = _setup(11, TERMS["feasibility"])[5]
+        costs_soft = np.zeros(obj.N_TERMS)
+        obj.cost_c_T(c0, T, soft, fld, np.zeros_like(c0), np.zeros(M), costs_soft)
+        assert costs[obj.C_D] > 2.0 * costs_soft[obj.C_D], "the steep part is not active"
     assert _rel_err(gc, _num_grad(f_c, c0, 1e-6)) <= RTOL
     assert _rel_err(gT, _num_grad(f_T, T, 1e-6)) <= RTOL
 

@@ -69,7 +69,11 @@ P_Z_HI = 17  # J_z: positions above this z are penalised
 P_W_HOLD = 18  # J_z: weight of the altitude hold, (z - z_hold)^2
 P_Z_HOLD = 19  # J_z: the altitude held (the drone's goal altitude)
 P_HOLD_KNEE = 20  # J_z: the hold is quadratic up to this deviation, linear beyond
-N_PRM = 21
+P_W_HARD = 21  # J_d: weight of the steep penalty beyond the limits themselves
+P_V_HARD = 22  # J_d: the speed limit itself (P_V_MAX is the soft one, below it)
+P_A_HARD = 23
+P_J_HARD = 24
+N_PRM = 25
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -174,6 +178,10 @@ def sampled_costs(
     w_hold = prm[P_W_HOLD]
     z_hold = prm[P_Z_HOLD]
     knee = prm[P_HOLD_KNEE]
+    w_hard = prm[P_W_HARD]
+    v_hard = prm[P_V_HARD]
+    a_hard = prm[P_A_HARD]
+    j_hard = prm[P_J_HARD]
 
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
@@ -285,6 +293,10 @@ def sampled_costs(
                 pd = _limit(der[1], v_max, w_fe, gder[1])
                 pd += _limit(der[2], a_max, w_fe, gder[2])
                 pd += _limit(der[3], j_max, w_fe, gder[3])
+                if w_hard > 0.0:
+                    pd += _limit(der[1], v_hard, w_hard, gder[1])
+                    pd += _limit(der[2], a_hard, w_hard, gder[2])
+                    pd += _limit(der[3], j_hard, w_hard, gder[3])
                 pen += pd
                 costs[C_D] += wq * pd
 

@@ -64,6 +64,13 @@ class PlannerParams:
     margin 1 flies at most 0.518 / 0.519 / 0.522 m/s, 0.97 at most 0.503 / 0.513 / 0.510 m/s
     with mean e_sim 0.0107 / 0.0209 / 0.0218 -> 0.0110 / 0.0166 / 0.0282 and flights 2-3 s
     longer. 0.97 is part of the default set of 2026-11-24 (see ``lead_slowdown_m``)."""
+    w_limit_hard: float = 1.0e10
+    """J_d's steep part: the same penalty with this weight beyond the limits themselves (not
+    their ``limit_margin`` fraction), only when ``w_feasibility`` is on. The soft part alone
+    lets a strong pull (the formation, an A* retry's way) carry a plan a few per cent over the
+    limit: table (3 x 20 forests, 0.5 m/s) top speed 0.513 / 0.521 / 0.516 m/s with 0, 0.503 /
+    0.503 / 0.506 with 1e10 (0.503 / 0.503 / 0.504 with 1e12), mean e_sim 0.0034 / 0.0078 /
+    0.0152 -> 0.0038 / 0.0081 / 0.0133, flight times unchanged (BENCHMARKS section 8)."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
     w_formation: float = 1.0e5
@@ -314,6 +321,7 @@ class PlannerParams:
             "w_obstacle",
             "w_swarm",
             "w_feasibility",
+            "w_limit_hard",
             "w_uniform",
             "w_formation",
             "check_obstacle_m",

@@ -329,6 +329,10 @@ class FormationPlanner:
         prm[obj.P_Z_LO], prm[obj.P_Z_HI] = p.altitude_band_inner_m
         prm[obj.P_W_HOLD] = p.w_altitude_hold  # P_Z_HOLD: set per problem (the goal's z)
         prm[obj.P_HOLD_KNEE] = p.altitude_hold_knee_m
+        prm[obj.P_W_HARD] = p.w_limit_hard
+        prm[obj.P_V_HARD] = p.v_max_m_s
+        prm[obj.P_A_HARD] = p.a_max_m_s2
+        prm[obj.P_J_HARD] = p.j_max_m_s3
         prm.setflags(write=False)
         return prm
 
