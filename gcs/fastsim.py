@@ -690,6 +690,7 @@ class SafetyMonitor:
         self._at = math.inf
         self.brake_within_s = cfg.monitor_brake_within_s
         self.last_plan_s = -math.inf
+        self.asked_s = -math.inf
         self.brake_at_s = -math.inf
         self.replans = 0
         self.brakes = 0
@@ -729,9 +730,12 @@ class SafetyMonitor:
             True,
             self.brake_after_s,
             self.brake_within_s,
+            self.asked_s,
         )
         if action == "replan":
             self.replans += 1
+            if self.asked_s <= self.last_plan_s:  # not already awaited
+                self.asked_s = t
             agent.request_replan()
         if action != "brake":
             return f"{action}: {problem}"

@@ -122,6 +122,11 @@ MONITOR_BRAKE_WITHIN_S = 1.0
 than this far ahead (a braking stop from 1 m/s takes 0.5 s, plus the look and the autopilot's
 reaction); further ahead it asks for another replan instead (a brake for a conflict 1.6 s
 ahead broke up a formation in bench faults seed 0 trial 7)."""
+MONITOR_PLAN_WAIT_S = 0.2
+"""A safety monitor that asked for a replan for a conflict less than ``MONITOR_BRAKE_WITHIN_S``
+ahead brakes if no plan begun after the request has come back within this time (replans take
+milliseconds; on a starved CPU they took 1-2 s, and a drone flew into a hovering peer while
+its monitor asked for replan after replan: bench demo seed 3, 2026-11-28)."""
 HOVER_S = 3600.0
 """Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
 
@@ -332,14 +337,20 @@ def monitor_action(
     may_replan: bool,
     replan_after_s: float = MONITOR_REPLAN_AFTER_S,
     brake_within_s: float = MONITOR_BRAKE_WITHIN_S,
+    asked_s: float = -math.inf,
+    plan_wait_s: float = MONITOR_PLAN_WAIT_S,
 ) -> str:
     """What a safety monitor does about a conflict first met at ``conflict_s``: 'replan' (the
     last plan is older than ``replan_after_s``), 'watching' (a fresh plan still meets it, but
     more than ``brake_within_s`` ahead: the next replan may clear it), 'braking' (a brake less
     than a second ago is still on) or 'brake'. ``may_replan`` False (not in formation flight):
-    never 'replan' nor 'watching'."""
+    never 'replan' nor 'watching'. ``asked_s``: when the monitor asked for the replan still
+    awaited (-inf: none; ``last_plan_s``, the start of the newest plan, is before it): a
+    conflict within ``brake_within_s`` brakes once the wait exceeds ``plan_wait_s``."""
     if may_replan and now_s - last_plan_s > replan_after_s:
-        return "replan"
+        late = asked_s > last_plan_s and now_s - asked_s > plan_wait_s
+        if not (late and conflict_s - now_s <= brake_within_s):
+            return "replan"
     if may_replan and conflict_s - now_s > brake_within_s:
         return "watching"
     if now_s - last_brake_s < 1.0:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
 import pytest
 
-from onboard.agent import DroneAgent, PlanInputs, PlanReport, StaticMap
+from onboard.agent import DroneAgent, PlanInputs, PlanReport, StaticMap, monitor_action
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams
@@ -483,3 +484,27 @@ def test_a_peer_reported_off_its_trajectory_is_avoided_where_it_reported() -> No
     assert a.watch(0.7) == ()
     with pytest.raises(ValueError, match="peer_deviation_m"):
         _agent(0, bus, me, None, peer_deviation_m=0.0)
+
+
+@pytest.mark.parametrize(
+    ("conflict_in_s", "asked_ago_s", "expected"),
+    [
+        (0.5, None, "replan"),  # nothing asked yet: a replan first
+        (0.5, 0.1, "replan"),  # asked a moment ago: the replan may still clear it
+        (0.5, 0.3, "brake"),  # the replan is late and the conflict is close
+        (2.0, 0.3, "replan"),  # late, but far: ask again
+        (2.0, 5.0, "replan"),
+    ],
+)
+def test_the_monitor_brakes_when_the_replan_it_asked_for_is_late(
+    conflict_in_s: float, asked_ago_s: float | None, expected: str
+) -> None:
+    now, last_plan = 100.0, 98.0  # the newest plan began 2 s ago (a starved planner)
+    asked = -math.inf if asked_ago_s is None else now - asked_ago_s
+    assert monitor_action(now, now + conflict_in_s, last_plan, -math.inf, True, asked_s=asked) == (
+        expected
+    )
+    # a plan begun after the request came back: the usual rule (fresh plan, conflict close)
+    assert monitor_action(now, now + conflict_in_s, now - 0.1, -math.inf, True, asked_s=asked) == (
+        "brake" if conflict_in_s <= 1.0 else "watching"
+    )

@@ -11,7 +11,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from onboard.agent import DroneAgent, PlanReport
+from onboard.agent import (
+    MONITOR_BRAKE_WITHIN_S,
+    MONITOR_PLAN_WAIT_S,
+    DroneAgent,
+    PlanReport,
+)
 from onboard.config import merge_mappings
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
@@ -73,7 +78,8 @@ class Harness:
     def state(self) -> FlightState:
         return self.svc.machine.state
 
-    def step(self, n: int = 1, dt: float = 0.05) -> None:
+    def step(self, n: int = 1, dt: float = 0.05, plan: bool = True) -> None:
+        """``plan`` False: the planner thread never comes back (a starved CPU)."""
         svc = self.svc
         for _ in range(n):
             self.clock.t += dt
@@ -90,7 +96,7 @@ class Harness:
             r = svc.monitor_step()
             if r:
                 self.monitor_results.append(r)
-            rep = svc.plan_step()  # the agent replans when due on its grid or when asked
+            rep = svc.plan_step() if plan else None  # when due on its grid or when asked
             if rep is not None:
                 self.reports.append(rep)
 
@@ -379,6 +385,43 @@ def test_monitor_brakes_when_a_peer_will_cross_the_path(tmp_path: Path) -> None:
     assert flown is not None
     d = np.linalg.norm(flown.sample(ts) - intruder.sample(ts), axis=1)
     assert d.min() > h.cfg.planner.check_drone_m
+
+
+def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_is_late(
+    tmp_path: Path,
+) -> None:
+    """The planner gives no answer (a starved CPU: bench demo seed 3 of 2026-11-28, replans of
+    1-2 s, a drone flew into a hovering peer while its monitor asked for replan after replan):
+    the monitor asks for a replan, then brakes once the conflict is within
+    ``MONITOR_BRAKE_WITHIN_S`` and the replan is ``MONITOR_PLAN_WAIT_S`` late."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    goal = np.array([8.0, 0.0, 1.0])
+    assert h.command(Goal(tuple(goal)))[0]
+    h.step(40)  # cruising
+    flying = h.svc.flying(h.clock.t)
+    assert flying is not None
+    # a peer of another epoch hovers where this drone will be in 3 s
+    block = flying.sample(h.clock.t + 3.0)
+    hover = Trajectory.hover(block, h.clock.t, 60.0)
+    keep = h.cfg.planner.check_drone_m
+    ts = np.arange(h.clock.t, h.clock.t + 3.0, 0.01)
+    t_conflict = ts[np.argmax(np.linalg.norm(flying.sample(ts) - block, axis=1) < keep)]
+    assert t_conflict - h.clock.t > MONITOR_BRAKE_WITHIN_S + 0.5  # far when first seen
+    h.bus.peer_infos[7] = PeerInfo(7, 0, 9, hover, h.clock.t + 30, h.clock.t)
+    h.step(2, plan=False)
+    assert h.monitor_results and h.monitor_results[0].startswith("replan")
+    while h.svc.counters["monitor_brakes"] == 0:
+        assert h.clock.t < t_conflict, "no brake before the conflict"
+        h.step(plan=False)
+    # it waited for the replan while the conflict was far, not once it was close
+    close_from = t_conflict - MONITOR_BRAKE_WITHIN_S
+    assert close_from - 0.1 <= h.clock.t <= close_from + MONITOR_PLAN_WAIT_S + 0.15
+    flown = h.svc.flying(h.clock.t)
+    assert flown is not None
+    ts = np.arange(h.clock.t, h.clock.t + 5.0, 0.05)
+    d = np.linalg.norm(flown.sample(ts) - block, axis=1)
+    assert d.min() > keep
 
 
 def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> None:

@@ -241,6 +241,7 @@ class FlightService:
         self._last_plan_s = -math.inf
         self._last_map_record_s = -math.inf
         self._monitor_brake_at = -math.inf
+        self._monitor_asked_s = -math.inf  # when the monitor asked for the replan awaited
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
         # the conflict found for _monitor_key, and whether that plan holds still
@@ -724,10 +725,17 @@ class FlightService:
         if not problem:
             return ""
         action = monitor_action(
-            now, at, self._last_plan_s, self._monitor_brake_at, it.state is S.FORMATION_FLIGHT
+            now,
+            at,
+            self._last_plan_s,
+            self._monitor_brake_at,
+            it.state is S.FORMATION_FLIGHT,
+            asked_s=self._monitor_asked_s,
         )
         if action == "replan":
             self.counters["monitor_replans"] += 1
+            if self._monitor_asked_s <= self._last_plan_s:  # not already awaited
+                self._monitor_asked_s = now
             self._ask_replan()
         if action != "brake":
             return f"{action}: {problem}"
