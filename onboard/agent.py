@@ -82,7 +82,7 @@ from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask
 from onboard.planner.kernels import BAND_OK, band_state
 from onboard.planner.params import PlannerParams, reform_params
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanResult, PlanStatus
 from onboard.planner.trajectory import Trajectory
 
 EPS_T = 1e-9
@@ -122,6 +122,10 @@ MONITOR_BRAKE_WITHIN_S = 1.0
 than this far ahead (a braking stop from 1 m/s takes 0.5 s, plus the look and the autopilot's
 reaction); further ahead it asks for another replan instead (a brake for a conflict 1.6 s
 ahead broke up a formation in bench faults seed 0 trial 7)."""
+LATE_JUMP_M = 0.2
+"""A plan that comes back after its start time is flown only if its setpoint then lies within
+this of the trajectory in control's (replans of 1-4 s on a starved CPU moved setpoints by up to
+2.2 m: bench demo seeds 2 and 4 of 2026-11-28)."""
 MONITOR_PLAN_WAIT_S = 0.2
 """A safety monitor that asked for a replan for a conflict less than ``MONITOR_BRAKE_WITHIN_S``
 ahead brakes if no plan begun after the request has come back within this time (replans take
@@ -495,6 +499,8 @@ class DroneAgent:
         on_inputs: Callable[[PlanInputs], None] | None = None,
         on_plan: Callable[[PlanReport], None] | None = None,
         timer: Callable[[], float] = time.perf_counter,
+        clock: Callable[[], float] | None = None,
+        late_jump_m: float = LATE_JUMP_M,
     ) -> None:
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
             raise ValueError(f"replan_period_s must be > 0, got {replan_period_s!r}")
@@ -522,6 +528,8 @@ class DroneAgent:
             raise ValueError(f"ghost_forget_s must be >= 0, got {ghost_forget_s!r}")
         if not (math.isfinite(ghost_spacing_m) and ghost_spacing_m > 0.0):
             raise ValueError(f"ghost_spacing_m must be > 0, got {ghost_spacing_m!r}")
+        if not (math.isfinite(late_jump_m) and late_jump_m > 0.0):
+            raise ValueError(f"late_jump_m must be > 0, got {late_jump_m!r}")
         if not isinstance(initial, Trajectory):
             raise TypeError(f"initial must be a Trajectory, got {type(initial).__name__}")
         self.drone_id = int(drone_id)
@@ -546,6 +554,8 @@ class DroneAgent:
         self.on_inputs = on_inputs
         self.on_plan = on_plan
         self.timer = timer
+        self.clock = clock
+        self.late_jump_m = float(late_jump_m)
         self._traj_lock = threading.Lock()
         self._cfg_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
@@ -1063,8 +1073,23 @@ class DroneAgent:
             self._active = None
         plan_ms = (self.timer() - p0) * 1e3
         new = res.trajectory
-        seq = self._publish(new, a, now)
-        self.schedule(new)
+        late = self._late(new, t_start)
+        if late:
+            # not flown: a plan that comes back after its start would move the setpoint
+            # away from the trajectory in control, which has been flown since
+            res = PlanResult(
+                PlanStatus.LATE,
+                new,
+                res.iterations,
+                res.evaluations,
+                res.solver_status,
+                f"{late}; was {res.status.value}" + (f": {res.message}" if res.message else ""),
+            )
+            seq = -1
+            self.request_replan(now)
+        else:
+            seq = self._publish(new, a, now)
+            self.schedule(new)
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
         if reforming and self.params.reform_replan_period_s > 0.0:
@@ -1107,6 +1132,21 @@ class DroneAgent:
         if self.on_plan is not None:
             self.on_plan(report)
         return report
+
+    def _late(self, new: Trajectory, t_start: float) -> str:
+        """Why the plan ``new`` for ``t_start`` is not to be flown ('' to fly it): with a
+        ``clock`` (the flight's; the fast-time simulator has none, its plans take no time),
+        it came back after its start and would move the setpoint more than ``late_jump_m``
+        from the trajectory in control."""
+        if self.clock is None:
+            return ""
+        done = float(self.clock())
+        if done <= t_start:
+            return ""
+        jump = float(np.linalg.norm(new.sample(done) - self.flying(done).sample(done)))
+        if jump <= self.late_jump_m:
+            return ""
+        return f"done {done - t_start:.2f} s after its start, {jump:.2f} m off the flown one"
 
     def _publish(self, traj: Trajectory, a: _Assignment, now: float) -> int:
         seq = self._seq

@@ -508,3 +508,37 @@ def test_the_monitor_brakes_when_the_replan_it_asked_for_is_late(
     assert monitor_action(now, now + conflict_in_s, now - 0.1, -math.inf, True, asked_s=asked) == (
         "brake" if conflict_in_s <= 1.0 else "watching"
     )
+
+
+@pytest.mark.parametrize("plan_takes_s", [0.05, 2.0])
+def test_a_plan_back_after_its_start_and_off_the_flown_one_is_not_flown(
+    plan_takes_s: float,
+) -> None:
+    """With the flight's clock: a plan that comes back after its start, its setpoint then more
+    than ``late_jump_m`` from the trajectory in control's, is neither flown nor published and
+    a replan follows at once (a starved CPU); a plan a moment late, close to it, is flown."""
+    now = {"t": 0.0}
+    bus = InMemoryBus()
+    start = np.array([0.0, 0.0, 1.0])
+
+    def slow(_inputs: PlanInputs) -> None:  # the planner runs, the clock moves on
+        now["t"] += 0.1 + plan_takes_s
+
+    a = _agent(0, bus, start, np.array([6.0, 0, 1]), clock=lambda: now["t"], on_inputs=slow)
+    hold = a.flying(0.0)
+    rep = a.replan(0.0)
+    done = now["t"]
+    assert rep.t_start_s < done
+    late = float(np.linalg.norm(rep.trajectory.sample(done) - hold.sample(done))) > 0.2
+    assert late is (plan_takes_s > 1.0)
+    if late:
+        assert rep.status is PlanStatus.LATE and "after its start" in rep.message
+        assert a.flying(done) is hold  # the trajectory in control flies on
+        assert bus.receive(1, done + 1.0) == {}  # nothing published
+        assert a.due(done)  # a replan at once
+    else:
+        assert rep.status is PlanStatus.OK
+        assert a.flying(done) is rep.trajectory
+        assert bus.receive(1, done + 1.0)[0].trajectory is rep.trajectory
+    with pytest.raises(ValueError, match="late_jump_m"):
+        _agent(0, bus, start, None, late_jump_m=0.0)

@@ -15,9 +15,11 @@ from onboard.agent import (
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_PLAN_WAIT_S,
     DroneAgent,
+    PlanInputs,
     PlanReport,
 )
 from onboard.config import merge_mappings
+from onboard.planner.planner import PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
@@ -422,6 +424,42 @@ def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_
     ts = np.arange(h.clock.t, h.clock.t + 5.0, 0.05)
     d = np.linalg.norm(flown.sample(ts) - block, axis=1)
     assert d.min() > keep
+
+
+def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(
+    tmp_path: Path,
+) -> None:
+    """A replan that takes 2 s (a starved CPU) comes back off the trajectory flown since: it is
+    counted, not flown (no jump of the setpoint), the state stays formation flight, and the
+    next, prompt replan is flown. (This harness cruises slowly and steadily, so a late plan
+    differs from the flown one by a fraction of a millimetre: the threshold is cut to see the
+    service's handling; the rule itself is ``test_agent``'s.)"""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(100)
+    assert h.state is S.FORMATION_FLIGHT
+    slow = {"n": 1}
+
+    def starved(_inputs: PlanInputs) -> None:
+        if slow["n"] > 0:
+            slow["n"] -= 1
+            h.clock.t += 2.0
+
+    h.svc.agent.on_inputs = starved
+    h.svc.agent.late_jump_m = 1e-6
+    before = h.svc.flying(h.clock.t)
+    n = len(h.reports)
+    h.svc.agent.request_replan()
+    h.step()
+    assert slow["n"] == 0 and len(h.reports) == n + 1
+    assert h.reports[-1].status is PlanStatus.LATE
+    assert h.svc.flying(h.clock.t) is before  # flown on, no jump
+    h.step(3)
+    assert h.svc.counters["plans_late"] == 1 and h.svc.counters["plans_failed"] == 0
+    assert h.state is S.FORMATION_FLIGHT
+    assert h.reports[-1].status is PlanStatus.OK
+    assert h.svc.flying(h.clock.t) is h.reports[-1].trajectory
 
 
 def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> None:

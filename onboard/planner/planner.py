@@ -86,6 +86,11 @@ class PlanStatus(str, enum.Enum):
     """Every attempt failed; the previous trajectory is still safe and is kept."""
     EMERGENCY = "emergency"
     """Nothing safe was found: the trajectory is a braking stop; the service should hover/land."""
+    LATE = "late"
+    """Set by the flight's cycle (``DroneAgent``), not the planner: the plan came back after
+    its start time, and flying it would have moved the setpoint away from the trajectory in
+    control (the two diverge from the start on). It is not flown nor published; the
+    trajectory in control flies on and a replan follows at once."""
 
 
 @dataclass(frozen=True)

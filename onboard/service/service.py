@@ -199,6 +199,7 @@ class FlightService:
             peer_deviation_m=rc.peer_deviation_m,
             avoid_reported=True,  # a peer with states but no trajectory (stuck long, by hand)
             on_plan=self._on_plan,
+            clock=clock,  # a plan that comes back after its start may not be flown
         )
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
@@ -255,6 +256,7 @@ class FlightService:
         self.counters: dict[str, int] = {
             "replans": 0,
             "plans_failed": 0,
+            "plans_late": 0,  # came back after their start too far off the flown one: not flown
             "monitor_replans": 0,
             "monitor_brakes": 0,
             "monitor_holding": 0,
@@ -653,8 +655,9 @@ class FlightService:
             now = self.clock()
             p, v, a = self.agent.flying(now).state(now)
             self._control(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
-        self._last_plan_s = rep.planned_at_s
-        self._last_pub_s = rep.planned_at_s
+        if status is not PlanStatus.LATE:  # a late plan took no control and was not published
+            self._last_plan_s = rep.planned_at_s
+            self._last_pub_s = rep.planned_at_s
         self._results.put(("plan", (status, rep.plan_ms, why, superseded)))
         rec = self.recorder
         if rec is not None:
@@ -976,6 +979,9 @@ class FlightService:
                 self._plan_stamp = self.clock()
                 if superseded:  # the state changed while it was made: nothing to decide
                     self.counters["plans_superseded"] += 1
+                elif status is PlanStatus.LATE:  # the trajectory in control flies on
+                    self.counters["plans_late"] += 1
+                    event(log, "plan_late", logging.WARNING, why=why)
                 elif status in _OK:
                     m.plan_ok()
                 else:
