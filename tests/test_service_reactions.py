@@ -362,14 +362,19 @@ def test_a_clock_beyond_the_bound_stops_formation_flight_and_says_why(tmp_path: 
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
 
 
-def test_monitor_brakes_when_a_peer_will_cross_the_path(tmp_path: Path) -> None:
+def _cruising(tmp_path: Path) -> tuple[Harness, Trajectory]:
+    """A service cruising toward (8, 0, 1) with no peers, and the trajectory it flies."""
     h = Harness(tmp_path, depth=False)
     h.airborne()
-    goal = np.array([8.0, 0.0, 1.0])
-    assert h.command(Goal(tuple(goal)))[0]
-    h.step(40)  # cruising
+    assert h.command(Goal((8.0, 0.0, 1.0)))[0]
+    h.step(40)
     flying = h.svc.flying(h.clock.t)
     assert flying is not None
+    return h, flying
+
+
+def test_monitor_brakes_when_a_peer_will_cross_the_path(tmp_path: Path) -> None:
+    h, flying = _cruising(tmp_path)
     # a peer of another epoch flies across the path, through where this drone will be in 1.9 s
     cross = flying.sample(h.clock.t + 1.9)
     a, b = cross + [0.0, -3.0, 0.0], cross + [0.0, 3.0, 0.0]
@@ -396,13 +401,7 @@ def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_
     1-2 s, a drone flew into a hovering peer while its monitor asked for replan after replan):
     the monitor asks for a replan, then brakes once the conflict is within
     ``MONITOR_BRAKE_WITHIN_S`` and the replan is ``MONITOR_PLAN_WAIT_S`` late."""
-    h = Harness(tmp_path, depth=False)
-    h.airborne()
-    goal = np.array([8.0, 0.0, 1.0])
-    assert h.command(Goal(tuple(goal)))[0]
-    h.step(40)  # cruising
-    flying = h.svc.flying(h.clock.t)
-    assert flying is not None
+    h, flying = _cruising(tmp_path)
     # a peer of another epoch hovers where this drone will be in 3 s
     block = flying.sample(h.clock.t + 3.0)
     hover = Trajectory.hover(block, h.clock.t, 60.0)
