@@ -19,15 +19,10 @@ END_TOL_S = 1e-9
 piece search), not the hold after it."""
 
 
-@njit(cache=True)
-def eval_piecewise(
-    coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray
-) -> None:
-    """Position, velocity, acceleration, jerk of a piecewise quintic at ``t_rel`` from its start.
-
-    coeffs: (M, 6, 3); durations: (M,); out: (4, 3) receives p, v, a, j. Clamped at both ends
-    (derivatives are zero outside [0, sum(durations)]).
-    """
+@njit(cache=True, nogil=True)
+def _piece_at(durations: np.ndarray, t_rel: float) -> tuple[int, float, bool]:
+    """(piece i, time t on it, inside): the piece search and the clamping at both ends that every
+    evaluation here shares."""
     m = durations.shape[0]
     inside = True
     if t_rel <= 0.0:
@@ -44,6 +39,19 @@ def eval_piecewise(
             # the end itself is inside: the subtractions above may leave t an ulp past it
             inside = t - durations[i] <= END_TOL_S
             t = durations[i]
+    return i, t, inside
+
+
+@njit(cache=True)
+def eval_piecewise(
+    coeffs: np.ndarray, durations: np.ndarray, t_rel: float, out: np.ndarray
+) -> None:
+    """Position, velocity, acceleration, jerk of a piecewise quintic at ``t_rel`` from its start.
+
+    coeffs: (M, 6, 3); durations: (M,); out: (4, 3) receives p, v, a, j. Clamped at both ends
+    (derivatives are zero outside [0, sum(durations)]).
+    """
+    i, t, inside = _piece_at(durations, t_rel)
     t2 = t * t
     t3 = t2 * t
     t4 = t3 * t
@@ -64,28 +72,6 @@ def eval_piecewise(
             out[1, d] = 0.0
             out[2, d] = 0.0
             out[3, d] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def _piece_at(durations: np.ndarray, t_rel: float) -> tuple[int, float, bool]:
-    """(piece i, time t on it, inside) of ``eval_piecewise``: the same search and clamping."""
-    m = durations.shape[0]
-    inside = True
-    if t_rel <= 0.0:
-        i = 0
-        t = 0.0
-        inside = t_rel == 0.0
-    else:
-        i = 0
-        t = t_rel
-        while i < m - 1 and t > durations[i]:
-            t -= durations[i]
-            i += 1
-        if t > durations[i]:
-            # the end itself is inside: the subtractions above may leave t an ulp past it
-            inside = t - durations[i] <= END_TOL_S
-            t = durations[i]
-    return i, t, inside
 
 
 @njit(cache=True, nogil=True)
