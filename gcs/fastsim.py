@@ -702,6 +702,7 @@ class SafetyMonitor:
             monitor_step_index,
             monitor_times,
             peer_conflict,
+            replan_asked_s,
         )
         from onboard.service.ports import braking_trajectory
 
@@ -734,8 +735,7 @@ class SafetyMonitor:
         )
         if action == "replan":
             self.replans += 1
-            if self.asked_s <= self.last_plan_s:  # not already awaited
-                self.asked_s = t
+            self.asked_s = replan_asked_s(self.asked_s, self.last_plan_s, t)
             agent.request_replan()
         if action != "brake":
             return f"{action}: {problem}"

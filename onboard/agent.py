@@ -82,7 +82,7 @@ from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask
 from onboard.planner.kernels import BAND_OK, band_state
 from onboard.planner.params import PlannerParams, reform_params
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanResult, PlanStatus
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
 from onboard.planner.trajectory import Trajectory
 
 EPS_T = 1e-9
@@ -360,6 +360,12 @@ def monitor_action(
     if now_s - last_brake_s < 1.0:
         return "braking"
     return "brake"
+
+
+def replan_asked_s(asked_s: float, last_plan_s: float, now_s: float) -> float:
+    """``monitor_action``'s ``asked_s`` after the monitor asks for a replan at ``now_s``: the
+    time of the first request still awaited (a plan begun after ``asked_s`` answers it)."""
+    return now_s if asked_s <= last_plan_s else asked_s
 
 
 @dataclass(frozen=True)
@@ -1077,16 +1083,10 @@ class DroneAgent:
         if late:
             # not flown: a plan that comes back after its start would move the setpoint
             # away from the trajectory in control, which has been flown since
-            res = PlanResult(
-                PlanStatus.LATE,
-                new,
-                res.iterations,
-                res.evaluations,
-                res.solver_status,
-                f"{late}; was {res.status.value}" + (f": {res.message}" if res.message else ""),
-            )
+            why = f"{late}; was {res.status.value}" + (f": {res.message}" if res.message else "")
+            res = dataclasses.replace(res, status=PlanStatus.LATE, message=why)
             seq = -1
-            self.request_replan(now)
+            self.request_replan()
         else:
             seq = self._publish(new, a, now)
             self.schedule(new)

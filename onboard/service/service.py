@@ -60,6 +60,7 @@ from onboard.agent import (
     monitor_times,
     obstacle_conflict,
     peer_conflict,
+    replan_asked_s,
     same_peers,
 )
 from onboard.planner.planner import PlanStatus
@@ -737,8 +738,7 @@ class FlightService:
         )
         if action == "replan":
             self.counters["monitor_replans"] += 1
-            if self._monitor_asked_s <= self._last_plan_s:  # not already awaited
-                self._monitor_asked_s = now
+            self._monitor_asked_s = replan_asked_s(self._monitor_asked_s, self._last_plan_s, now)
             self._ask_replan()
         if action != "brake":
             return f"{action}: {problem}"
