@@ -472,7 +472,11 @@ class DroneAgent:
     service's status policy (hover, retry via ``request_replan``, land) hangs here; the agent
     itself only reports. It runs inside the cycle: it may call anything but ``replan`` and
     ``step`` (which would wait for the cycle it is in); timer: wall clock for the timings
-    (seconds, monotonic).
+    (seconds, monotonic); clock and late_jump_m: see ``_late``; plan_budget_s: once a replan
+    has taken this long by ``timer`` (the flight service; inf: no budget, the fast-time
+    simulator, whose results must not depend on the host's speed), it starts no further
+    attempt while the trajectory in control is safe and moves on (``PlanStatus.OVER_BUDGET``:
+    that trajectory flies on and a replan follows at once).
     """
 
     def __init__(
@@ -507,6 +511,7 @@ class DroneAgent:
         timer: Callable[[], float] = time.perf_counter,
         clock: Callable[[], float] | None = None,
         late_jump_m: float = LATE_JUMP_M,
+        plan_budget_s: float = math.inf,
     ) -> None:
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
             raise ValueError(f"replan_period_s must be > 0, got {replan_period_s!r}")
@@ -536,6 +541,8 @@ class DroneAgent:
             raise ValueError(f"ghost_spacing_m must be > 0, got {ghost_spacing_m!r}")
         if not (math.isfinite(late_jump_m) and late_jump_m > 0.0):
             raise ValueError(f"late_jump_m must be > 0, got {late_jump_m!r}")
+        if not plan_budget_s > 0.0:
+            raise ValueError(f"plan_budget_s must be > 0, got {plan_budget_s!r}")
         if not isinstance(initial, Trajectory):
             raise TypeError(f"initial must be a Trajectory, got {type(initial).__name__}")
         self.drone_id = int(drone_id)
@@ -562,6 +569,7 @@ class DroneAgent:
         self.timer = timer
         self.clock = clock
         self.late_jump_m = float(late_jump_m)
+        self.plan_budget_s = float(plan_budget_s)
         self._traj_lock = threading.Lock()
         self._cfg_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
@@ -1073,8 +1081,15 @@ class DroneAgent:
             )
         self._active = planner
         p0 = self.timer()
+        give_up: Callable[[], bool] | None = None
+        if math.isfinite(self.plan_budget_s):
+            budget_end = p0 + self.plan_budget_s
+
+            def give_up() -> bool:
+                return self.timer() >= budget_end
+
         try:
-            res = planner.plan(t_start, sp, sv, sa, a.goal, peers, field, flying)
+            res = planner.plan(t_start, sp, sv, sa, a.goal, peers, field, flying, give_up)
         finally:
             self._active = None
         plan_ms = (self.timer() - p0) * 1e3
@@ -1090,6 +1105,8 @@ class DroneAgent:
         else:
             seq = self._publish(new, a, now)
             self.schedule(new)
+            if res.status is PlanStatus.OVER_BUDGET:
+                self.request_replan()  # the attempts it gave up, from a newer start
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
         if reforming and self.params.reform_replan_period_s > 0.0:

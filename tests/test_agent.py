@@ -12,7 +12,7 @@ from onboard.agent import DroneAgent, PlanInputs, PlanReport, StaticMap, monitor
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanResult, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -542,3 +542,47 @@ def test_a_plan_back_after_its_start_and_off_the_flown_one_is_not_flown(
         assert bus.receive(1, done + 1.0)[0].trajectory is rep.trajectory
     with pytest.raises(ValueError, match="late_jump_m"):
         _agent(0, bus, start, None, late_jump_m=0.0)
+
+
+def test_the_plan_budget_is_measured_by_the_timer_and_an_over_budget_plan_flies_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``plan_budget_s``: the planner gets a ``give_up`` that turns true once the replan has
+    taken that long by the agent's timer (none without a budget: the fast-time simulator's
+    results must not depend on the host). An 'over-budget' result, the trajectory in control
+    kept, is flown on and published, and a replan follows at once."""
+    tm = {"t": 100.0}
+    seen: list[object] = []
+    real_plan = FormationPlanner.plan
+
+    def plan(self: FormationPlanner, *args: object, **kw: object) -> PlanResult:
+        give_up = args[8] if len(args) > 8 else kw.get("give_up")
+        seen.append(give_up)
+        if give_up is None:
+            return real_plan(self, *args, **kw)  # type: ignore[arg-type]
+        assert callable(give_up)
+        assert give_up() is False
+        tm["t"] += 0.29
+        assert give_up() is False
+        tm["t"] += 0.02
+        assert give_up() is True
+        previous = args[7]
+        assert isinstance(previous, Trajectory)
+        return PlanResult(PlanStatus.OVER_BUDGET, previous, message="formation: refused")
+
+    monkeypatch.setattr(FormationPlanner, "plan", plan)
+    bus = InMemoryBus()
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0, 1])
+    free = _agent(0, bus, start, goal)
+    assert free.replan(0.0).status is PlanStatus.OK and seen == [None]
+    a = _agent(1, bus, start, goal, timer=lambda: tm["t"], plan_budget_s=0.3)
+    hold = a.flying(0.1)
+    rep = a.replan(0.0)
+    assert rep.status is PlanStatus.OVER_BUDGET and rep.trajectory is hold
+    assert a.flying(0.5) is hold
+    assert bus.receive(0, 0.5)[1].trajectory is hold
+    assert a.due(0.0)  # a replan at once
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="plan_budget_s"):
+            _agent(0, bus, start, None, plan_budget_s=bad)

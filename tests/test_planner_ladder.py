@@ -333,3 +333,45 @@ def test_a_canceled_replan_makes_no_rescue_attempt(
     assert res.message.endswith("canceled")
     assert calls[0] == 3
     assert [ladder for ladder, _ in ladders] == [TWO_STEP]
+
+
+def test_a_replan_over_its_time_budget_keeps_the_safe_previous_and_tries_no_more(
+    ladders: list[tuple[tuple[float, ...], float]],
+) -> None:
+    """The scenario above (a peer hovers in the narrow gap, every plan through it is refused).
+    With ``give_up`` saying the budget is spent, the replan stops after its first attempt and
+    keeps the previous trajectory that still moves (status 'over-budget'), without the A*
+    retries; a previous that holds the drone where it is (or none) is no reason to stop, and the
+    attempts go on to the rescue as without a budget. A budget never spent changes nothing."""
+    world = _wall(0.3, False)
+    field = AnalyticField(world)
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
+    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
+    full = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
+    assert full.status == PlanStatus.KEPT_PREVIOUS and full.message.count("drone 7 at") == 3
+    asked = [0]
+
+    def spent() -> bool:
+        asked[0] += 1
+        return True
+
+    ladders.clear()
+    res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back, give_up=spent)
+    assert res.status == PlanStatus.OVER_BUDGET and res.trajectory is back
+    assert res.message.count("drone 7 at") == 1 and "a* retry" not in res.message
+    assert asked[0] == 1
+    assert ladders == []  # the first attempt's guess is the straight line: no A* search
+    assert 0 < res.evaluations < full.evaluations
+    for previous in (Trajectory.hover(start, 0.0, 3.0), None):
+        plain = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, previous)
+        spent_res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, previous, spent)
+        assert plain.status == spent_res.status == PlanStatus.OK_NO_FORMATION
+        np.testing.assert_array_equal(plain.trajectory.coeffs, spent_res.trajectory.coeffs)
+    never = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back, lambda: False)
+    assert (never.status, never.message, never.evaluations) == (
+        full.status,
+        full.message,
+        full.evaluations,
+    )

@@ -19,7 +19,7 @@ from onboard.agent import (
     PlanReport,
 )
 from onboard.config import merge_mappings
-from onboard.planner.planner import PlanStatus
+from onboard.planner.planner import FormationPlanner, PlanResult, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
@@ -459,6 +459,44 @@ def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(
     assert h.state is S.FORMATION_FLIGHT
     assert h.reports[-1].status is PlanStatus.OK
     assert h.svc.flying(h.clock.t) is h.reports[-1].trajectory
+
+
+def test_a_plan_over_its_time_budget_flies_the_plan_in_control_on_without_a_hover(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The service gives its planner the configured time budget (``planning.plan_budget_s``).
+    A replan that gave up at it ('over-budget', the trajectory in control kept) is counted,
+    is no failure (no hover, unlike 'kept-previous'), and the next replan comes at once."""
+    h = Harness(tmp_path, depth=False)
+    assert h.svc.agent.plan_budget_s == h.svc.cfg.planning.plan_budget_s == 0.3
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(100)
+    assert h.state is S.FORMATION_FLIGHT
+    real_plan = FormationPlanner.plan
+    budgets: list[bool] = []
+
+    def gives_up_once(self: FormationPlanner, *args: Any, **kw: Any) -> PlanResult:
+        give_up = args[8]
+        budgets.append(callable(give_up))
+        if len(budgets) == 1:
+            return PlanResult(PlanStatus.OVER_BUDGET, args[7], message="formation: refused")
+        return real_plan(self, *args, **kw)
+
+    monkeypatch.setattr(FormationPlanner, "plan", gives_up_once)
+    before = h.svc.flying(h.clock.t)
+    n = len(h.reports)
+    h.svc.agent.request_replan()
+    h.step()
+    assert len(h.reports) == n + 1 and h.reports[-1].status is PlanStatus.OVER_BUDGET
+    assert h.svc.flying(h.clock.t) is before  # flown on
+    t_over = h.clock.t
+    h.step(3)
+    assert budgets[:2] == [True, True]
+    assert h.svc.counters["plans_over_budget"] == 1 and h.svc.counters["plans_failed"] == 0
+    assert h.state is S.FORMATION_FLIGHT
+    assert h.reports[-1].status is PlanStatus.OK
+    assert h.reports[-1].planned_at_s - t_over < 0.5  # at once, not on the 1 s grid
 
 
 def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> None:

@@ -12,11 +12,13 @@ A* path kept only the check's distance, one rescue attempt without the formation
 from an A* path at the largest of the clearances in between that finds one
 (``astar_rescue_ladder_m``): the roomier way around a gap that the check refuses every plan
 through. Failing that a safe previous trajectory (a hover) is kept, else an emergency stop is
-returned. A drone ahead of its slot relative to its peers plans with a lower speed limit
-(``lead_slowdown_m``), so the swarm waits for a drone left behind rather than stretching the
-shape for the rest of the flight. The planner never replaces a safe trajectory with an unsafe
-one, reads no clock and does no I/O; failure is a status, never an exception (bad *inputs*
-raise ValueError).
+returned. A caller short of time passes ``give_up``: once it says so, no further attempt starts
+while the previous trajectory is safe and moves the drone on; that trajectory is kept
+(``OVER_BUDGET``). A drone ahead of its slot relative to its peers plans with a lower speed
+limit (``lead_slowdown_m``), so the swarm waits for a drone left behind rather than stretching
+the shape for the rest of the flight. The planner never replaces a safe trajectory with an
+unsafe one, reads no clock and does no I/O; failure is a status, never an exception (bad
+*inputs* raise ValueError).
 
 The set-up (local target, initial guess), the solve and the safety check run in compiled code
 (``kernels``, ``objective``; the GIL is released there); this module validates the inputs,
@@ -86,6 +88,10 @@ class PlanStatus(str, enum.Enum):
     """Every attempt failed; the previous trajectory is still safe and is kept."""
     EMERGENCY = "emergency"
     """Nothing safe was found: the trajectory is a braking stop; the service should hover/land."""
+    OVER_BUDGET = "over-budget"
+    """The caller's time budget (``plan``'s ``give_up``) ran out after a refused attempt: no
+    further attempt was made, and the previous trajectory, which the check still accepts and
+    which moves the drone on, is kept. Not a failure: the caller replans at once."""
     LATE = "late"
     """Set by the flight's cycle (``DroneAgent``), not the planner: the plan came back after
     its start time, and flying it would have moved the setpoint away from the trajectory in
@@ -891,8 +897,14 @@ class FormationPlanner:
         peers: Sequence[PeerTrajectory],
         field: DistanceField,
         previous: Trajectory | None = None,
+        give_up: Callable[[], bool] | None = None,
     ) -> PlanResult:
-        """One replan; see the module docstring for the sequence of attempts."""
+        """One replan; see the module docstring for the sequence of attempts. ``give_up``
+        (a time budget; the planner reads no clock itself) is asked before every attempt but
+        the first: once it returns True, a ``previous`` that the check accepts and that moves
+        the drone on is kept (``PlanStatus.OVER_BUDGET``) instead of trying on; without one
+        the attempts go on as usual, since the alternative would be a stop. An accepted plan
+        then skips the comfort alternative (``comfort_obstacle_m``)."""
         sp, sv, sa, gl = self._vectors_in_band(start_p, start_v, start_a, goal)
         gx, gy, gz = (gl - sp).tolist()
         vx, vy, vz = sv.tolist()
@@ -972,7 +984,7 @@ class FormationPlanner:
                 # an A* path at the optimiser's clearance takes, with the same terms, and fly
                 # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
-                if ahead < start_d - 1e-3:
+                if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
                     alt, x_alt, st_alt = solve(
                         use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M
                     )
@@ -1005,7 +1017,42 @@ class FormationPlanner:
             attempts.append((True, True, PlanStatus.OK, "a* retry"))
         attempts.append((False, True, PlanStatus.OK_NO_FORMATION, "a* retry"))
         canceled = False
-        for use_formation, force_astar, ok_status, what in attempts:
+        kept_checked = False  # ``previous`` checked already (safe: ``kept``)
+        kept: Trajectory | None = None
+
+        def keep_previous() -> Trajectory | None:
+            """``previous`` if the check still accepts it (checked once per replan)."""
+            nonlocal kept_checked, kept
+            if not kept_checked and previous is not None:
+                kept_checked = True
+                safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
+                if safe:
+                    kept = previous
+                else:
+                    messages.append(f"previous: {why}")
+            return kept
+
+        def moves_on(traj: Trajectory | None) -> bool:
+            """Whether ``traj`` ends at least ``KEEP_MOVING_M`` from the replan's start."""
+            return (
+                traj is not None
+                and math.dist(traj.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M
+            )
+
+        def over_budget() -> PlanResult | None:
+            """The kept previous trajectory when ``give_up`` says stop and it moves on."""
+            if give_up is None or not give_up():
+                return None
+            safe_prev = keep_previous()
+            if safe_prev is None or not moves_on(safe_prev):
+                return None
+            return PlanResult(
+                PlanStatus.OVER_BUDGET, safe_prev, iters, evals, last_status, "; ".join(messages)
+            )
+
+        for k, (use_formation, force_astar, ok_status, what) in enumerate(attempts):
+            if k > 0 and (stop := over_budget()) is not None:
+                return stop
             result, problem, canceled = attempt(use_formation, force_astar, ok_status, what)
             if result is not None:
                 return result
@@ -1013,16 +1060,11 @@ class FormationPlanner:
                 break
         # Every attempt was refused. A safe previous trajectory that still takes the drone
         # somewhere is kept, as before the rescue existed (the next replan tries again).
-        kept: Trajectory | None = None
-        if previous is not None:
-            safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
-            if safe:
-                kept = previous
-            else:
-                messages.append(f"previous: {why}")
-        if kept is not None and math.dist(kept.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M:
+        prev = keep_previous()
+        if moves_on(prev):
+            assert prev is not None
             return PlanResult(
-                PlanStatus.KEPT_PREVIOUS, kept, iters, evals, last_status, "; ".join(messages)
+                PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
         # Otherwise the drone would hold where it is (a kept hover, a finished stop) or stop.
         # When the A* retry's path kept only the check's distance, the way it offered may be a
@@ -1037,9 +1079,9 @@ class FormationPlanner:
             )
             if result is not None:
                 return result
-        if kept is not None:
+        if prev is not None:
             return PlanResult(
-                PlanStatus.KEPT_PREVIOUS, kept, iters, evals, last_status, "; ".join(messages)
+                PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
         return PlanResult(
             PlanStatus.EMERGENCY,

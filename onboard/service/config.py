@@ -318,6 +318,11 @@ class PlanningSection:
     replan_period_s: float = 1.0
     plan_ahead_s: float = 0.1
     """A replan starts from the current trajectory's state this far ahead (its computing time)."""
+    plan_budget_s: float = 0.3
+    """A replan that has taken this long starts no further attempt (A* retries, rescue) while
+    the trajectory in control is safe and moves on: that one flies on (status 'over-budget')
+    and a replan follows at once, from a newer start. On a starved CPU a refused first attempt
+    and its retries took seconds, and such a plan comes back too late to be flown."""
     monitor_rate_hz: float = 100.0
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
@@ -333,6 +338,7 @@ class PlanningSection:
     def __post_init__(self) -> None:
         _in_range("replan_period_s", self.replan_period_s, 0.1, 10.0)
         _in_range("plan_ahead_s", self.plan_ahead_s, 0.0, 1.0)
+        _in_range("plan_budget_s", self.plan_budget_s, 0.01, 60.0)
         _in_range("monitor_rate_hz", self.monitor_rate_hz, 10.0, 500.0)
         _in_range("monitor_horizon_s", self.monitor_horizon_s, 0.1, 10.0)
         _in_range("retry_after_s", self.retry_after_s, 0.05, 30.0)

@@ -201,6 +201,7 @@ class FlightService:
             avoid_reported=True,  # a peer with states but no trajectory (stuck long, by hand)
             on_plan=self._on_plan,
             clock=clock,  # a plan that comes back after its start may not be flown
+            plan_budget_s=pc.plan_budget_s,
         )
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
@@ -258,6 +259,7 @@ class FlightService:
             "replans": 0,
             "plans_failed": 0,
             "plans_late": 0,  # came back after their start too far off the flown one: not flown
+            "plans_over_budget": 0,  # gave up retrying at plan_budget_s: the safe plan flies on
             "monitor_replans": 0,
             "monitor_brakes": 0,
             "monitor_holding": 0,
@@ -982,6 +984,9 @@ class FlightService:
                 elif status is PlanStatus.LATE:  # the trajectory in control flies on
                     self.counters["plans_late"] += 1
                     event(log, "plan_late", logging.WARNING, why=why)
+                elif status is PlanStatus.OVER_BUDGET:  # likewise, and a replan follows
+                    self.counters["plans_over_budget"] += 1
+                    event(log, "plan_over_budget", logging.INFO, plan_ms=round(plan_ms), why=why)
                 elif status in _OK:
                     m.plan_ok()
                 else:
