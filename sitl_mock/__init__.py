@@ -15,3 +15,6 @@ that checks it and the differences that remain.
 - ``sitl_mock.client``: a small MAVLink client for tests and benchmarks;
 - ``sitl_mock.cli``: the ``swarm-sitl`` command.
 """
+
+# the mock's kernels are cached by numba like the onboard ones: stale caches cleared first
+import onboard  # noqa: E402,F401  (onboard/__init__ clears both packages' stale caches)
