@@ -180,7 +180,7 @@ class PlannerParams:
     ``target_speed_frac`` 0.5; BENCHMARKS.md section 10).
     The agent's own parameter, kept here beside ``reform_s``; the planner has no notion of
     it."""
-    reform_formation_scale: float = 3.0
+    reform_formation_scale: float = 6.0
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
     ahead, 15 s at 0.5 m/s). Measured with ``reform_lead_from_centroid`` (fast time,
@@ -188,7 +188,11 @@ class PlannerParams:
     section 10, eleventh session): hexagon-7 -> rectangle-7, the new shape after median 8.7 s at
     1.0 and 4.9 s at 3.0 (4 of 5 within 10 s either way); hexagon-7 -> arrow-7, 3 of 5 within
     10 s at 1.0 and 1 of 5 at 3.0. Chosen for the rectangle, which the 7-drone demo's change
-    flies; not settled for other shapes. 1.0: unchanged."""
+    flies; not settled for other shapes. 6.0 since 2026-11-28 (fast time, change 20 s after the
+    start, the new shape within 10 s at 3.0 -> 6.0): rectangle-7 on exact distances, seeds 1-30,
+    20 -> 24 of 30; arrow-7, seeds 1-20, 8 -> 8 of 20; rectangle-7 mapped (3 frames/s, step 3,
+    band 0.4-1.8 m), seeds 1-5, 3 -> 4 of 5 (mean e_sim 0.055 -> 0.038); at 10.0: 2 of 5 mapped
+    and the arrow's top speed 0.515 m/s (BENCHMARKS.md section 10). 1.0: unchanged."""
     swarm_target: str = "centroid"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
     2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
