@@ -133,8 +133,6 @@ def _remove_cached(directory: Path, stems: set[str]) -> int:
         try:
             path.unlink()
             n += 1
-        except FileNotFoundError:
-            continue
-        except OSError:
+        except OSError:  # gone meanwhile (another process), or not ours to delete
             continue
     return n

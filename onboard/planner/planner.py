@@ -1032,12 +1032,9 @@ class FormationPlanner:
                     messages.append(f"previous: {why}")
             return kept
 
-        def moves_on(traj: Trajectory | None) -> bool:
+        def moves_on(traj: Trajectory) -> bool:
             """Whether ``traj`` ends at least ``KEEP_MOVING_M`` from the replan's start."""
-            return (
-                traj is not None
-                and math.dist(traj.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M
-            )
+            return math.dist(traj.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M
 
         def over_budget() -> PlanResult | None:
             """The kept previous trajectory when ``give_up`` says stop and it moves on."""
@@ -1061,8 +1058,7 @@ class FormationPlanner:
         # Every attempt was refused. A safe previous trajectory that still takes the drone
         # somewhere is kept, as before the rescue existed (the next replan tries again).
         prev = keep_previous()
-        if moves_on(prev):
-            assert prev is not None
+        if prev is not None and moves_on(prev):
             return PlanResult(
                 PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
