@@ -45,14 +45,17 @@ def jit_sources(roots: Iterable[Path]) -> list[Path]:
     """The Python files under ``roots`` with a numba decorator, sorted."""
     found: list[Path] = []
     for root in roots:
-        for path in sorted(Path(root).rglob("*.py")):
-            if "__pycache__" in path.parts:
-                continue
-            try:
-                if _COMPILED.search(path.read_bytes()):
-                    found.append(path)
-            except OSError:
-                continue
+        for here, subdirs, names in os.walk(root):
+            subdirs[:] = [d for d in subdirs if d != "__pycache__"]  # numba's own files
+            for name in names:
+                if not name.endswith(".py"):
+                    continue
+                path = Path(here) / name
+                try:
+                    if _COMPILED.search(path.read_bytes()):
+                        found.append(path)
+                except OSError:
+                    continue
     return sorted(found)
 
 
