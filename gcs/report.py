@@ -49,6 +49,9 @@ COLLISION_OBSTACLE_M = 0.2
 COLLISION_DRONE_M = 0.4
 GOAL_TOLERANCE_M = 0.5
 GROUND_STATES = ("idle", "landed")
+TRACKED_STATES = ("hover", "formation-flight")
+"""Flight states in which the vehicle follows the service's own setpoints (the tracking error is
+taken there: in take-off and landing the autopilot's own climb and descent lead them)."""
 PEER_LATENCY_PREFIX = "bus.peer_latency."
 """The service's peer trajectory latency histogram in its ``/counters`` (publish -> the
 planner's inbox, ``onboard.comm.latency``)."""
@@ -77,6 +80,8 @@ class DroneFlight:
     events: tuple[tuple[float, int, str], ...]
     counters: Mapping[str, float]
     read_error: str | None = None
+    setpoint_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(len(setpoint_t), 3) the commanded positions (ENU), NaN where a message had none."""
 
     @staticmethod
     def from_record(rec: FlightRecord) -> DroneFlight:
@@ -102,6 +107,7 @@ class DroneFlight:
             events=tuple(rec.events()),
             counters=dict(counters[-1].get("counters", {})) if counters else {},
             read_error=rec.metadata.get("read_error"),
+            setpoint_pos=_vecs([m.get("position_enu_m") for m in rec.messages("/setpoint")]),
         )
 
     def airborne(self) -> np.ndarray:
@@ -125,6 +131,32 @@ class DroneFlight:
         k = np.searchsorted(self.t, times, side="right") - 1
         air = self.airborne()
         return (k >= 0) & (times <= self.t[-1]) & air[np.clip(k, 0, None)]
+
+    def setpoint_at(self, times: np.ndarray) -> np.ndarray:
+        """(len(times), 3) the commanded position interpolated at ``times``; NaN outside the
+        stream and inside its pauses (setpoints more than ``STREAM_GAP_S`` apart)."""
+        out = np.full((times.shape[0], 3), np.nan)
+        ts = self.setpoint_t
+        if ts.shape[0] < 2 or self.setpoint_pos.shape[0] != ts.shape[0]:
+            return out
+        k = np.searchsorted(ts, times, side="right")
+        kk = np.clip(k, 1, ts.shape[0] - 1)
+        short = ts[kk] - ts[kk - 1] <= STREAM_GAP_S
+        at_one = (times == ts[kk - 1]) | (times == ts[kk])  # a setpoint's own time: known
+        inside = (times >= ts[0]) & (times <= ts[-1]) & (short | at_one)
+        for a in range(3):
+            out[inside, a] = np.interp(times[inside], ts, self.setpoint_pos[:, a])
+        return out
+
+    def tracking_error_m(self) -> np.ndarray:
+        """At every state sample in ``TRACKED_STATES`` inside the setpoint stream: the distance
+        [m] from the vehicle's position to the position commanded then (how well the autopilot
+        follows the plan; a close pass with a small tracking error was planned that close)."""
+        air = np.array([s in TRACKED_STATES for s in self.flight_state], dtype=bool)
+        if not air.any():
+            return np.zeros(0)
+        err = np.linalg.norm(self.pos[air] - self.setpoint_at(self.t[air]), axis=1)
+        return err[np.isfinite(err)]
 
     def setpoint_periods(self) -> tuple[np.ndarray, int]:
         """(periods [s] while streaming, number of pauses longer than STREAM_GAP_S)."""
@@ -290,6 +322,7 @@ def _concat(fs: list[DroneFlight]) -> DroneFlight:
         events=tup("events"),
         counters=fs[-1].counters,
         read_error="; ".join(errors) if errors else None,
+        setpoint_pos=cat("setpoint_pos"),
     )
 
 
@@ -338,6 +371,10 @@ class Analysis:
     e_sim: np.ndarray = field(default_factory=lambda: np.zeros(0))
     min_obstacle_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     min_pair_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    closest: list[dict[str, Any] | None] = field(default_factory=list)
+    """Per drone, its closest approach to an obstacle while airborne (None without a world or
+    a sample): ``t_s``, ``clearance_m``, the clearance of the position commanded then
+    (``setpoint_clearance_m``, None outside the stream) and the ``tracking_error_m`` then."""
 
     @property
     def ids(self) -> list[int]:
@@ -371,7 +408,9 @@ def analyse(
             d = np.full(flat.shape[0], np.inf)
             if ok.any():
                 d[ok] = solid.distance(flat[ok])[0]
-            d = d.reshape(t.shape[0], n).min(axis=1)
+            per = d.reshape(t.shape[0], n)
+            a.closest = [_closest(f, t, per[:, i], pos[:, i], solid) for i, f in enumerate(flights)]
+            d = per.min(axis=1)
             obst = np.where(np.isfinite(d), d, np.nan)
     a.min_obstacle_m = obst
     pair = np.full(t.shape[0], np.nan)
@@ -408,6 +447,25 @@ def analyse(
             if e is not None:
                 a.e_dist[k], a.e_sim[k] = e
     return a
+
+
+def _closest(
+    f: DroneFlight, t: np.ndarray, clearance: np.ndarray, pos: np.ndarray, solid: World
+) -> dict[str, Any] | None:
+    """Drone ``f``'s closest approach on the grid ``t`` (its ``clearance`` per sample, inf
+    where it is not airborne): time, clearance, the commanded position's clearance and the
+    tracking error then."""
+    if not np.isfinite(clearance).any():
+        return None
+    k = int(np.argmin(clearance))
+    sp = f.setpoint_at(t[k : k + 1])[0]
+    out: dict[str, Any] = {"t_s": float(t[k]), "clearance_m": float(clearance[k])}
+    if np.isfinite(sp).all():
+        out["setpoint_clearance_m"] = float(solid.distance(sp.reshape(1, 3))[0][0])
+        out["tracking_error_m"] = float(np.linalg.norm(pos[k] - sp))
+    else:
+        out["setpoint_clearance_m"] = out["tracking_error_m"] = None
+    return out
 
 
 def _stat(values: np.ndarray | Sequence[float]) -> dict[str, float]:
@@ -449,9 +507,12 @@ def summarise(a: Analysis) -> dict[str, Any]:
     """The JSON summary of a flight."""
     drones: list[dict[str, Any]] = []
     all_periods: list[np.ndarray] = []
+    all_tracking: list[np.ndarray] = []
     for i, f in enumerate(a.flights):
         periods, pauses = f.setpoint_periods()
         all_periods.append(periods)
+        tracking = f.tracking_error_m()
+        all_tracking.append(tracking)
         goal = _goal_of(a, f)
         end = a.pos[-1, i] if a.pos.shape[0] else np.full(3, np.nan)
         last_known = f.pos[np.isfinite(f.pos).all(axis=1)]
@@ -479,6 +540,8 @@ def summarise(a: Analysis) -> dict[str, Any]:
                 "setpoints": int(f.setpoint_t.shape[0]),
                 "setpoint_period_ms": _stat_ms(periods),
                 "setpoint_pauses": pauses,
+                "tracking_error_m": _stat(tracking),
+                "closest_obstacle": a.closest[i] if i < len(a.closest) else None,
                 "plan_ms": _stat(f.plan_ms),
                 "plan_statuses": statuses,
                 "transitions": [list(x) for x in f.transitions],
@@ -509,6 +572,8 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "e_sim": e_sim_s,
         "cluttered": _cluttered(a),
         "setpoint_period_ms": _stat_ms(periods),
+        "tracking_error_m": _stat(np.concatenate(all_tracking) if all_tracking else []),
+        "closest_obstacle": _closest_of_all(drones),
         "plan_ms": _stat(np.concatenate([f.plan_ms for f in a.flights]) if a.flights else []),
         "peer_latency_ms": _latency_ms(
             LatencyFigures.merge(x for f in a.flights if (x := f.peer_latency()) is not None)
@@ -519,6 +584,15 @@ def summarise(a: Analysis) -> dict[str, Any]:
         ],
     }
     return out
+
+
+def _closest_of_all(drones: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The closest approach of the drone that came closest (with its id), None without one."""
+    got = [(d["closest_obstacle"], d["id"]) for d in drones if d.get("closest_obstacle")]
+    if not got:
+        return None
+    c, i = min(got, key=lambda x: x[0]["clearance_m"])
+    return {"id": i, **c}
 
 
 def _latency_ms(fig: LatencyFigures | None) -> dict[str, Any]:
@@ -585,10 +659,20 @@ def summary_text(s: Mapping[str, Any]) -> str:
         f"p99 {f(s['setpoint_period_ms']['p99'], '.1f')} ms, "
         f"max {f(s['setpoint_period_ms']['max'], '.1f')} ms "
         f"({s['setpoint_period_ms']['count']} periods)",
+        f"tracking (position - setpoint): median {f(s['tracking_error_m']['median'], '.3f')} m, "
+        f"p99 {f(s['tracking_error_m']['p99'], '.3f')} m, "
+        f"max {f(s['tracking_error_m']['max'], '.3f')} m",
         f"plan time: median {f(s['plan_ms']['median'], '.0f')} ms, "
         f"p90 {f(s['plan_ms']['p90'], '.0f')} ms, max {f(s['plan_ms']['max'], '.0f')} ms "
         f"({s['plan_ms']['count']} plans)",
     ]
+    c = s.get("closest_obstacle")
+    if c:
+        lines.append(
+            f"closest to an obstacle: drone {c['id']}, {f(c['clearance_m'], '.3f')} m; "
+            f"the position commanded then {f(c['setpoint_clearance_m'], '.3f')} m, "
+            f"tracking error {f(c['tracking_error_m'], '.3f')} m"
+        )
     peer = s.get("peer_latency_ms") or {}
     if peer.get("count"):
         lines.append(

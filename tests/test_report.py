@@ -29,6 +29,12 @@ IDS = [0, 1, 2]
 SPEED = 0.5  # m/s along x
 CRUISE_Z = 1.0
 TRIANGLE = load_template("triangle-3").points
+SETPOINT_OFFSET = {
+    0: np.array([0.05, 0.0, 0.0]),
+    1: np.array([0.0, 0.1, 0.0]),
+    2: np.array([0.0, 0.0, -0.15]),
+}
+"""Each drone's commanded position is its true one plus this: its tracking error."""
 
 
 def _true_positions(t: float) -> dict[int, np.ndarray]:
@@ -60,9 +66,9 @@ def _state_of(t: float) -> str:
 
 
 def write_flight(d: Path) -> dict[str, object]:
-    """Three drones' records (10 Hz states, 10 s of 50 Hz setpoints with one 45 ms hiccup, 1 Hz
-    plans)
-    and the mission file; returns the mission."""
+    """Three drones' records (10 Hz states; 50 Hz setpoints from take-off to landed, each
+    ``SETPOINT_OFFSET`` from the true position, with one 45 ms hiccup; 1 Hz plans) and the
+    mission file; returns the mission."""
     tpl = load_template("triangle-3").points
     placed = place(tpl, (-3.0, 0.0, CRUISE_Z), 1.0, 0.0)
     mission = {
@@ -94,10 +100,11 @@ def write_flight(d: Path) -> dict[str, object]:
                     rec.transition(T0 + t, prev or "idle", st, "test")
                     prev = st
                 rec.state(T0 + t, flight_state=st, position_enu_m=p, velocity_enu_m_s=[SPEED, 0, 0])
-            ts = T0 + 1.0 + np.arange(0, 10.0, 0.02)
+            ts = T0 + 1.0 + np.arange(0, 34.0, 0.02)
             ts[300:] += 0.025  # one period of 45 ms
             for t in ts:
-                rec.setpoint(float(t), [0, 0, 1], [0, 0, 0], [0, 0, 0], 0.0)
+                want = _true_positions(float(t) - T0)[i] + SETPOINT_OFFSET[i]
+                rec.setpoint(float(t), want, [0, 0, 0], [0, 0, 0], 0.0)
             for j in range(30):
                 rec.plan(T0 + 3.0 + j, status="ok", plan_ms=40.0 + i + j, traj_id=j,
                          goal_enu_m=[12.0, 0.0, 1.0])  # fmt: skip
@@ -128,9 +135,9 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert json.loads((out / "summary.json").read_text())["n_drones"] == 3
     assert "flight of 3 drone(s) in forest-small" in (out / "summary.txt").read_text()
     assert s["world"] == "forest-small" and s["seed"] == 3 and s["n_drones"] == 3
-    # setpoints: 500 per drone at 20 ms, one 45 ms period each
+    # setpoints: 1700 per drone at 20 ms, one 45 ms period each
     sp = s["setpoint_period_ms"]
-    assert sp["count"] == 3 * 499 and sp["median"] == pytest.approx(20.0, abs=1e-3)
+    assert sp["count"] == 3 * 1699 and sp["median"] == pytest.approx(20.0, abs=1e-3)
     assert sp["max"] == pytest.approx(45.0, abs=1e-3)
     assert all(d["setpoint_pauses"] == 0 for d in s["drones"])
     # plans: 30 per drone, 40 + id + j ms
@@ -164,6 +171,35 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     direct = float(solid.distance(pts.reshape(-1, 3))[0].min())
     assert s["min_obstacle_clearance_m"] == pytest.approx(direct, abs=1e-6)
     assert (s["collisions_from_records"]["obstacle"] > 0) == (direct < 0.2)
+    # per drone, the closest approach on the grid, the commanded position's clearance then and
+    # the tracking error (the offset); the worst of them is the flight's
+    for i in IDS:
+        d = s["drones"][i]
+        own = np.array([_true_positions(float(t))[i] for t in rel[air]])
+        dist = solid.distance(own)[0]
+        k = int(np.argmin(dist))
+        c = d["closest_obstacle"]
+        assert c["clearance_m"] == pytest.approx(dist[k], abs=1e-6)
+        assert c["t_s"] == pytest.approx(T0 + rel[air][k], abs=1e-6)
+        sp_at = own[k] + SETPOINT_OFFSET[i]
+        assert c["setpoint_clearance_m"] == pytest.approx(
+            float(solid.distance(sp_at.reshape(1, 3))[0][0]), abs=2e-3
+        )
+        off = float(np.linalg.norm(SETPOINT_OFFSET[i]))
+        assert c["tracking_error_m"] == pytest.approx(off, abs=2e-3)
+        # in formation flight (t = 3..33 s, 10 Hz): the offset at every sample
+        te = d["tracking_error_m"]
+        assert te["count"] == pytest.approx(300, abs=2)
+        assert te["median"] == pytest.approx(off, abs=1e-3) and te["max"] == pytest.approx(
+            off, abs=5e-3
+        )
+    worst = min(IDS, key=lambda i: s["drones"][i]["closest_obstacle"]["clearance_m"])
+    assert s["closest_obstacle"]["id"] == worst
+    assert s["closest_obstacle"]["clearance_m"] == pytest.approx(direct, abs=1e-6)
+    assert s["tracking_error_m"]["max"] == pytest.approx(0.15, abs=5e-3)
+    text = (out / "summary.txt").read_text()
+    assert "tracking (position - setpoint): median 0.100 m" in text
+    assert f"closest to an obstacle: drone {worst}," in text
     # arrival: the goal is 12 m east; the swarm stops at x = 12 - offset: every drone arrived
     assert s["arrived"] and all(d["arrived"] for d in s["drones"])
 
@@ -211,3 +247,22 @@ def test_report_of_a_record_cut_short(tmp_path: Path) -> None:
     assert 0 < d["states"] < 600 and 0 < d["setpoints"] < 3000
     assert d["setpoint_period_ms"]["max"] == pytest.approx(20.0, abs=1e-3)
     assert s["min_obstacle_clearance_m"] is not None and s["e_dist_m"]["count"] == 0
+
+
+def test_setpoint_at_skips_pauses_and_the_ends() -> None:
+    """The commanded position is interpolated inside the stream only: NaN before its first and
+    after its last setpoint and inside a pause longer than STREAM_GAP_S."""
+    from gcs.report import STREAM_GAP_S, DroneFlight
+
+    ts = np.array([0.0, 0.02, 0.04, 0.04 + STREAM_GAP_S + 0.01, 0.06 + STREAM_GAP_S + 0.01])
+    pos = np.column_stack([ts, np.zeros(5), np.ones(5)])
+    f = DroneFlight(
+        drone_id=0, path=Path("x"), t=ts, pos=pos, vel=np.zeros((5, 3)),
+        flight_state=("formation-flight",) * 5, setpoint_t=ts, plan_t=np.zeros(0),
+        plan_ms=np.zeros(0), plan_status=(), plan_goal=np.zeros((0, 3)), transitions=(),
+        events=(), counters={}, setpoint_pos=pos + [0.0, 0.3, 0.0],
+    )  # fmt: skip
+    got = f.setpoint_at(np.array([-0.01, 0.03, 0.3, ts[-1] - 0.01, ts[-1] + 0.01]))
+    assert np.isnan(got[[0, 2, 4]]).all()
+    assert got[1] == pytest.approx([0.03, 0.3, 1.0]) and np.isfinite(got[3]).all()
+    assert f.tracking_error_m() == pytest.approx([0.3] * 5)
