@@ -57,11 +57,15 @@ def test_the_new_shape_is_reached_without_a_collision(changed: SimResult) -> Non
     assert t.e_sim[-1] == pytest.approx(similarity(t.pos[-1], line[slots])[0])
     assert t.e_dist[-1] == pytest.approx(e_dist(t.pos[-1], line[slots]))
     assert np.mean(t.e_sim[after]) < FORMATION_REACHED_E_SIM
-    # before the change the triangle was the reference (a line scores far worse there)
+    # before the change the triangle was the reference: at the sample before the change where
+    # the drones held the triangle best (the flight is chaotic: where it is bent depends on the
+    # CPU's floating point; on one host the triangle turned over through a line just before the
+    # change), e_sim is the triangle's score, and the line's is far worse there
     tri = np.asarray(load_formation("triangle-3").points)
-    k = int(np.searchsorted(t.t, CHANGE_AT_S - 1.0))
+    before = np.flatnonzero((t.t >= 1.0) & (t.t < CHANGE_AT_S))
+    k = int(before[np.argmin([similarity(t.pos[j], tri)[0] for j in before])])
     assert t.e_sim[k] == pytest.approx(similarity(t.pos[k], tri)[0])
-    assert similarity(t.pos[k], line[slots])[0] > 10 * t.e_sim[k]
+    assert similarity(t.pos[k], line[slots])[0] > 10 * t.e_sim[k] + 0.05
     d = json.loads(json.dumps(r.to_json()))
     assert d["formation_change"]["reached_s"] == fc["reached_s"]
 
