@@ -152,10 +152,10 @@ class DroneFlight:
         """At every state sample in ``TRACKED_STATES`` inside the setpoint stream: the distance
         [m] from the vehicle's position to the position commanded then (how well the autopilot
         follows the plan; a close pass with a small tracking error was planned that close)."""
-        air = np.array([s in TRACKED_STATES for s in self.flight_state], dtype=bool)
-        if not air.any():
+        tracked = np.array([s in TRACKED_STATES for s in self.flight_state], dtype=bool)
+        if not tracked.any():
             return np.zeros(0)
-        err = np.linalg.norm(self.pos[air] - self.setpoint_at(self.t[air]), axis=1)
+        err = np.linalg.norm(self.pos[tracked] - self.setpoint_at(self.t[tracked]), axis=1)
         return err[np.isfinite(err)]
 
     def setpoint_periods(self) -> tuple[np.ndarray, int]:
