@@ -511,10 +511,19 @@ class FormationPlanner:
             return None
         u = d / dist
         if mode == "slowest":
-            back = float(np.min((origins - r) @ u))
-            r = r + back * u
-            dist -= back
+            return self._slowest((r, u, dist), (P, F))
         return r, u, dist
+
+    @staticmethod
+    def _slowest(
+        ref: tuple[np.ndarray, np.ndarray, float], members: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        """The 'slowest' reference from the 'centroid' one ``ref`` of the same ``members``
+        (``_reference``): its origin moved back along u to the member least advanced."""
+        r, u, dist = ref
+        P, F = members
+        back = float(np.min(((P - F) - r) @ u))
+        return r + back * u, u, dist - back
 
     def _swarm_goal(
         self, sp: np.ndarray, goal: np.ndarray, ref: tuple[np.ndarray, np.ndarray, float] | None
@@ -686,11 +695,13 @@ class FormationPlanner:
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
         if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
-            lead_ref = (
-                self._reference(t_start_s, sp, gl, peers, "slowest", members)
-                if p.lead_from_slowest
-                else ref
-            )
+            if not p.lead_from_slowest:
+                lead_ref = ref
+            elif p.swarm_target == "centroid" and members is not None:
+                # the same members' centroid reference is at hand: only move it back
+                lead_ref = None if ref is None else self._slowest(ref, members)
+            else:
+                lead_ref = self._reference(t_start_s, sp, gl, peers, "slowest", members)
             lead = self._lead(t_start_s, sp, gl, peers, lead_ref, members) - p.lead_deadband_m
             if lead > 0.0:
                 prm = prm.copy()
