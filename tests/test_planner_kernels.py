@@ -513,6 +513,7 @@ def test_peers_are_padded_with_a_hover_at_their_end() -> None:
 
 
 _WARM_PROBE = """
+import dataclasses
 import json
 import numpy as np
 from onboard.planner import kernels as kn, objective as obj
@@ -544,8 +545,12 @@ start = np.array([0.0, 0.0, 1.0])
 r1 = planner.plan(0.0, start, z, z, np.array([7.0, 0.0, 1.0]), peers, field)
 r2 = planner.plan(1.0, r1.trajectory.sample(1.0), *r1.trajectory.state(1.0)[1:],
                   np.array([7.0, 0.0, 1.0]), peers, field, r1.trajectory)
+# nothing copies the shared parameter vector here (no altitude hold, no lead slow-down)
+plain = dataclasses.replace(params, w_altitude_hold=0.0, lead_slowdown_m=0.0)
+r3 = FormationPlanner(plain, hexagon, 0).plan(
+    0.0, start, z, z, np.array([7.0, 0.0, 1.0]), peers, field)
 after = {k: len(f.signatures) for k, f in fns.items()}
-print(json.dumps({"before": before, "after": after, "status": [r1.status, r2.status]}))
+print(json.dumps({"before": before, "after": after, "status": [r1.status, r2.status, r3.status]}))
 """
 
 
@@ -562,4 +567,4 @@ def test_the_service_warm_up_loads_the_kernels_a_flight_uses() -> None:
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert all(n >= 1 for n in got["before"].values()), got  # loaded by the warm-up
     assert got["after"] == got["before"], got  # a flight's replans need nothing new
-    assert got["status"] == ["ok", "ok"], got
+    assert got["status"] == ["ok", "ok", "ok"], got

@@ -718,6 +718,11 @@ class FormationPlanner:
         if p.w_altitude_hold > 0.0:
             prm = prm.copy()
             prm[obj.P_Z_HOLD] = gl[2]
+        if prm.flags.writeable:
+            # read-only like the shared vector it was copied from: numba types an array's
+            # writability, and a second type of the problem would compile the objective anew
+            # (tens of seconds) at the first replan that copies, or does not copy, it
+            prm.setflags(write=False)
         pt0 = pack.t0 - t_start_s
         prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts)
         problem = Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
