@@ -83,6 +83,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         ("altitude-hold", obj.P_W_HOLD),
     ):
         prm[idx] = weights.get(key, 0.0)
+    prm.setflags(write=False)  # as the planner's (numba compiles a writable one anew)
     prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation)
     world = World(
         cylinders=np.array([[1.5, 0.6, 0.3, 0.0, 3.0], [3.2, -0.2, 0.25, 0.0, 3.0]]),
@@ -252,11 +253,13 @@ def test_altitude_term_is_active_below_and_above_the_band() -> None:
     for lo, hi in ((1.05, 50.0), (-50.0, 1.12)):
         prm = prob[3].copy()
         prm[obj.P_Z_LO], prm[obj.P_Z_HI] = lo, hi
+        prm.setflags(write=False)
         one_side = (*prob[:3], prm, *prob[4:])
         obj.cost_c_T(m.c, T, one_side, fld, np.zeros_like(m.c), np.zeros(M), costs)
         assert costs[obj.C_Z] > 0.0, (lo, hi)
     prm = prob[3].copy()
     prm[obj.P_Z_LO], prm[obj.P_Z_HI] = -50.0, 50.0
+    prm.setflags(write=False)
     inside = (*prob[:3], prm, *prob[4:])
     obj.cost_c_T(m.c, T, inside, fld, np.zeros_like(m.c), np.zeros(M), costs)
     assert costs[obj.C_Z] == 0.0
