@@ -36,11 +36,6 @@ from onboard.mapping.esdf import (
 from onboard.planner.field import UNKNOWN_DISTANCE
 from onboard.world import World
 
-# one xdist worker runs every test of the mapping kernels' reference checks (`make test`'s
-# --dist loadgroup): they compile the same reference and explicit-argument kernels (~70 s of
-# CPU on a fresh cache), which workers running them side by side each compiled again
-pytestmark = pytest.mark.xdist_group("mapping-kernels")
-
 _UNKNOWN_BELOW = -50.0
 
 

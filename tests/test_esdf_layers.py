@@ -22,11 +22,6 @@ from onboard.mapping.simcam import SimulatedDepthCamera
 from onboard.planner.field import UNKNOWN_DISTANCE
 from onboard.world import World
 
-# one xdist worker runs every test of the mapping kernels' reference checks (`make test`'s
-# --dist loadgroup): they compile the same reference and explicit-argument kernels (~70 s of
-# CPU on a fresh cache), which workers running them side by side each compiled again
-pytestmark = pytest.mark.xdist_group("mapping-kernels")
-
 
 def _run(om: OccupancyMap, sub_cell: bool, k0: int, k1: int) -> tuple[np.ndarray, ...]:
     sh = om.shape
