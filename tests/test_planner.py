@@ -9,7 +9,7 @@ from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -214,8 +214,10 @@ def test_a_drone_ahead_of_its_slot_slows_down_for_the_swarm() -> None:
     off = FormationPlanner(PlannerParams(**base, lead_slowdown_m=0.0), LINE3, slot=1)
     on = FormationPlanner(PlannerParams(**base, lead_slowdown_m=2.0), LINE3, slot=1)
     # the centroid is at x = 2/3, the slot's offset from it 0: the lead is 4/3 m
-    assert on._lead(0.0, start, goal, peers) == pytest.approx(4.0 / 3.0)
-    assert on._lead(0.0, np.array([0.0, 0.0, 1.0]), goal, peers) == pytest.approx(0.0, abs=1e-12)
+    pack = _pack_peers(peers)
+    assert on._swarm_setup(0.0, start, goal, peers, pack, True)[2] == pytest.approx(4.0 / 3.0)
+    level = on._swarm_setup(0.0, np.array([0.0, 0.0, 1.0]), goal, peers, pack, True)[2]
+    assert level == pytest.approx(0.0, abs=1e-12)
     fast = off.plan(0.0, start, ZERO, ZERO, goal, peers, field)
     slow = on.plan(0.0, start, ZERO, ZERO, goal, peers, field)
     assert fast.status == slow.status == PlanStatus.OK

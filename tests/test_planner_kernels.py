@@ -25,7 +25,13 @@ from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.minco import Minco
 from onboard.planner.npexact import norm3, np_arange, np_interp, np_linspace, np_sum
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
+from onboard.planner.planner import (
+    SWARM_TARGET_MIN_M,
+    FormationPlanner,
+    PeerTrajectory,
+    PlanStatus,
+    _pack_peers,
+)
 from onboard.planner.timemap import tau_from_T
 from onboard.planner.trajectory import Trajectory, eval_position, eval_position_velocity
 from onboard.world import World
@@ -365,6 +371,116 @@ def test_initial_guess_is_the_numpy_one() -> None:
     assert min(kinds.values()) >= 5, kinds  # every branch was compared
 
 
+def _numpy_swarm_setup(
+    planner: FormationPlanner,
+    t: float,
+    sp: np.ndarray,
+    goal: np.ndarray,
+    peers: Sequence[PeerTrajectory],
+    lead: bool,
+) -> tuple[np.ndarray, float, float]:
+    """``kernels.swarm_setup`` in numpy (the planner's set-up before it was compiled)."""
+    p, slot = planner.params, planner.slot
+    idx = [j for j, pt in enumerate(peers) if planner.mask[slot, pt.slot] > 0.0]
+    P = np.vstack([sp[None, :]] + [peers[j].trajectory.sample(t)[None, :] for j in idx])
+    F = planner.formation[[slot] + [peers[j].slot for j in idx]]
+
+    def reference(mode: str) -> tuple[np.ndarray, np.ndarray, float] | None:
+        if mode == "own-goal" or P.shape[0] < 2:
+            return None
+        origins = P - F
+        r = origins.sum(axis=0) / origins.shape[0]
+        d = (goal - F[0]) - r
+        dist = float(np.linalg.norm(d))
+        if dist < 1e-6:
+            return None
+        u = d / dist
+        if mode == "slowest":
+            back = float(np.min(((P - F) - r) @ u))
+            return r + back * u, u, dist - back
+        return r, u, dist
+
+    h = p.horizon_m
+    ref = reference(p.swarm_target)
+    goal_t, horizon = goal, h
+    if ref is not None and ref[2] <= h:
+        horizon = max(float(np.linalg.norm(goal - sp)), h)
+    elif ref is not None:
+        r, u, dist = ref
+        target = r + h * u + F[0]
+        ahead = float((target - sp) @ u)
+        if ahead < SWARM_TARGET_MIN_M:
+            target = target + (SWARM_TARGET_MIN_M - ahead) * u
+        w = target - sp
+        horizon = float(np.linalg.norm(w))
+        goal_t = sp + (horizon + (dist - h) + 1.0) * (w / horizon)
+    amount = math.nan
+    if lead:
+        lead_ref = reference("slowest") if p.lead_from_slowest else ref
+        d = goal - sp
+        if lead_ref is not None:
+            amount = float((sp - F[0] - lead_ref[0]) @ lead_ref[1])
+        elif float(np.linalg.norm(d)) < 1e-6 or P.shape[0] < 2:
+            amount = 0.0
+        else:
+            off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
+            amount = float(off @ (d / float(np.linalg.norm(d))))
+    return goal_t, horizon, amount
+
+
+def test_swarm_setup_is_the_numpy_one() -> None:
+    """The compiled swarm set-up (members, reference, local goal, lead) against numpy, in every
+    reference mode, with partial formation graphs, near and at the goal's origin, alone."""
+    rng = np.random.default_rng(11)
+    seen = dict.fromkeys(("far", "near", "at the origin", "alone", "lead fallback"), 0)
+    for trial in range(240):
+        mode = ("own-goal", "centroid", "slowest")[trial % 3]
+        params = PlannerParams(swarm_target=mode, lead_from_slowest=bool(trial // 3 % 2))
+        mask = None if trial % 5 else (rng.uniform(size=(7, 7)) < 0.4).astype(float)
+        slot = int(rng.integers(0, 7))
+        planner = FormationPlanner(params, HEX, slot, mask)
+        t = float(rng.uniform(0.0, 50.0))
+        sp = rng.uniform(-3.0, 3.0, 3)
+        others = [k for k in range(7) if k != slot]
+        chosen = rng.choice(others, size=int(rng.integers(1, 7)), replace=False)
+        peers = [
+            PeerTrajectory(int(k), int(k), _random_trajectory(rng, t - rng.uniform(0, 2), sp))
+            for k in chosen
+        ]
+        origin = (
+            rng.uniform(-3.0, 3.0, 3)
+            + sp
+            + rng.choice((0.0, 2.0, 20.0)) * np.array((1.0, 0.0, 0.0))
+        )
+        goal = origin + HEX[slot]
+        if trial % 11 == 0:  # exactly at the goal's origin: the reference is undefined
+            members = [slot] + [pt.slot for pt in peers if planner.mask[slot, pt.slot] > 0]
+            P = np.vstack([sp] + [pt.trajectory.sample(t) for pt in peers
+                                  if planner.mask[slot, pt.slot] > 0])  # fmt: skip
+            goal = (P - HEX[members]).sum(axis=0) / len(members) + HEX[slot]
+        pack = _pack_peers(peers)
+        for lead in (False, True):
+            got = planner._swarm_setup(t, sp, goal, peers, pack, lead)
+            want = _numpy_swarm_setup(planner, t, sp, goal, peers, lead)
+            # the host's vector kernels may round the last bits otherwise (as above)
+            np.testing.assert_allclose(got[0], want[0], rtol=0.0, atol=1e-12)
+            assert got[1] == pytest.approx(want[1], rel=0.0, abs=1e-12)
+            if lead:
+                assert got[2] == pytest.approx(want[2], rel=0.0, abs=1e-12)
+            else:
+                assert math.isnan(got[2]) and math.isnan(want[2])
+        n_members = 1 + sum(planner.mask[slot, pt.slot] > 0 for pt in peers)
+        if n_members < 2:
+            seen["alone"] += 1
+        elif trial % 11 == 0:
+            seen["at the origin"] += 1
+        elif mode != "own-goal":
+            seen["far" if not np.array_equal(got[0], goal) else "near"] += 1
+        if n_members >= 2 and mode == "own-goal" and not params.lead_from_slowest:
+            seen["lead fallback"] += 1
+    assert min(seen.values()) >= 3, seen  # every branch was compared
+
+
 def test_safety_check_is_the_numpy_one() -> None:
     rng = np.random.default_rng(8)
     seen: dict[str, int] = {}
@@ -527,7 +643,8 @@ from onboard.world import World
 params = PlannerParams(check_known_s=1.0)
 warm_up(params)
 fns = {n: getattr(kn, n) for n in
-       ("initial_guess", "path_guess", "pad_peers", "trajectory_from_x", "check_trajectory")}
+       ("initial_guess", "path_guess", "pad_peers", "swarm_setup", "trajectory_from_x",
+        "check_trajectory")}
 fns["solve_counted"] = obj.solve_counted
 before = {k: len(f.signatures) for k, f in fns.items()}
 # a replan as in a mapped flight: a masked grid, peers of unequal piece counts, a previous plan

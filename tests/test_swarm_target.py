@@ -21,7 +21,7 @@ from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.formation import similarity
 from onboard.planner.params import PlannerParams, reform_params
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -104,9 +104,9 @@ def test_slowest_waits_for_the_member_behind() -> None:
     assert slow[0] == pytest.approx(sp[0] + h - 3.0, abs=0.01)
     params = PlannerParams(swarm_target="slowest", lead_slowdown_m=6.0)
     planner = FormationPlanner(params, LINE3, slot=1)
-    ref = planner._reference(0.0, sp, GOAL_ORIGIN + LINE3[1], peers)
-    assert ref is not None
-    assert planner._lead(0.0, sp, GOAL_ORIGIN, peers, ref) == pytest.approx(3.0, abs=1e-3)
+    goal = GOAL_ORIGIN + LINE3[1]
+    _, _, lead = planner._swarm_setup(0.0, sp, goal, peers, _pack_peers(peers), True)
+    assert lead == pytest.approx(3.0, abs=1e-3)
 
 
 def test_near_the_goal_the_target_is_the_own_goal_and_a_far_leader_still_moves() -> None:

@@ -13,14 +13,17 @@ evaluates for the library's fields.
   straight line if it is clear) resampled into MINCO pieces, as the solver's start vector x0;
 - ``path_guess``: x0 from a given path (the A* fallback's);
 - ``pad_peers``: the peers' trajectories padded to one piece count;
+- ``swarm_setup``: the swarm's reference (the formation members' positions at the plan's
+  start, their centroid or the slowest member), the goal and horizon that make the local
+  target the swarm-consistent one, and the drone's lead for the lead slow-down;
 - ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
 - ``check_trajectory``: the safety check of ``FormationPlanner.check`` (its unknown-space test
   for grid fields), answering with a code and the numbers of its reason.
 
 The planner calls ``initial_guess``, ``trajectory_from_x`` and ``check_trajectory`` in every
-replan, ``pad_peers`` in every replan with peers and ``path_guess`` after an A* search, so the
-service's warm-up (``onboard.service.planning.warm_up``: an A* guess, peers) loads them all
-before flight.
+replan, ``pad_peers`` and ``swarm_setup`` in every replan with peers and ``path_guess`` after
+an A* search, so the service's warm-up (``onboard.service.planning.warm_up``: an A* guess,
+peers) loads them all before flight.
 
 ``fld`` is the objective's field tuple (``objective.field_args``); peers are packed as
 ``peer_c (P, K, 6, 3)``, ``peer_T (P, K)`` (the first ``peer_n[k]`` pieces are the peer's own)
@@ -318,6 +321,140 @@ def peer_positions(
         for d in range(3):
             out[k, d] = buf[0, d]
     return out
+
+
+@njit(cache=True, nogil=True)
+def _dot3(a: np.ndarray, b: np.ndarray) -> float:
+    """``a @ b`` of two 3-vectors as numpy rounds it (in index order, like ``norm3``)."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
+@njit(cache=True, nogil=True)
+def _row_mean(a: np.ndarray) -> np.ndarray:
+    """``a.mean(axis=0)`` of a (K, 3) array: the rows summed in order, then divided by K."""
+    out = a[0].copy()
+    for k in range(1, a.shape[0]):
+        for d in range(3):
+            out[d] = out[d] + a[k, d]
+    for d in range(3):
+        out[d] = out[d] / a.shape[0]
+    return out
+
+
+REF_OWN_GOAL = 0
+REF_CENTROID = 1
+REF_SLOWEST = 2
+"""``swarm_setup``'s reference modes (``PlannerParams.swarm_target``)."""
+
+
+@njit(cache=True, nogil=True)
+def _swarm_reference(
+    P: np.ndarray, F: np.ndarray, goal: np.ndarray, slowest: bool
+) -> tuple[bool, np.ndarray, np.ndarray, float]:
+    """(found, origin r, unit direction u, distance left) of the swarm's reference: each member
+    j's origin estimate ``P[j] - F[j]``, their mean (the centroid), moved back along u to the
+    member least advanced when ``slowest``; u points from the centroid to the goal's origin
+    ``goal - F[0]``. Not found with fewer than two members or at the goal's origin."""
+    u = np.zeros(3)
+    if P.shape[0] < 2:
+        return False, u, u, 0.0
+    origins = P - F
+    r = _row_mean(origins)
+    d = (goal - F[0]) - r
+    dist = norm3(d[0], d[1], d[2])
+    if dist < 1e-6:
+        return False, u, u, 0.0
+    u = d / dist
+    if slowest:
+        # a BLAS matrix-vector product, as numpy's: a plain loop of products and sums rounded
+        # otherwise (1 of 1 200 recorded replans planned differently in its last bits)
+        back = np.min((origins - r) @ u)
+        r = r + back * u
+        dist = dist - back
+    return True, r, u, dist
+
+
+@njit(cache=True, nogil=True)
+def swarm_setup(
+    c: np.ndarray,
+    T: np.ndarray,
+    n: np.ndarray,
+    t0: np.ndarray,
+    t: float,
+    rows: np.ndarray,
+    F: np.ndarray,
+    sp: np.ndarray,
+    goal: np.ndarray,
+    horizon_m: float,
+    target_min_m: float,
+    ref_mode: int,
+    lead: bool,
+    lead_from_slowest: bool,
+) -> tuple[np.ndarray, float, float]:
+    """(goal, horizon, lead) of a replan at global time ``t`` from the packed peers (``c``,
+    ``T``, ``n``, ``t0``): the members are this drone at ``sp`` and the packed peers ``rows``
+    (its formation peers); ``F`` their template points, this drone's first.
+
+    The goal and horizon make the local target the swarm-consistent one of ``ref_mode``: the
+    reference origin advanced ``horizon_m`` along the shared path plus this drone's slot, held
+    at least ``target_min_m`` ahead of the drone (a target at or behind it would stop it dead or
+    turn it back), the goal passed on beyond it by the rest of the path; the drone's own goal
+    when the origin is within ``horizon_m`` of the goal's origin; without a reference
+    (``REF_OWN_GOAL``, no member, at the goal's origin) ``goal`` and ``horizon_m``.
+
+    The lead (only with ``lead``, else NaN): how far [m] this drone's origin estimate lies
+    ahead of the reference along the shared path: the slowest member's reference with
+    ``lead_from_slowest``, else the local target's. Without that reference: its offset from
+    the members' centroid minus its slot's offset from their template's, projected on the
+    direction to ``goal`` (0 at the goal or alone)."""
+    K = rows.shape[0] + 1
+    pos = peer_positions(c, T, n, t0, t)
+    P = np.empty((K, 3))
+    for d in range(3):
+        P[0, d] = sp[d]
+        for j in range(K - 1):
+            P[j + 1, d] = pos[rows[j], d]
+    found = False
+    r = np.zeros(3)
+    u = np.zeros(3)
+    dist = 0.0
+    if ref_mode != REF_OWN_GOAL:
+        found, r, u, dist = _swarm_reference(P, F, goal, ref_mode == REF_SLOWEST)
+    goal_t = goal.copy()
+    horizon = horizon_m
+    if found:
+        if dist <= horizon_m:
+            w = goal - sp
+            horizon = max(norm3(w[0], w[1], w[2]), horizon_m)
+        else:
+            target = (r + horizon_m * u) + F[0]
+            ahead = _dot3(target - sp, u)
+            if ahead < target_min_m:
+                target = target + (target_min_m - ahead) * u
+            w = target - sp
+            reach = norm3(w[0], w[1], w[2])
+            w = w / reach
+            goal_t = sp + ((reach + (dist - horizon_m)) + 1.0) * w
+            horizon = reach
+    amount = math.nan
+    if lead:
+        if lead_from_slowest:
+            if found and ref_mode == REF_CENTROID:
+                back = np.min(((P - F) - r) @ u)
+                r = r + back * u
+            elif ref_mode != REF_SLOWEST:
+                found, r, u, dist = _swarm_reference(P, F, goal, True)
+        if found:
+            amount = _dot3((sp - F[0]) - r, u)
+        else:
+            d = goal - sp
+            gd = norm3(d[0], d[1], d[2])
+            if gd < 1e-6 or K < 2:
+                amount = 0.0
+            else:
+                off = (sp - _row_mean(P)) - (F[0] - _row_mean(F))
+                amount = _dot3(off, d / gd)
+    return goal_t, horizon, amount
 
 
 @njit(cache=True, nogil=True)

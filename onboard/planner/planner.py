@@ -62,6 +62,12 @@ SWARM_TARGET_MIN_M = 1.0
 """A swarm-consistent local target (``PlannerParams.swarm_target``) lies at least this far ahead
 of the drone along the shared path: a drone far ahead of the reference still plans a trajectory
 that moves on, rather than one that ends where it stands or turns back."""
+_REF_MODES = {
+    "own-goal": kn.REF_OWN_GOAL,
+    "centroid": kn.REF_CENTROID,
+    "slowest": kn.REF_SLOWEST,
+}
+"""``PlannerParams.swarm_target`` -> ``kernels.swarm_setup``'s reference mode."""
 _RESCUE = "a* retry at the rescue levels"
 """How messages name the rescue attempt (``PlannerParams.astar_rescue_ladder_m``) when the
 check refuses it: "<attempt>: <reason>" like the others (``gcs.fastsim.count_refusals`` counts
@@ -394,7 +400,7 @@ class FormationPlanner:
         is the previous trajectory (the warm start keeps its timing), else a straight line,
         else an A* path (at the largest of the clearances ``ladder`` that finds one) when the
         line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``. The
-        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_goal``)."""
+        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``)."""
         p = self.params
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
@@ -461,123 +467,39 @@ class FormationPlanner:
             return np.vstack([start, target]), math.nan
         return np.ascontiguousarray(path, dtype=np.float64), clearance
 
-    def _members(
+    def _swarm_setup(
         self,
         t_s: float,
         sp: np.ndarray,
+        goal: np.ndarray,
         peers: Sequence[PeerTrajectory],
-        pack: _PeerPack | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(positions (K, 3), template points (K, 3)) of this drone (first) and its formation
-        peers (an edge to this drone's slot) at t_s, sampled in one compiled call (the values
-        of ``Trajectory.sample``); ``pack``: ``peers`` packed already (packed here if None)."""
+        pack: _PeerPack,
+        lead: bool,
+    ) -> tuple[np.ndarray, float, float]:
+        """(goal, horizon, lead) of ``kernels.swarm_setup`` for this drone at ``sp`` and its
+        formation peers (those with an edge to its slot) at ``t_s``."""
         n = self.formation.shape[0]
-        idx = [
-            j for j, pt in enumerate(peers) if pt.slot < n and self.mask[self.slot, pt.slot] > 0.0
-        ]
-        slots = [self.slot] + [peers[j].slot for j in idx]
-        pk = _pack_peers(peers) if pack is None else pack
-        pos = kn.peer_positions(pk.c, pk.T, pk.n, pk.t0, float(t_s))
-        return np.vstack((sp[None, :], pos[idx])), self.formation[np.array(slots)]
-
-    def _reference(
-        self,
-        t_s: float,
-        sp: np.ndarray,
-        goal: np.ndarray,
-        peers: Sequence[PeerTrajectory],
-        mode: str | None = None,
-        members: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The swarm's reference origin of ``swarm_target`` (None when it is 'own-goal', without
-        formation peers, or at the goal's origin): (origin r (3,), unit direction u (3,) of the
-        shared path from r to the goal's origin ``goal - F[slot]``, distance left along it).
-        Each member j estimates the origin as ``p_j - F[slot_j]``; r is their mean
-        ('centroid'), moved back along u to the member least advanced ('slowest'). ``mode``
-        (default ``swarm_target``) names the reference; ``members``: ``_members``' result at
-        t_s when the caller has it already."""
-        mode = self.params.swarm_target if mode is None else mode
-        if mode == "own-goal":
-            return None
-        P, F = self._members(t_s, sp, peers) if members is None else members
-        if P.shape[0] < 2:
-            return None
-        origins = P - F
-        r = origins.sum(axis=0) / origins.shape[0]  # np.mean's own arithmetic, less overhead
-        g_o = goal - F[0]
-        d = g_o - r
-        dist = float(np.linalg.norm(d))
-        if dist < 1e-6:
-            return None
-        u = d / dist
-        if mode == "slowest":
-            return self._slowest((r, u, dist), (P, F))
-        return r, u, dist
-
-    @staticmethod
-    def _slowest(
-        ref: tuple[np.ndarray, np.ndarray, float], members: tuple[np.ndarray, np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray, float]:
-        """The 'slowest' reference from the 'centroid' one ``ref`` of the same ``members``
-        (``_reference``): its origin moved back along u to the member least advanced."""
-        r, u, dist = ref
-        P, F = members
-        back = float(np.min(((P - F) - r) @ u))
-        return r + back * u, u, dist - back
-
-    def _swarm_goal(
-        self, sp: np.ndarray, goal: np.ndarray, ref: tuple[np.ndarray, np.ndarray, float] | None
-    ) -> tuple[np.ndarray, float]:
-        """(goal, horizon) that make the local target the swarm-consistent one of
-        ``swarm_target``: the reference origin advanced ``horizon_m`` along the shared path,
-        plus this drone's slot; its own goal when the origin is within ``horizon_m`` of the
-        goal's origin. Without a reference: (goal, ``horizon_m``)."""
-        h = self.params.horizon_m
-        if ref is None:
-            return goal, h
-        r, u, dist = ref
-        if dist <= h:
-            return goal, max(float(np.linalg.norm(goal - sp)), h)
-        target = r + h * u + self.formation[self.slot]
-        ahead = float((target - sp) @ u)
-        if ahead < SWARM_TARGET_MIN_M:
-            # far ahead of the reference: a target at or behind the drone would stop it dead
-            # or turn it back
-            target = target + (SWARM_TARGET_MIN_M - ahead) * u
-        w = target - sp
-        reach = float(np.linalg.norm(w))
-        w = w / reach
-        # the goal passed on lies beyond the target by the rest of the shared path, so the
-        # target's search for a clear point (``kernels.local_target``) may look ahead of it
-        return sp + (reach + (dist - h) + 1.0) * w, reach
-
-    def _lead(
-        self,
-        t_s: float,
-        sp: np.ndarray,
-        goal: np.ndarray,
-        peers: Sequence[PeerTrajectory],
-        ref: tuple[np.ndarray, np.ndarray, float] | None = None,
-        members: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> float:
-        """How far [m] this drone is ahead of its slot along its way to the goal: its offset
-        from the centroid of itself and its peers (at t_s) minus its slot's offset from the
-        centroid of the same slots of the formation, projected on the direction to the goal.
-        With a swarm reference ``ref`` (``_reference``): its origin estimate ``sp - F[slot]``
-        ahead of the reference origin along the shared path. ``members`` as in ``_reference``."""
-        if ref is not None:
-            r, u, _ = ref
-            return float((sp - self.formation[self.slot] - r) @ u)
-        d = goal - sp
-        dist = float(np.linalg.norm(d))
-        if dist < 1e-6:
-            return 0.0
-        u = d / dist
-        P, F = self._members(t_s, sp, peers) if members is None else members
-        if P.shape[0] < 2:
-            return 0.0
-        off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
-        return float(off @ u)
+        row = self.mask[self.slot]
+        rows = [j for j, pt in enumerate(peers) if pt.slot < n and row[pt.slot] > 0.0]
+        slots = [self.slot] + [peers[j].slot for j in rows]
+        p = self.params
+        goal_t, horizon, amount = kn.swarm_setup(
+            pack.c,
+            pack.T,
+            pack.n,
+            pack.t0,
+            float(t_s),
+            np.array(rows, dtype=np.int64),
+            self.formation[slots],
+            sp,
+            goal,
+            p.horizon_m,
+            SWARM_TARGET_MIN_M,
+            _REF_MODES[p.swarm_target],
+            lead,
+            p.lead_from_slowest,
+        )
+        return goal_t, float(horizon), float(amount)
 
     def _check_time_and_peers(self, t_start_s: float, peers: Sequence[PeerTrajectory]) -> None:
         """ValueError unless t_start_s is finite and every peer has its own formation slot."""
@@ -662,15 +584,13 @@ class FormationPlanner:
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
         p = self.params
-        # this drone and its formation peers at the plan's start: read once (sampling every
-        # peer's trajectory), shared by the local target's reference and the lead's
-        members = self._members(t_start_s, sp, peers, pack) if len(peers) > 0 else None
-        ref = (
-            self._reference(t_start_s, sp, gl, peers, None, members)
-            if members is not None
-            else None
+        want_lead = (
+            use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0
         )
-        goal_t, horizon = self._swarm_goal(sp, gl, ref)
+        if len(peers) > 0:
+            goal_t, horizon, lead = self._swarm_setup(t_start_s, sp, gl, peers, pack, want_lead)
+        else:
+            goal_t, horizon, lead = gl, p.horizon_m, 0.0
         target, x0, astar_clearance = self._initial_x(
             t_start_s,
             sp,
@@ -694,15 +614,8 @@ class FormationPlanner:
             sdes = np.zeros((1, 1))
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
-        if use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0:
-            if not p.lead_from_slowest:
-                lead_ref = ref
-            elif p.swarm_target == "centroid" and members is not None:
-                # the same members' centroid reference is at hand: only move it back
-                lead_ref = None if ref is None else self._slowest(ref, members)
-            else:
-                lead_ref = self._reference(t_start_s, sp, gl, peers, "slowest", members)
-            lead = self._lead(t_start_s, sp, gl, peers, lead_ref, members) - p.lead_deadband_m
+        if want_lead:
+            lead -= p.lead_deadband_m
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
