@@ -348,6 +348,15 @@ REF_SLOWEST = 2
 
 
 @njit(cache=True, nogil=True)
+def _slowest_back(origins: np.ndarray, r: np.ndarray, u: np.ndarray) -> float:
+    """How far along ``u`` from ``r`` the least advanced of the members' origin estimates
+    ``origins`` (K, 3) lies (negative: behind). A BLAS matrix-vector product, as numpy's: a
+    plain loop of products and sums rounded otherwise (1 of 1 200 recorded replans planned
+    differently in its last bits)."""
+    return np.min((origins - r) @ u)
+
+
+@njit(cache=True, nogil=True)
 def _swarm_reference(
     P: np.ndarray, F: np.ndarray, goal: np.ndarray, slowest: bool
 ) -> tuple[bool, np.ndarray, np.ndarray, float]:
@@ -366,9 +375,7 @@ def _swarm_reference(
         return False, u, u, 0.0
     u = d / dist
     if slowest:
-        # a BLAS matrix-vector product, as numpy's: a plain loop of products and sums rounded
-        # otherwise (1 of 1 200 recorded replans planned differently in its last bits)
-        back = np.min((origins - r) @ u)
+        back = _slowest_back(origins, r, u)
         r = r + back * u
         dist = dist - back
     return True, r, u, dist
@@ -440,8 +447,7 @@ def swarm_setup(
     if lead:
         if lead_from_slowest:
             if found and ref_mode == REF_CENTROID:
-                back = np.min(((P - F) - r) @ u)
-                r = r + back * u
+                r = r + _slowest_back(P - F, r, u) * u
             elif ref_mode != REF_SLOWEST:
                 found, r, u, dist = _swarm_reference(P, F, goal, True)
         if found:
