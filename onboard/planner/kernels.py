@@ -445,11 +445,12 @@ def swarm_setup(
             horizon = reach
     amount = math.nan
     if lead:
-        if lead_from_slowest:
-            if found and ref_mode == REF_CENTROID:
-                r = r + _slowest_back(P - F, r, u) * u
-            elif ref_mode != REF_SLOWEST:
-                found, r, u, dist = _swarm_reference(P, F, goal, True)
+        # the slowest reference: the local target's one already, moved back from the centroid
+        # one, or computed afresh (a centroid one that was not found is not found either)
+        if lead_from_slowest and found and ref_mode == REF_CENTROID:
+            r = r + _slowest_back(P - F, r, u) * u
+        elif lead_from_slowest and ref_mode == REF_OWN_GOAL:
+            found, r, u, dist = _swarm_reference(P, F, goal, True)
         if found:
             amount = _dot3((sp - F[0]) - r, u)
         else:
