@@ -35,11 +35,13 @@ import math
 import os
 import random
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
 import traceback
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -274,6 +276,8 @@ def _file_target(
                 return
             check(value)
 
+        # the directory goes with the target (a test run made three and left them in /tmp)
+        weakref.finalize(one, shutil.rmtree, tmp, ignore_errors=True)
         return one
 
     return make

@@ -140,3 +140,21 @@ def test_the_harness_counts_a_crash() -> None:
     r = run_mutation(t, 50, seed=1)
     assert r.inputs == 50 and r.crashes > 0 and r.examples
     assert "KeyError" in r.examples[0]["error"]
+
+
+@pytest.mark.parametrize("name", TEXT)
+def test_file_target_leaves_no_directory(
+    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file target's scratch directory goes with it (runs used to leave them in /tmp)."""
+    import gc
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # this test's own: no other worker's
+    f = TARGETS[name].make()
+    f(TARGETS[name].seeds()[0])
+    made = list(tmp_path.glob("swarm-fuzz-*"))
+    assert len(made) == 1 and (made[0] / "input.yaml").is_file()
+    del f
+    gc.collect()
+    assert not made[0].exists()
