@@ -499,6 +499,48 @@ def test_a_plan_over_its_time_budget_flies_the_plan_in_control_on_without_a_hove
     assert h.reports[-1].planned_at_s - t_over < 0.5  # at once, not on the 1 s grid
 
 
+def test_a_kept_previous_plan_flies_on_without_a_hover(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """'kept-previous' (every attempt refused, the trajectory in control still passes the
+    check): that trajectory flies on, as in fast time, with no hover and no jump; it counts as
+    a failed plan, and the next replan comes on the grid."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(100)
+    assert h.state is S.FORMATION_FLIGHT
+    real_plan = FormationPlanner.plan
+    calls = {"n": 0}
+
+    def keeps_once(self: FormationPlanner, *args: Any, **kw: Any) -> PlanResult:
+        calls["n"] += 1
+        if calls["n"] == 1:
+            return PlanResult(PlanStatus.KEPT_PREVIOUS, args[7], message="formation: refused")
+        return real_plan(self, *args, **kw)
+
+    monkeypatch.setattr(FormationPlanner, "plan", keeps_once)
+    before = h.svc.flying(h.clock.t)
+    n = len(h.reports)
+    h.svc.agent.request_replan()
+    h.step()
+    assert len(h.reports) == n + 1 and h.reports[-1].status is PlanStatus.KEPT_PREVIOUS
+    t_kept = h.clock.t
+    assert before is not None and h.svc.flying(t_kept) is before  # flown on, no braking stop
+    speed = float(np.linalg.norm(before.sample(t_kept, order=1)))
+    states = []
+    for _ in range(30):
+        h.step()
+        states.append(h.state)
+        if h.reports[-1].status is PlanStatus.OK:
+            break
+    assert set(states) == {S.FORMATION_FLIGHT}, states  # never a hover
+    assert h.svc.counters["plans_failed"] == 1 and not h.svc.machine.paused
+    assert h.reports[-1].status is PlanStatus.OK
+    assert h.reports[-1].planned_at_s - t_kept < 1.2  # the grid's next replan
+    assert speed > 0.05  # it was moving on: a hover would have been a stop
+
+
 def test_takeoff_denied_returns_to_idle_and_stops_streaming(tmp_path: Path) -> None:
     h = Harness(tmp_path, depth=False)
     h.formation()

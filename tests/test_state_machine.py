@@ -259,11 +259,31 @@ def test_depth_loss_in_hover_keeps_a_new_goal_waiting() -> None:
     assert m.state is S.FORMATION_FLIGHT
 
 
+def test_kept_plans_fly_on_but_run_the_failure_clock() -> None:
+    """A 'kept-previous' plan holds nothing (the kept trajectory flies on); kept plans for
+    ``max_failed_s`` in a row are an EMERGENCY all the same, and a success resets the clock."""
+    m, clock, _ = make(retry_after_s=1.0, max_failed_s=5.0)
+    airborne(m)
+    ok(m.command(Goal((5.0, 0, 1))))
+    m.plan_failed("kept-previous", hover=False)
+    assert m.state is S.FORMATION_FLIGHT and not m.paused
+    clock.t += 4.0
+    m.plan_ok()
+    m.plan_failed("kept-previous", hover=False)  # the first after the success starts the clock
+    for _ in range(5):  # 4.995 s failing
+        clock.t += 0.999
+        m.plan_failed("kept-previous", hover=False)
+        assert m.state is S.FORMATION_FLIGHT
+    clock.t += 0.01
+    m.plan_failed("kept-previous", hover=False)
+    assert m.state is S.EMERGENCY and m.goal is None
+
+
 def test_failed_plans_hover_then_retry_then_emergency_then_land() -> None:
     m, clock, _ = make(retry_after_s=1.0, max_failed_s=5.0, emergency_hover_s=4.0)
     airborne(m)
     ok(m.command(Goal((5.0, 0, 1))))
-    m.plan_failed("kept-previous")
+    m.plan_failed("emergency")
     assert m.state is S.HOVER and m.paused
     clock.t += 0.5
     m.tick()

@@ -327,9 +327,11 @@ class PlanningSection:
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
     retry_after_s: float = 1.0
-    """After a 'kept-previous' or 'emergency' plan the drone hovers, then retries this late."""
+    """After an 'emergency' plan the drone hovers, then retries this late (after a
+    'kept-previous' one the kept trajectory flies on and the next replan comes on its grid)."""
     max_failed_s: float = 15.0
-    """Planning failing for this long in a row: EMERGENCY (braking stop, hover, land)."""
+    """Planning failing ('kept-previous' or 'emergency') for this long in a row: EMERGENCY
+    (braking stop, hover, land)."""
     goal_tolerance_m: float = 0.3
     arrival_speed_m_s: float = 0.15
     warm_up: bool = True

@@ -989,10 +989,10 @@ class FlightService:
                     event(log, "plan_over_budget", logging.INFO, plan_ms=round(plan_ms), why=why)
                 elif status in _OK:
                     m.plan_ok()
-                else:
+                else:  # a kept previous trajectory flies on (it passed the check), as in fast time
                     self.counters["plans_failed"] += 1
                     event(log, "plan_failed", logging.WARNING, status=status.value, why=why)
-                    m.plan_failed(status.value)
+                    m.plan_failed(status.value, hover=status is not PlanStatus.KEPT_PREVIOUS)
             elif kind == "monitor_brake":
                 event(log, "monitor_brake", logging.WARNING, why=payload)
                 m.plan_failed("emergency")

@@ -12,8 +12,11 @@
                until a command (resume, land) says so
 
 FORMATION_FLIGHT pauses into HOVER (the goal kept) while a *hold* is active: ``depth`` (no depth
-frames: stop and hover until they return) or ``plan`` (a 'kept-previous' or 'emergency' plan:
-hover, retry after ``retry_after_s``). When every hold is gone the flight continues.
+frames: stop and hover until they return) or ``plan`` (an 'emergency' plan: hover, retry after
+``retry_after_s``). When every hold is gone the flight continues. A 'kept-previous' plan (the
+trajectory in control, which the check still accepts, flies on) holds nothing; like an
+'emergency' one it runs the failure clock: planning failing for ``max_failed_s`` in a row is an
+EMERGENCY.
 
 Swarm-wide changes take effect at one common time: a ``SetFormation``, ``Goal`` or ``Waypoints``
 whose ``effective_s`` lies ahead is checked and acknowledged at once, kept *pending*, and applied
@@ -465,9 +468,10 @@ class FlightStateMachine:
         self.clock_problem = None
         self._release(HOLD_CLOCK, "clocks within bound again")
 
-    def plan_failed(self, status: str) -> None:
-        """A replan returned 'kept-previous' or 'emergency': hover, retry later; failing for
-        ``max_failed_s`` in a row: EMERGENCY."""
+    def plan_failed(self, status: str, hover: bool = True) -> None:
+        """A replan returned 'kept-previous' or 'emergency': hover, retry later (``hover``
+        False: no hover, the trajectory in control flies on and the next replan comes on its
+        grid); failing for ``max_failed_s`` in a row: EMERGENCY."""
         now = self.clock()
         if self._failing_since_s is None:
             self._failing_since_s = now
@@ -480,7 +484,7 @@ class FlightStateMachine:
                 FlightState.EMERGENCY, f"planning failing for {now - self._failing_since_s:.1f} s"
             )
             return
-        if self.state is FlightState.FORMATION_FLIGHT or self.paused:
+        if hover and (self.state is FlightState.FORMATION_FLIGHT or self.paused):
             self._retry_at_s = now + self.params.retry_after_s
             self._hold(HOLD_PLAN, f"plan {status}: hover, retry")
 
