@@ -461,14 +461,12 @@ def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(
     assert h.svc.flying(h.clock.t) is h.reports[-1].trajectory
 
 
-def test_a_plan_over_its_time_budget_flies_the_plan_in_control_on_without_a_hover(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The service gives its planner the configured time budget (``planning.plan_budget_s``).
-    A replan that gave up at it ('over-budget', the trajectory in control kept) is counted,
-    is no failure (no hover, unlike 'kept-previous'), and the next replan comes at once."""
-    h = Harness(tmp_path, depth=False)
-    assert h.svc.agent.plan_budget_s == h.svc.cfg.planning.plan_budget_s == 0.3
+def _one_plan_returns(
+    h: Harness, monkeypatch: pytest.MonkeyPatch, status: PlanStatus
+) -> tuple[Trajectory, list[bool]]:
+    """In formation flight: the next replan returns ``status`` with the trajectory in control
+    (as the planner keeps it), the later ones plan. Checks that it is flown on (no jump, no
+    braking stop); returns it and, per planner call, whether it was given a time budget."""
     h.airborne()
     h.fly_to(8.0)
     h.step(100)
@@ -476,20 +474,31 @@ def test_a_plan_over_its_time_budget_flies_the_plan_in_control_on_without_a_hove
     real_plan = FormationPlanner.plan
     budgets: list[bool] = []
 
-    def gives_up_once(self: FormationPlanner, *args: Any, **kw: Any) -> PlanResult:
-        give_up = args[8]
-        budgets.append(callable(give_up))
+    def once(self: FormationPlanner, *args: Any, **kw: Any) -> PlanResult:
+        budgets.append(callable(args[8]))
         if len(budgets) == 1:
-            return PlanResult(PlanStatus.OVER_BUDGET, args[7], message="formation: refused")
+            return PlanResult(status, args[7], message="formation: refused")
         return real_plan(self, *args, **kw)
 
-    monkeypatch.setattr(FormationPlanner, "plan", gives_up_once)
+    monkeypatch.setattr(FormationPlanner, "plan", once)
     before = h.svc.flying(h.clock.t)
     n = len(h.reports)
     h.svc.agent.request_replan()
     h.step()
-    assert len(h.reports) == n + 1 and h.reports[-1].status is PlanStatus.OVER_BUDGET
-    assert h.svc.flying(h.clock.t) is before  # flown on
+    assert len(h.reports) == n + 1 and h.reports[-1].status is status
+    assert before is not None and h.svc.flying(h.clock.t) is before  # flown on
+    return before, budgets
+
+
+def test_a_plan_over_its_time_budget_flies_the_plan_in_control_on_without_a_hover(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The service gives its planner the configured time budget (``planning.plan_budget_s``).
+    A replan that gave up at it ('over-budget', the trajectory in control kept) is counted,
+    is no failure (no hover, unlike 'emergency'), and the next replan comes at once."""
+    h = Harness(tmp_path, depth=False)
+    assert h.svc.agent.plan_budget_s == h.svc.cfg.planning.plan_budget_s == 0.3
+    _, budgets = _one_plan_returns(h, monkeypatch, PlanStatus.OVER_BUDGET)
     t_over = h.clock.t
     h.step(3)
     assert budgets[:2] == [True, True]
@@ -506,27 +515,8 @@ def test_a_kept_previous_plan_flies_on_without_a_hover(
     check): that trajectory flies on, as in fast time, with no hover and no jump; it counts as
     a failed plan, and the next replan comes on the grid."""
     h = Harness(tmp_path, depth=False)
-    h.airborne()
-    h.fly_to(8.0)
-    h.step(100)
-    assert h.state is S.FORMATION_FLIGHT
-    real_plan = FormationPlanner.plan
-    calls = {"n": 0}
-
-    def keeps_once(self: FormationPlanner, *args: Any, **kw: Any) -> PlanResult:
-        calls["n"] += 1
-        if calls["n"] == 1:
-            return PlanResult(PlanStatus.KEPT_PREVIOUS, args[7], message="formation: refused")
-        return real_plan(self, *args, **kw)
-
-    monkeypatch.setattr(FormationPlanner, "plan", keeps_once)
-    before = h.svc.flying(h.clock.t)
-    n = len(h.reports)
-    h.svc.agent.request_replan()
-    h.step()
-    assert len(h.reports) == n + 1 and h.reports[-1].status is PlanStatus.KEPT_PREVIOUS
+    before, _ = _one_plan_returns(h, monkeypatch, PlanStatus.KEPT_PREVIOUS)
     t_kept = h.clock.t
-    assert before is not None and h.svc.flying(t_kept) is before  # flown on, no braking stop
     speed = float(np.linalg.norm(before.sample(t_kept, order=1)))
     states = []
     for _ in range(30):
