@@ -405,3 +405,54 @@ def test_a_narrow_gap_is_left_for_a_roomier_way_with_the_comfort_clearance() -> 
 
     assert closest(0.0) < 0.3
     assert closest(0.4) >= 0.4
+
+
+def _peers_flying_along_x(speed: float) -> list[PeerTrajectory]:
+    """LINE3's outer slots flying along +x at ``speed`` for 30 s (one polynomial piece each)."""
+    peers = []
+    for pid, slot, y in ((0, 0, -1.5), (2, 2, 1.5)):
+        c = np.zeros((1, 6, 3))
+        c[0, 0] = (0.0, y, 1.0)
+        c[0, 1] = (speed, 0.0, 0.0)
+        peers.append(PeerTrajectory(pid, slot, Trajectory(0.0, c, np.array([30.0]))))
+    return peers
+
+
+@pytest.mark.parametrize(
+    ("trunk_y", "w_formation"),
+    [(0.44, 1e5), (0.2, 6e5), (0.4, 6e5)],  # the default weight, and six times it (re-forming)
+)
+def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
+    trunk_y: float, w_formation: float
+) -> None:
+    """The middle drone of a line flies past a thin trunk beside its slot's path, its peers on
+    theirs. The first solution keeps the optimiser's 0.34 m at every constraint point, but a
+    piece several seconds long passes the trunk between two of them, inside the check's 0.3 m:
+    refused. Without the denser, stiffer second solve the A* retries were refused the same way
+    and the drone flew without the formation term ('ok-no-formation'); with it the plan keeps
+    the formation and the check's distance, sampled densely on the true distances."""
+    world = _world([[3.0, trunk_y, 0.15, 0.0, 3.0]])
+    field = AnalyticField(world)
+    args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)
+    goal, peers = np.array([12.0, 0.0, 1.0]), _peers_flying_along_x(0.4)
+    old = PlannerParams(w_formation=w_formation, refine_kappa_factor=1, refine_penalty_scale=1.0)
+    before = FormationPlanner(old, LINE3, slot=1).plan(*args, goal, peers, field)
+    assert before.status == PlanStatus.OK_NO_FORMATION, before.message
+    assert before.message.startswith("formation: obstacle clearance")
+    params = PlannerParams(w_formation=w_formation)
+    assert (params.refine_kappa_factor, params.refine_penalty_scale) == (2, 100.0)
+    res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
+    assert res.status == PlanStatus.OK and res.message == ""
+    tr = res.trajectory
+    pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 4000))
+    assert float(field.distance(pts)[0].min()) >= params.check_obstacle_m
+    assert res.cost_terms is not None and res.cost_terms()["formation"] > 0.0
+
+
+def test_the_refine_settings_are_validated() -> None:
+    for bad in (0, 9, 1.5, True):
+        with pytest.raises(ValueError, match="refine_kappa_factor"):
+            PlannerParams(refine_kappa_factor=bad)  # type: ignore[arg-type]
+    for bad_scale in (0.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="refine_penalty_scale"):
+            PlannerParams(refine_penalty_scale=bad_scale)

@@ -317,12 +317,15 @@ def test_a_canceled_replan_makes_no_rescue_attempt(
     calls = [0]
 
     def cancel_second(
-        self: Problem, x_start: np.ndarray | None = None, lb_prm: np.ndarray | None = None
+        self: Problem,
+        x_start: np.ndarray | None = None,
+        lb_prm: np.ndarray | None = None,
+        prob: tuple | None = None,
     ) -> tuple[np.ndarray, LbfgsStatus]:
         calls[0] += 1
         if calls[0] == 3:  # 1: formation, 2: its refinement, 3: the A* retry
             self.cancel_flag[0] = 1
-        return solve(self, x_start, lb_prm)
+        return solve(self, x_start, lb_prm, prob)
 
     monkeypatch.setattr(Problem, "solve", cancel_second)
     planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)

@@ -222,6 +222,24 @@ class PlannerParams:
     with the same terms, and keeps whichever passes the safety check with the larger clearance:
     the warm start keeps the gap it chose when the gap was far, so a narrow one is otherwise
     flown at whatever the check allows. 0 disables."""
+    refine_penalty_scale: float = 100.0
+    """An attempt's solution that the safety check refuses is solved again from where it is,
+    with tight tolerances; when it passes closer than ``check_obstacle_m`` to an obstacle, on
+    ``refine_kappa_factor`` times the constraint points and with the obstacle and limit
+    penalties (``w_obstacle``, ``w_feasibility``, ``w_limit_hard``) this many times stiffer.
+    Most refusals are a trunk 1-2 cm inside the check's distance seconds ahead: the formation
+    pull (six times stronger while re-forming) wins over the short steep obstacle term there,
+    or the trajectory passes the trunk between two constraint points. Pushed out, the plan
+    keeps the formation term, where the retries from an A* path that followed often dropped it
+    ('ok-no-formation'); the limits stiffened with it keep the top speed. 1: the same weights.
+    Measured (fast time, hexagon-7 -> rectangle-7 20 s after the start, forest-medium; both
+    settings at once, BENCHMARKS.md section 10): on the drone's own map (3 frames/s, step 3,
+    band 0.4-1.8 m), seeds 1-12, plans without the formation term 284 -> 40, the new shape
+    within 10 s in 3 -> 6 of 12."""
+    refine_kappa_factor: int = 2
+    """That second solve evaluates the costs on this many times ``kappa`` constraint points per
+    piece (1: the same). A piece is 1-8 s long; at ``kappa`` 8 its points lie up to 0.4 m
+    apart, and a plan that keeps 0.34 m at every point can pass a trunk at 0.29 m between two."""
     astar_keeps_formation: bool = True
     """When the first attempt fails the check, retry from an A* path with the formation term
     before the retry without it (the latter flies its own way around and can split the shape).
@@ -344,6 +362,15 @@ class PlannerParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        k = self.refine_kappa_factor
+        if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= 8):
+            raise ValueError(
+                f"refine_kappa_factor must be an integer 1-8, got {self.refine_kappa_factor!r}"
+            )
+        if not (np.isfinite(self.refine_penalty_scale) and self.refine_penalty_scale >= 1.0):
+            raise ValueError(
+                f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"
+            )
         if not (np.isfinite(self.reform_formation_scale) and self.reform_formation_scale > 0):
             raise ValueError(
                 "reform_formation_scale must be a positive number, "

@@ -4,7 +4,10 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 (the previous trajectory, else a straight line, else an A* path when the line is blocked),
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
-peers' trajectories. A failed attempt is retried from an A* path with the formation term
+peers' trajectories. A refused solution is first solved again from where it is (tight
+tolerances; where it passes too close to an obstacle, also on denser constraint points with
+stiffer obstacle and limit penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
+failed attempt is retried from an A* path with the formation term
 (``astar_keeps_formation``), then from an A* path without it (A* paths keep the optimiser's
 clearance, else the check's: ``astar_ladder_m``). When every attempt was refused, a safe
 previous trajectory that still moves the drone (``KEEP_MOVING_M``) is kept. Otherwise, if the
@@ -188,15 +191,34 @@ class Problem:
         self.objective(x)
         return {name: float(v) for name, v in zip(obj.TERM_NAMES, self.work[5], strict=True)}
 
+    def refine_prob(self) -> tuple:
+        """The problem a refused solution is solved again on (``PlannerParams.refine_*``):
+        ``refine_kappa_factor`` times the constraint points (the check samples every
+        ``check_step_s``, the objective every ``1 / kappa`` of a piece: a long piece passed a
+        trunk between its points) and the obstacle and limit penalties ``refine_penalty_scale``
+        times stiffer."""
+        p = self.params
+        head, tail, kappa, prm, *rest = self.prob
+        if p.refine_penalty_scale != 1.0:
+            prm = prm.copy()
+            prm[[obj.P_W_OBS, obj.P_W_FEAS, obj.P_W_HARD]] *= p.refine_penalty_scale
+            prm.setflags(write=False)  # as the planner's: one compiled version
+        return (head, tail, kappa * p.refine_kappa_factor, prm, *rest)
+
     def solve(
-        self, x_start: np.ndarray | None = None, lb_prm: np.ndarray | None = None
+        self,
+        x_start: np.ndarray | None = None,
+        lb_prm: np.ndarray | None = None,
+        prob: tuple | None = None,
     ) -> tuple[np.ndarray, LbfgsStatus]:
         """Run L-BFGS from x_start (default x0) with the packed solver parameters lb_prm
-        (default the planner's); returns (best x, solver status). Counters accumulate."""
+        (default the planner's) on ``prob`` (default this problem's; ``refine_prob``); returns
+        (best x, solver status). Counters accumulate."""
         x = (self.x0 if x_start is None else x_start).copy()
         prm = self.lb_prm if lb_prm is None else lb_prm
+        prob = self.prob if prob is None else prob
         status, iters, evals = obj.solve_counted(
-            x, self.prob, self.fld, self.work, prm, self.params.lbfgs.mem_size, self.cancel_flag
+            x, prob, self.fld, self.work, prm, self.params.lbfgs.mem_size, self.cancel_flag
         )
         self.iterations += iters
         self.evaluations += evals
@@ -901,7 +923,12 @@ class FormationPlanner:
                 messages.append(why)
                 return None, problem, False
             if not safe:
-                x2, st2 = problem.solve(x, self._lb_prm_refine)
+                # tighter; where it passes too close to an obstacle also on denser points
+                # and stiffer (NaN: the test stopped before the distances)
+                close = clearance < self.params.check_obstacle_m
+                x2, st2 = problem.solve(
+                    x, self._lb_prm_refine, problem.refine_prob() if close else None
+                )
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack)
                     if refined[0] is not None:
