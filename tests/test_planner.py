@@ -428,19 +428,20 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     """The middle drone of a line flies past a thin trunk beside its slot's path, its peers on
     theirs. The first solution keeps the optimiser's 0.34 m at every constraint point, but a
     piece several seconds long passes the trunk between two of them, inside the check's 0.3 m:
-    refused. Without the denser, stiffer second solve the A* retries were refused the same way
-    and the drone flew without the formation term ('ok-no-formation'); with it the plan keeps
-    the formation and the check's distance, sampled densely on the true distances."""
+    refused. Without the denser, stiffer second solve (the defaults) the A* retries are refused
+    the same way and the drone flies without the formation term ('ok-no-formation'); with it
+    the plan keeps the formation and the check's distance, sampled densely on the true
+    distances."""
     world = _world([[3.0, trunk_y, 0.15, 0.0, 3.0]])
     field = AnalyticField(world)
     args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)
     goal, peers = np.array([12.0, 0.0, 1.0]), _peers_flying_along_x(0.4)
-    old = PlannerParams(w_formation=w_formation, refine_kappa_factor=1, refine_penalty_scale=1.0)
-    before = FormationPlanner(old, LINE3, slot=1).plan(*args, goal, peers, field)
+    plain = PlannerParams(w_formation=w_formation)
+    assert (plain.refine_kappa_factor, plain.refine_penalty_scale) == (1, 1.0)  # the defaults
+    before = FormationPlanner(plain, LINE3, slot=1).plan(*args, goal, peers, field)
     assert before.status == PlanStatus.OK_NO_FORMATION, before.message
     assert before.message.startswith("formation: obstacle clearance")
-    params = PlannerParams(w_formation=w_formation)
-    assert (params.refine_kappa_factor, params.refine_penalty_scale) == (2, 100.0)
+    params = PlannerParams(w_formation=w_formation, refine_kappa_factor=2, refine_penalty_scale=100)
     res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
     assert res.status == PlanStatus.OK and res.message == ""
     tr = res.trajectory

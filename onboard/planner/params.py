@@ -222,24 +222,27 @@ class PlannerParams:
     with the same terms, and keeps whichever passes the safety check with the larger clearance:
     the warm start keeps the gap it chose when the gap was far, so a narrow one is otherwise
     flown at whatever the check allows. 0 disables."""
-    refine_penalty_scale: float = 100.0
+    refine_penalty_scale: float = 1.0
     """An attempt's solution that the safety check refuses is solved again from where it is,
     with tight tolerances; when it passes closer than ``check_obstacle_m`` to an obstacle, on
     ``refine_kappa_factor`` times the constraint points and with the obstacle and limit
-    penalties (``w_obstacle``, ``w_feasibility``, ``w_limit_hard``) this many times stiffer.
-    Most refusals are a trunk 1-2 cm inside the check's distance seconds ahead: the formation
-    pull (six times stronger while re-forming) wins over the short steep obstacle term there,
-    or the trajectory passes the trunk between two constraint points. Pushed out, the plan
-    keeps the formation term, where the retries from an A* path that followed often dropped it
-    ('ok-no-formation'); the limits stiffened with it keep the top speed. 1: the same weights.
-    Measured (fast time, hexagon-7 -> rectangle-7 20 s after the start, forest-medium; both
-    settings at once, BENCHMARKS.md section 10): on the drone's own map (3 frames/s, step 3,
-    band 0.4-1.8 m), seeds 1-12, plans without the formation term 284 -> 40, the new shape
-    within 10 s in 3 -> 6 of 12."""
-    refine_kappa_factor: int = 2
+    penalties (``w_obstacle``, ``w_feasibility``, ``w_limit_hard``) this many times stiffer
+    (1: the same weights, the default). Most refusals are a trunk 1-2 cm inside the check's
+    distance seconds ahead: the formation pull (six times stronger while re-forming) wins over
+    the short steep obstacle term there, or the trajectory passes the trunk between two
+    constraint points; the A* retries that follow often drop the formation term
+    ('ok-no-formation'). Measured with 100 and ``refine_kappa_factor`` 2 (fast time,
+    hexagon-7 -> rectangle-7 20 s after the start, forest-medium; BENCHMARKS.md sections 8 and
+    10, 2026-11-29): on the drone's own map (3 frames/s, step 3, band 0.4-1.8 m), seeds 1-12,
+    plans without the formation term 284 -> 40 and the new shape within 10 s in 3 -> 6 of 12,
+    but the closest pass to a trunk 0.293 -> 0.243 m; on the real stack one of five seeds
+    touched a trunk (a plan accepted at 0.3 m on the map, the map 0.2 m wrong a second later).
+    Not the default until the margins hold."""
+    refine_kappa_factor: int = 1
     """That second solve evaluates the costs on this many times ``kappa`` constraint points per
-    piece (1: the same). A piece is 1-8 s long; at ``kappa`` 8 its points lie up to 0.4 m
-    apart, and a plan that keeps 0.34 m at every point can pass a trunk at 0.29 m between two."""
+    piece (1: the same, the default). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
+    to 0.4 m apart, and a plan that keeps 0.34 m at every point can pass a trunk at 0.29 m
+    between two: the check, sampling every ``check_step_s``, refuses it."""
     astar_keeps_formation: bool = True
     """When the first attempt fails the check, retry from an A* path with the formation term
     before the retry without it (the latter flies its own way around and can split the shape).
