@@ -305,10 +305,10 @@ def obstacle_conflict(
     """The first sample closer than ``limit_m`` to an obstacle, from the distances ``d`` (K,)
     of our positions at the increasing times ``ts`` (d[0] where we are), as (what, its time);
     ('', inf) when none. With the planner's rule for a start inside the limit
-    (``kernels.band_state``, the safety check's): a plan that starts inside it (not inside the
-    obstacle), never comes closer than its start and leaves the limit is the way out, not a
-    conflict (braking there would hold the drone inside for good: every retry's plan backs
-    out and every brake undoes it)."""
+    (``kernels.band_state``, the safety check's): a plan that starts inside it (inside the
+    mapped obstacle too), never comes closer than its start and leaves the limit is the way
+    out, not a conflict (braking there would hold the drone inside for good: every retry's
+    plan backs out and every brake undoes it)."""
     close = d < limit_m
     if not close.any() or band_state(d, limit_m) == BAND_OK:
         return "", math.inf

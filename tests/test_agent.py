@@ -287,9 +287,19 @@ def test_conflicting_peer_is_avoided_in_the_plan() -> None:
 
 
 def test_emergency_is_reported_and_the_policy_hook_decides() -> None:
-    """Inside an obstacle nothing is safe: the agent reports 'emergency', schedules the
-    planner's braking stop, and the hook (the service's policy) asks for a retry."""
-    wall = World(np.array([[0.0, 0.0, 0.5, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    """Walled in, closer to the walls than the check allows, with no way out: nothing is safe
+    (not the hover either), the agent reports 'emergency', schedules the planner's braking
+    stop, and the hook (the service's policy) asks for a retry."""
+    h, t = 0.25, 0.2  # the room's half width (the walls 0.25 m away), the walls' thickness
+    walls = np.array(
+        [
+            [-h - t, -h - t, 0.0, -h, h + t, 4.0],
+            [h, -h - t, 0.0, h + t, h + t, 4.0],
+            [-h, -h - t, 0.0, h, -h, 4.0],
+            [-h, h, 0.0, h, h + t, 4.0],
+        ]
+    )
+    wall = World(np.zeros((0, 5)), np.zeros((0, 7)), walls, 0.0)
     bus = InMemoryBus()
     decisions: list[str] = []
 

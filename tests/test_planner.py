@@ -169,6 +169,40 @@ def test_a_start_inside_the_check_distance_backs_out() -> None:
     assert d2.min() >= 0.15 - 1e-3
 
 
+def test_a_start_inside_a_mapped_obstacle_backs_out() -> None:
+    """On the drone's own map a trunk is inflated, and one mapped late can put the drone inside
+    it (the real stack: 0.18 m, then -0.2 m on the map; every plan refused for 18 s, the drone
+    hovering there until it touched the trunk). A plan that never comes closer than its start
+    and leaves the check's band is accepted from inside the obstacle too; one that goes
+    deeper is not."""
+    world = _world([[2.0, 0.0, 0.5, 0.0, 3.0]])
+    field = GridField.from_function(
+        AnalyticField(world).distance, [-1.0, -3.0, 0.0], [6.0, 3.0, 3.0], 0.05
+    )
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    start = np.array([1.55, -0.1, 1.0])
+    d0 = float(field.distance(start[None, :])[0][0])
+    assert -0.1 < d0 < -0.02  # inside the (mapped) trunk
+    res = planner.plan(0.0, start, ZERO, ZERO, np.array([-1.0, -2.0, 1.0]), [], field)
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
+    tr = res.trajectory
+    d = field.distance(tr.sample(np.arange(tr.t0_s, tr.t_end_s, params.check_step_s)))[0]
+    assert d.min() >= d0 - 1e-3 and d.max() >= params.check_obstacle_m
+    deeper = Trajectory.hover(np.array([1.6, -0.1, 1.0]), 0.0, 1.0)  # a step further in
+    into = Trajectory(0.0, *_line_coeffs(start, deeper.end_position, 1.0))
+    ok, why = planner.check(into, 0.0, field, [])
+    assert not ok and "comes closer" in why
+
+
+def _line_coeffs(a: np.ndarray, b: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """One rest-to-rest minimum-jerk piece from a to b in T seconds."""
+    m = Minco(1)
+    m.set_conditions(np.stack([a, ZERO, ZERO]), np.stack([b, ZERO, ZERO]))
+    m.set_parameters(np.zeros((0, 3)), np.array([T]))
+    return m.coeffs, np.array([T])
+
+
 def _half_known_field(known_below_x: float) -> GridField:
     """Free space over a ground plane on a 0.1 m grid, observed only where x < known_below_x."""
     exact = AnalyticField(World.empty(0.0))

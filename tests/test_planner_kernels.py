@@ -213,7 +213,7 @@ def _oracle_x0(
 
 def _oracle_band(d: np.ndarray, thr: float) -> tuple[bool, str]:
     d0 = float(d[0])
-    if d0 >= thr or d0 < 0.0:
+    if d0 >= thr:
         return bool(np.min(d) >= thr), ""
     if np.min(d) < d0 - 1e-3:
         return False, f" (started inside at {d0:.2f} m and comes closer)"

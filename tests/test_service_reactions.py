@@ -1088,8 +1088,13 @@ def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     assert obstacle_conflict(closer_first, ts, 100.0, limit)[1] == ts[0]
     out_then_closer = np.concatenate([np.linspace(0.15, 0.4, 5), np.linspace(0.3, 0.1, 5)])
     assert obstacle_conflict(out_then_closer, ts, 100.0, limit)[1] == ts[0]
-    inside_the_obstacle = np.linspace(-0.05, 0.4, 10)
-    assert obstacle_conflict(inside_the_obstacle, ts, 100.0, limit)[1] == ts[0]
+    # from inside the (mapped, inflated) obstacle the same rule: backing out is the way out
+    out_of_the_obstacle = np.linspace(-0.05, 0.4, 10)
+    assert obstacle_conflict(out_of_the_obstacle, ts, 100.0, limit) == ("", math.inf)
+    deeper_in = np.concatenate([[-0.05, -0.07], np.linspace(0.0, 0.4, 8)])
+    assert obstacle_conflict(deeper_in, ts, 100.0, limit)[1] == ts[0]
+    held_inside = np.full(10, -0.05)
+    assert obstacle_conflict(held_inside, ts, 100.0, limit)[1] == ts[0]
 
 
 def test_the_setpoint_yaw_looks_where_the_drone_will_be_in_a_second(tmp_path: Path) -> None:

@@ -66,7 +66,7 @@ KNOWN_MASK = 2
 # how a band check failed (``_band``)
 BAND_OK = 0
 BAND_INSIDE = 1
-"""Closer than the threshold, started outside it (or inside the obstacle itself)."""
+"""Closer than the threshold, started outside it."""
 BAND_COMES_CLOSER = 2
 """Started inside the threshold and comes closer than the start."""
 BAND_NO_BACK_OUT = 3
@@ -497,16 +497,20 @@ def band_state(d: np.ndarray, threshold: float) -> int:
 @njit(cache=True, nogil=True)
 def _band(d: np.ndarray, threshold: float) -> int:
     """Distances d (K,) along a trajectory, d[0] at its start, against ``threshold``: clear of
-    it everywhere; or, starting inside it but not inside the obstacle itself (d[0] >= 0), never
-    closer than the start (1 mm tolerance) and outside it at some point (the trajectory backs
-    out). Inside an obstacle nothing is safe."""
+    it everywhere; or, starting inside it, never closer than the start (1 mm tolerance) and
+    outside it at some point (the trajectory backs out). That holds for a start inside the
+    obstacle as well (d[0] < 0): on the drone's own map an obstacle is inflated
+    (``OccupancyParams.inflation_m``) and a trunk mapped late may put the drone inside it, where
+    holding still, refusing every plan out, is the one thing sure not to end well (the real
+    stack, 2026-11-29: a drone hovered 18 s inside a late-mapped trunk's inflation, then
+    touched it)."""
     d0 = d[0]
     lo = d[0]
     hi = d[0]
     for k in range(1, d.shape[0]):
         lo = min(lo, d[k])
         hi = max(hi, d[k])
-    if d0 >= threshold or d0 < 0.0:
+    if d0 >= threshold:
         return BAND_OK if lo >= threshold else BAND_INSIDE
     if lo < d0 - 1e-3:
         return BAND_COMES_CLOSER

@@ -678,12 +678,12 @@ class FormationPlanner:
         Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
         back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` and of
         every peer by ``check_drone_m`` to its end; a drone that is already closer than that
-        at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), but not
-        inside an obstacle, may fly a trajectory that never comes closer than it starts and
-        leaves the band, so it can always back out; (2) during the first ``check_known_s``
-        (the part flown before the next replan can replace it) it does not enter space the
-        field has not observed (``field.is_known``); a start in
-        unobserved space may be left. Positions are sampled every ``check_step_s`` from
+        at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
+        inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
+        it starts and leaves the band, so it can always back out; (2) during the first
+        ``check_known_s`` (the part flown before the next replan can replace it) it does not
+        enter space the field has not observed (``field.is_known``); a start in unobserved
+        space may be left. Positions are sampled every ``check_step_s`` from
         ``t_from_s`` to the end; obstacle distances are those of ``field.kernel_data()`` (the
         field the optimiser sees).
         """
