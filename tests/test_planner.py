@@ -189,18 +189,11 @@ def test_a_start_inside_a_mapped_obstacle_backs_out() -> None:
     tr = res.trajectory
     d = field.distance(tr.sample(np.arange(tr.t0_s, tr.t_end_s, params.check_step_s)))[0]
     assert d.min() >= d0 - 1e-3 and d.max() >= params.check_obstacle_m
-    deeper = Trajectory.hover(np.array([1.6, -0.1, 1.0]), 0.0, 1.0)  # a step further in
-    into = Trajectory(0.0, *_line_coeffs(start, deeper.end_position, 1.0))
+    c = np.zeros((1, 6, 3))
+    c[0, 0], c[0, 1] = start, (0.05, 0.0, 0.0)  # 5 cm further in over a second
+    into = Trajectory(0.0, c, np.array([1.0]))
     ok, why = planner.check(into, 0.0, field, [])
     assert not ok and "comes closer" in why
-
-
-def _line_coeffs(a: np.ndarray, b: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
-    """One rest-to-rest minimum-jerk piece from a to b in T seconds."""
-    m = Minco(1)
-    m.set_conditions(np.stack([a, ZERO, ZERO]), np.stack([b, ZERO, ZERO]))
-    m.set_parameters(np.zeros((0, 3)), np.array([T]))
-    return m.coeffs, np.array([T])
 
 
 def _half_known_field(known_below_x: float) -> GridField:

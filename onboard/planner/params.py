@@ -235,9 +235,10 @@ class PlannerParams:
     hexagon-7 -> rectangle-7 20 s after the start, forest-medium; BENCHMARKS.md sections 8 and
     10, 2026-11-29): on the drone's own map (3 frames/s, step 3, band 0.4-1.8 m), seeds 1-12,
     plans without the formation term 284 -> 40 and the new shape within 10 s in 3 -> 6 of 12,
-    but the closest pass to a trunk 0.293 -> 0.243 m; on the real stack one of five seeds
-    touched a trunk (a plan accepted at 0.3 m on the map, the map 0.2 m wrong a second later).
-    Not the default until the margins hold."""
+    but every variant lowered the closest passes to trunks (the least of 12 flights 0.293 ->
+    0.243-0.278 m): a refined plan stays in the tight spot at the check's distance on the map,
+    where the A* retry it replaces went the roomier way, and the map is wrong by up to 0.15 m
+    (p99). Not the default until the margins hold."""
     refine_kappa_factor: int = 1
     """That second solve evaluates the costs on this many times ``kappa`` constraint points per
     piece (1: the same, the default). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
@@ -367,9 +368,7 @@ class PlannerParams:
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
         k = self.refine_kappa_factor
         if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= 8):
-            raise ValueError(
-                f"refine_kappa_factor must be an integer 1-8, got {self.refine_kappa_factor!r}"
-            )
+            raise ValueError(f"refine_kappa_factor must be an integer 1-8, got {k!r}")
         if not (np.isfinite(self.refine_penalty_scale) and self.refine_penalty_scale >= 1.0):
             raise ValueError(
                 f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"

@@ -198,6 +198,8 @@ class Problem:
         trunk between its points) and the obstacle and limit penalties ``refine_penalty_scale``
         times stiffer."""
         p = self.params
+        if p.refine_kappa_factor == 1 and p.refine_penalty_scale == 1.0:
+            return self.prob  # the option off (the defaults)
         head, tail, kappa, prm, *rest = self.prob
         if p.refine_penalty_scale != 1.0:
             prm = prm.copy()
