@@ -76,7 +76,9 @@ typecheck: $(STAMP)
 # One xdist worker more than the cores: some of these tests wait on real time (a vehicle of the
 # mock flown, a link timed out), and meanwhile a spare worker keeps the cores busy. 2 cores
 # (AMD EPYC, 2026-11-28): 2 workers 209-213 s, 3 workers 177-178 s, 4 workers 180-199 s.
-PYTEST_PARALLEL := -m "not fleet and not vehicle" -n $(shell echo $$(( $$(nproc) + 1 )))
+# (nproc counts OMP_NUM_THREADS, which this Makefile exports as 1 to every sub-make: without the
+# `env -u`, `make test`'s own recursive call ran 2 workers, not 3, on this machine)
+PYTEST_PARALLEL := -m "not fleet and not vehicle" -n $(shell echo $$(( $$(env -u OMP_NUM_THREADS nproc) + 1 )))
 # The flights' runs collect only the files that mark such tests (collecting all ~1200 tests
 # costs ~10 s a run); -m still selects the tests within them.
 PYTEST_VEHICLE := -m vehicle -n 2 $(shell grep -l "mark\.vehicle" tests/test_*.py)

@@ -252,7 +252,10 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
 def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     """The whole stack, headless, in-process ground station: take off, form a triangle, cross
     forest-small, change to a line in flight, land; no collision; report written; nothing left
-    running."""
+    running. It flies ``--secure`` (the suite's one demo flight; the plain demo's configuration
+    is checked in tests/test_demo_secure.py, and the plain bus and links fly in the other
+    `fleet` tests): every MAVLink frame accepted at either end was signed, the bus links are
+    TLS, intruders were refused, and no key appears in the logs, records or result."""
     out = tmp_path / "flight"
     line = tmp_path / "line-3.yaml"  # a user file: three abreast, 1.5 m apart
     line.write_text("points: [[0, -1.5, 0], [0, 0, 0], [0, 1.5, 0]]\n")
@@ -263,6 +266,7 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
         seed=2,
         formation_change=(str(line), 8.0),
         out_dir=out,
+        secure=True,
         startup_timeout_s=150.0,
         flight_timeout_s=300.0,  # a loaded machine plans slowly; a quiet one crosses in ~40 s
     )
@@ -298,3 +302,15 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     assert sorted(peer["per_drone"]) == ["0", "1", "2"], peer
     assert all(n > 0 for n in peer["per_drone"].values()) and peer["median"] > 0.0
     assert sum(d["peer_latency_ms"]["count"] for d in summary["drones"]) >= peer["count"]
+    # the security, checked by the demo on the processes and links it ran
+    sec = result["security"]
+    assert sec["signing"] and sec["zenoh_tls"] and sec["signing_checks"]["signed_only"]
+    assert sec["bus_checks"]["link_locators_tls_only"]
+    assert sec["bus_checks"]["every_drone_authenticated"]
+    assert result["bus_latency_ms"]["count"] > 0
+    keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
+    assert len(keys) == 3
+    for p in out.rglob("*"):
+        if p.is_file() and "secrets" not in p.parts:
+            data = p.read_bytes()
+            assert not [k for k in keys if k.encode() in data or bytes.fromhex(k) in data], p

@@ -1,7 +1,7 @@
-"""``swarm-gcs demo --secure``: the set-up pieces, without flying (a secure flight is the
-slow test at the end): fresh signing keys in 0600 files that both the mock and the services
-load, certificates and the services' TLS + access-control configuration, and the demo's
-checks that the swarm bus is secured in fact (TLS links, peers authenticated, intruders
+"""``swarm-gcs demo --secure``: the set-up pieces, without flying (the secure flight is the
+demo's test in tests/test_demo.py): fresh signing keys in 0600 files that both the mock and
+the services load, certificates and the services' TLS + access-control configuration, and the
+demo's checks that the swarm bus is secured in fact (TLS links, peers authenticated, intruders
 refused) on real Zenoh sessions."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from gcs.demo import Demo, DemoConfig, DemoError, _refused, _session_links, run_demo
+from gcs.demo import Demo, DemoConfig, DemoError, _refused, _session_links
 from onboard.comm.security import SwarmAccessControl, TlsConfig
 from onboard.comm.zenoh_session import ZenohEndpoints, open_session, peer_mesh
 from onboard.config import from_mapping, read_yaml
@@ -143,43 +143,3 @@ def _wait_links(session: Any) -> list[dict[str, Any]]:
             assert links, "no link within 10 s"
             return links
         time.sleep(0.05)
-
-
-@pytest.mark.slow
-@pytest.mark.fleet
-@pytest.mark.timeout(600)
-def test_secure_demo_flies_two_drones(tmp_path: Path) -> None:
-    """The demo with signing and TLS + access control, two drones (the 3-drone flight with a
-    formation change is the plain demo's test; what is checked here is the security, which
-    needs peers, not a crowd): it succeeds, every MAVLink frame accepted at either end was
-    signed, the bus links are TLS, intruders were refused, bus latency was measured, and no
-    key appears in the logs, records or result."""
-    out = tmp_path / "flight"
-    pair = tmp_path / "pair.yaml"  # two abreast, 1.5 m apart
-    pair.write_text("points: [[0, -0.75, 0], [0, 0.75, 0]]\n")
-    # a short crossing past two trunks (the forest is the plain demo's test): 9 m, not 16
-    world = tmp_path / "two-trunks.yaml"
-    world.write_text(
-        "cylinders: [[2.0, 1.4, 0.3, 0.0, 3.0], [4.0, -1.4, 0.3, 0.0, 3.0]]\n"
-        "cluttered_x: [1.0, 5.0]\nstart_center: [-2.0, 0.0, 1.0]\ngoal_center: [7.0, 0.0, 1.0]\n"
-        "ground_z: 0.0\n"
-    )
-    cfg = DemoConfig(drones=2, formation=str(pair), world=str(world), seed=2,
-                     out_dir=out, secure=True,
-                     startup_timeout_s=150.0, flight_timeout_s=300.0)  # fmt: skip
-    result = run_demo(cfg)
-    assert result["success"], json.dumps(result, indent=1, default=str)
-    assert result["arrived"] and result["collisions"] == 0
-    sec = result["security"]
-    assert sec["signing"] and sec["zenoh_tls"] and sec["signing_checks"]["signed_only"]
-    assert sec["bus_checks"]["link_locators_tls_only"]
-    assert sec["bus_checks"]["every_drone_authenticated"]
-    assert result["bus_latency_ms"]["count"] > 0
-    peer = result["peer_latency_ms"]  # the target's definition: into each planner's inbox
-    assert sorted(peer["per_drone"]) == ["0", "1"] and min(peer["per_drone"].values()) > 0
-    keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
-    assert len(keys) == 2
-    for p in out.rglob("*"):
-        if p.is_file() and "secrets" not in p.parts:
-            data = p.read_bytes()
-            assert not [k for k in keys if k.encode() in data or bytes.fromhex(k) in data], p
