@@ -234,7 +234,7 @@ def window_params(cfg: MappingBenchConfig, window: str | None = None) -> Any:
     ``cfg.window``)."""
     from onboard.mapping import OccupancyParams
 
-    occ = OccupancyParams(skip_pixel=cfg.skip_pixel)
+    occ = OccupancyParams(skip_pixel=cfg.skip_pixel).for_frame_rate(cfg.rate_hz)
     if cfg.no_return_m is not None:
         occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
     if cfg.occluded_fill_m is not None:

@@ -1139,6 +1139,7 @@ def _mapped_perception(
             skip_pixel=cfg.camera_skip_pixel,
             seed=cfg.seed * 1000 + i,
             initial_yaw=math.atan2(goals[i, 1] - starts[i, 1], goals[i, 0] - starts[i, 0]),
+            rate_hz=cfg.camera_rate_hz,
         )
         for i in range(starts.shape[0])
     ]

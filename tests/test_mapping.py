@@ -461,6 +461,45 @@ def test_no_return_frames_never_erase_a_mapped_trunk() -> None:
     assert np.any(_free(fresh.map) & inside)
 
 
+def test_at_a_low_frame_rate_one_sighting_maps_a_trunk_and_a_miss_still_clears_it() -> None:
+    """The reference's p_hit needs 3 hits (0.1 s at 30 frames/s): at 3 frames/s a trunk seen
+    in one frame (at the edge of the view, in a turn) stayed known but free to the planner.
+    ``for_frame_rate`` makes one hit enough there; the misses that clear a cell are unchanged
+    (one frame that sees through it frees it again), and at 30 frames/s nothing changes."""
+    assert SMALL.for_frame_rate(30.0) == SMALL and SMALL.for_frame_rate(60.0) == SMALL
+    slow = SMALL.for_frame_rate(3.0)
+    assert slow.p_hit > SMALL.p_hit and slow.l_hit > slow.l_occ > slow.l_hit + slow.l_miss
+    assert SMALL.for_frame_rate(15.0).l_hit * 2 > slow.l_occ > SMALL.for_frame_rate(15.0).l_hit
+    assert dataclasses.replace(SMALL, p_hit=0.9).for_frame_rate(3.0).p_hit == 0.9  # not lowered
+    for bad in (0.0, -3.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="rate_hz"):
+            SMALL.for_frame_rate(bad)
+    with pytest.raises(ValueError, match="occupied_after_s"):
+        dataclasses.replace(SMALL, occupied_after_s=-0.1)
+    cam = SimulatedDepthCamera(_trunk_world(), params=SimCameraParams(noise_std_1m_m=0.0), seed=3)
+    frame = cam.capture(*_TRUNK_POSES[0], 0.0)
+    face = np.array([[2.25, 0.0, 1.0]])  # in the trunk's cell facing the camera
+    ahead = np.array([[1.5, 0.0, 1.0]])  # 0.7 m in front of the trunk
+    maps = {}
+    for name, prm in (("30 Hz", SMALL), ("3 Hz", slow)):
+        m = LocalMapper(prm, center=np.array([1.5, 0.0, 1.0]))
+        assert m.ingest(frame, recenter=False).accepted
+        maps[name] = m
+    assert maps["30 Hz"].map.state_at(face)[0] == 0  # seen, one hit: not an obstacle
+    assert maps["3 Hz"].map.state_at(face)[0] == 1
+    d_slow = float(maps["3 Hz"].planning_field().distance(ahead)[0][0])
+    assert d_slow == pytest.approx(0.7 - slow.inflation_m, abs=0.1)
+    assert float(maps["30 Hz"].planning_field().distance(ahead)[0][0]) > d_slow + 0.5
+    # the trunk gone (a moved obstacle): one frame that sees through its cell to a wall
+    # behind frees it (a ray without a return would stop in front of it)
+    wall = World(
+        np.zeros((0, 5)), np.zeros((0, 7)), np.array([[4.0, -2.0, 0.0, 4.3, 2.0, 2.5]]), 0.0
+    )
+    cam2 = SimulatedDepthCamera(wall, params=SimCameraParams(noise_std_1m_m=0.0), seed=3)
+    assert maps["3 Hz"].ingest(cam2.capture(*_TRUNK_POSES[0], 0.1), recenter=False).accepted
+    assert maps["3 Hz"].map.state_at(face)[0] == 0
+
+
 def test_no_return_rays_need_a_frame_that_measured_something() -> None:
     """A frame with too few measured pixels (a covered lens, an obstacle too close to see
     filling the view) casts no no-return ray; a frame of invalid values (NaN) casts nothing."""

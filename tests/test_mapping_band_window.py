@@ -123,6 +123,11 @@ def test_service_maps_the_band_window(tmp_path: Path) -> None:
     assert cfg.depth.source != "none" and cfg.camera_map_params == cfg.map_params
     blind = load_onboard_config(_write(tmp_path, "depth:\n  source: none\n"))
     assert blind.camera_map_params is None
+    # the map's hit weight follows the camera's frame rate (30 by default: the reference's)
+    assert cfg.depth.rate_hz == 30.0 and cfg.map_params.p_hit == OccupancyParams().p_hit
+    slow = load_onboard_config(_write(tmp_path, "depth:\n  rate_hz: 3\n"))
+    assert slow.map_params.p_hit == OccupancyParams().for_frame_rate(3.0).p_hit > 0.8
+    assert slow.map_params.shape == cfg.map_params.shape
 
 
 @pytest.mark.parametrize(

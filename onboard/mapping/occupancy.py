@@ -58,7 +58,9 @@ fits the window's vertical extent to the planner's altitude band instead (the fl
 does: the band 0.3-3.1 m plus 0.4 m each side is 3.6 m, the same top, without the four layers
 under the ground that hold nothing on flat ground) and has the ESDF computed only for the band's
 layers (``esdf_z_m``). A cell starts unknown; its first update starts from probability 0.5
-(log-odds 0), so a surface is occupied after 3 hits (three frames, 0.1 s at 30 Hz).
+(log-odds 0), so a surface is occupied after 3 hits (three frames, 0.1 s at 30 Hz). A slower
+camera gets a heavier hit (``OccupancyParams.for_frame_rate``: one hit at 10 frames/s or fewer),
+so that what the drone saw for a tenth of a second is an obstacle at any frame rate.
 """
 
 from __future__ import annotations
@@ -114,6 +116,13 @@ class OccupancyParams:
     p_min: float = 0.12
     p_max: float = 0.90
     p_occ: float = 0.80
+    occupied_after_s: float = 0.1
+    """How long a surface must be seen to turn occupied: the reference's p_hit needs 3 hits,
+    0.1 s at its 30 frames/s, but 1 s at 3 frames/s, and a trunk that enters the view at its
+    edge or during a turn may be seen in one or two frames only (on the mapping bench at 3
+    frames/s a trunk 1.9 m beside the drone was known, one hit, and free to the planner).
+    ``for_frame_rate`` raises p_hit so that ``ceil(occupied_after_s * rate)`` hits (at least
+    one) reach ``p_occ``; the misses that clear a cell stay as they are."""
     skip_pixel: int = 2
     """Use every skip_pixel-th row and column of a depth image."""
     max_ray_m: float = 5.0
@@ -161,6 +170,8 @@ class OccupancyParams:
             raise ValueError("need 0 < p_min < p_miss < 0.5 < p_hit < 1")
         if not self.p_min < self.p_occ < self.p_max < 1.0:
             raise ValueError("need p_min < p_occ < p_max < 1")
+        if not (math.isfinite(self.occupied_after_s) and self.occupied_after_s >= 0.0):
+            raise ValueError("occupied_after_s must be >= 0")
         if self.skip_pixel < 1:
             raise ValueError("skip_pixel must be >= 1")
         if not self.max_ray_m > 0.0 or self.inflation_m < 0.0:
@@ -214,6 +225,20 @@ class OccupancyParams:
             headroom_m=top * res - z_hi,
             esdf_z_m=(float(z_lo), float(z_hi)),
         )
+
+    def for_frame_rate(self, rate_hz: float) -> OccupancyParams:
+        """These parameters for a camera of ``rate_hz`` frames per second: p_hit raised (never
+        lowered) so that ``ceil(occupied_after_s * rate_hz)`` hits, at least one, take a cell
+        from unknown to occupied (with a 2 % margin over ``p_occ``, so that the stored float32
+        reads occupied). At 30 frames/s the defaults are unchanged (3 hits); at 10 or fewer
+        one hit is enough (p_hit 0.80 -> 0.81 at the default p_occ)."""
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"for_frame_rate: rate_hz must be > 0, got {rate_hz!r}")
+        hits = max(1, math.ceil(self.occupied_after_s * rate_hz - 1e-9))
+        need = 1.02 * self.l_occ / hits
+        if self.l_hit >= need:
+            return self
+        return dataclasses.replace(self, p_hit=1.0 / (1.0 + math.exp(-need)))
 
     @property
     def occluded_fill_cells(self) -> int:

@@ -78,7 +78,8 @@ def heading_yaw(
 
 class SimulatedPerception:
     """Simulated depth camera (``D435_TYPICAL`` noise and holes unless ``camera`` is given;
-    only the skip grid is rendered) + local map of one drone."""
+    only the skip grid is rendered) + local map of one drone, for a camera of ``rate_hz``
+    frames per second (``OccupancyParams.for_frame_rate``)."""
 
     def __init__(
         self,
@@ -88,9 +89,11 @@ class SimulatedPerception:
         camera: SimCameraParams | None = None,
         occupancy: OccupancyParams | None = None,
         initial_yaw: float = 0.0,
+        rate_hz: float = 30.0,
     ) -> None:
         cam = dataclasses.replace(camera if camera is not None else D435_TYPICAL, step=skip_pixel)
         occ = occupancy if occupancy is not None else OccupancyParams(skip_pixel=skip_pixel)
+        occ = occ.for_frame_rate(rate_hz)
         self.camera = SimulatedDepthCamera(world, params=cam, seed=seed)
         self.mapper = LocalMapper(occ)
         self.yaw = float(initial_yaw)

@@ -584,13 +584,15 @@ class OnboardConfig:
 
     @property
     def map_params(self) -> OccupancyParams:
-        """What the service maps with: ``mapping.occupancy``, its window fitted to the planner's
-        altitude band when ``mapping.window_band_margin_m`` is set."""
+        """What the service maps with: ``mapping.occupancy`` for the camera's ``depth.rate_hz``
+        (``OccupancyParams.for_frame_rate``), its window fitted to the planner's altitude band
+        when ``mapping.window_band_margin_m`` is set."""
         m = self.mapping
+        occ = m.occupancy.for_frame_rate(self.depth.rate_hz)
         if m.window_band_margin_m is None:
-            return m.occupancy
+            return occ
         lo, hi = self.planner.z_limits_m
-        return m.occupancy.for_band(lo, hi, m.window_band_margin_m)
+        return occ.for_band(lo, hi, m.window_band_margin_m)
 
     @property
     def camera_map_params(self) -> OccupancyParams | None:
