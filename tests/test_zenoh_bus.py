@@ -351,17 +351,17 @@ def test_planner_thread_reads_whole_messages_while_they_arrive(
     reader = threading.Thread(target=planner)
     reader.start()
     now = time.time()
-    sent = [0]
+    sent = 0
+    last_sent = time.monotonic()
 
     def publish_next() -> None:
-        k = sent[0]
-        m = traj(0, now, traj_id=k)
+        nonlocal sent, last_sent
+        m = traj(0, now, traj_id=sent)
         c = m.trajectory.coeffs.copy()
-        c[0, 0, 0] = k
-        a.publish(TrajectoryMsg(0, k, 0, Trajectory(now, c, m.trajectory.durations_s)), now)
-        sent[0] += 1
-
-    last_sent = [time.monotonic()]
+        c[0, 0, 0] = sent
+        a.publish(TrajectoryMsg(0, sent, 0, Trajectory(now, c, m.trajectory.durations_s)), now)
+        sent += 1
+        last_sent = time.monotonic()
 
     def burst_ended() -> bool:
         """The burst's last or a newer one arrived. Trajectories are published with Zenoh's
@@ -370,15 +370,13 @@ def test_planner_thread_reads_whole_messages_while_they_arrive(
         r = b.receive(1, time.time())
         if r and r[0].traj_id >= n - 1:
             return True
-        if time.monotonic() - last_sent[0] > 0.2:
+        if time.monotonic() - last_sent > 0.2:
             publish_next()
-            last_sent[0] = time.monotonic()
         return False
 
     try:
         for _ in range(n):
             publish_next()
-        last_sent[0] = time.monotonic()
         wait_for(burst_ended, "the burst's last one or a newer one")
     finally:
         stop.set()
@@ -387,7 +385,7 @@ def test_planner_thread_reads_whole_messages_while_they_arrive(
     cnt = b.counters()
     assert cnt["error.internal"] == 0 and cnt["error.callback"] == 0
     # Received in order or refused as out of order: never an older one after a newer one.
-    assert cnt["rx.traj"] + cnt["reject.out_of_order"] + cnt["reject.duplicate"] <= sent[0]
+    assert cnt["rx.traj"] + cnt["reject.out_of_order"] + cnt["reject.duplicate"] <= sent
 
 
 def test_peer_trajectories_entering_the_inbox_are_latency_samples(

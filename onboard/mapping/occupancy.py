@@ -231,7 +231,7 @@ class OccupancyParams:
         lowered) so that ``ceil(occupied_after_s * rate_hz)`` hits, at least one, take a cell
         from unknown to occupied (with a 2 % margin over ``p_occ``, so that the stored float32
         reads occupied). At 30 frames/s the defaults are unchanged (3 hits); at 10 or fewer
-        one hit is enough (p_hit 0.80 -> 0.81 at the default p_occ)."""
+        one hit is enough (p_hit 0.65 -> 0.804 at the default p_occ)."""
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"for_frame_rate: rate_hz must be > 0, got {rate_hz!r}")
         hits = max(1, math.ceil(self.occupied_after_s * rate_hz - 1e-9))
