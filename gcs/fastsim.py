@@ -688,6 +688,8 @@ class SafetyMonitor:
         self._key: tuple[Any, ...] = ()
         self._problem = ""
         self._at = math.inf
+        self._helps = True
+        self.no_better_stop = 0
         self.brake_within_s = cfg.monitor_brake_within_s
         self.last_plan_s = -math.inf
         self.asked_s = -math.inf
@@ -719,7 +721,11 @@ class SafetyMonitor:
         if not (last and last[0] is view and last[1] is key[1] and last[2] == g):
             self._key = key
             ts = monitor_times(g, self.horizon_s)
-            self._problem, self._at = peer_conflict(view, t, ts, agent.planned(ts), self.limit_m)
+            pp, vv, aa = agent.state(t)
+            brake = braking_trajectory(t, pp, vv, aa, self.a_max, peak_fraction=1.0)
+            self._problem, self._at, self._helps = peer_conflict(
+                view, t, ts, agent.planned(ts), self.limit_m, brake.sample(ts)
+            )
         problem = self._problem
         if not problem:
             return ""
@@ -739,6 +745,10 @@ class SafetyMonitor:
             agent.request_replan()
         if action != "brake":
             return f"{action}: {problem}"
+        if not self._helps:  # a braking stop would come as close (``service.monitor_step``)
+            self.no_better_stop += 1
+            agent.request_replan()
+            return f"no better stop: {problem}"
         self.brake_at_s = t
         self.brakes += 1
         pp, vv, aa = agent.state(t)
@@ -1015,6 +1025,7 @@ def run_sim(
             "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
             "monitor_replans": sum(m.replans for m in monitors),
             "monitor_brakes": sum(m.brakes for m in monitors),
+            "monitor_no_better_stop": sum(m.no_better_stop for m in monitors),
             "bus": {} if faulty is None else dict(faulty.counters),
             "state_bus": {} if state_faulty is None else dict(state_faulty.counters),
             "agents": {

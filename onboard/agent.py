@@ -80,9 +80,14 @@ from onboard.comm.bus import PeerBus
 from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask
-from onboard.planner.kernels import BAND_OK, band_state
+from onboard.planner.kernels import BAND_MARGINAL, BAND_OK, band_state
 from onboard.planner.params import PlannerParams, reform_params
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus
+from onboard.planner.planner import (
+    BRAKE_REFERENCE_S,
+    FormationPlanner,
+    PeerTrajectory,
+    PlanStatus,
+)
 from onboard.planner.trajectory import Trajectory
 
 EPS_T = 1e-9
@@ -263,57 +268,93 @@ def same_peers(a: PeerView, b: PeerView) -> bool:
     )
 
 
+def _first_conflict(d: np.ndarray, limit_m: float, brake_d: np.ndarray | None) -> tuple[int, bool]:
+    """(the index of the first sample of the distances ``d`` (K,) that is a conflict with a
+    limit of ``limit_m``, -1 when none; whether braking instead would help), by the planner's
+    rule (``kernels._band``, the safety check's): a plan that starts inside the limit, never
+    comes closer than its start (or than the braking stop instead would: ``brake_d``, that
+    stop's distances on the first samples, those within ``BRAKE_REFERENCE_S``; None: the
+    start) and leaves the limit is the way out, not a conflict (braking there would hold the
+    drone inside for good: every retry's plan backs out and every brake undoes it); a plan
+    that starts outside and comes inside, but no closer than the stop, is a conflict that a
+    brake does not help (a replan may)."""
+    close = d < limit_m
+    if not close.any():
+        return -1, True
+    floor = math.inf if brake_d is None else float(brake_d.min())
+    band = band_state(d, limit_m, floor)
+    if band == BAND_OK:
+        return -1, True
+    return int(np.argmax(close)), band != BAND_MARGINAL
+
+
+def _brake_samples(ts: np.ndarray) -> int:
+    """How many of the samples ``ts`` lie within ``BRAKE_REFERENCE_S`` of the first."""
+    return max(1, int(np.searchsorted(ts, ts[0] + BRAKE_REFERENCE_S + 1e-9, side="right")))
+
+
 def peer_conflict(
-    view: PeerView, now_s: float, ts: np.ndarray, pos: np.ndarray, limit_m: float
-) -> tuple[str, float]:
+    view: PeerView,
+    now_s: float,
+    ts: np.ndarray,
+    pos: np.ndarray,
+    limit_m: float,
+    brake: np.ndarray | None = None,
+) -> tuple[str, float, bool]:
     """The earliest conflict of ``pos`` (our positions at the increasing times ``ts``, (K, 3))
     with ``view``: a peer trajectory (sampled at the same times), a quiet or silent peer's
     ghost or where a deviating peer reported itself (hovers) closer than ``limit_m``, as (what,
-    the time of the first sample too close); ('', inf) when none. What a safety monitor checks
-    between replans (the flight service's and the fast-time one)."""
+    the time of the first sample too close, whether a brake would help); ('', inf, True) when
+    none. Judged by the planner's rule (``_first_conflict``) against ``brake``: the braking
+    stop the monitor would fly instead, at ``ts`` (None: a start inside the limit against the
+    start). What a safety monitor checks between replans (the flight service's and the
+    fast-time one)."""
     first = math.inf
     problem = ""
+    helps = True
+    ref = None if brake is None else brake[: _brake_samples(ts)]
     for pt in view.trajectories:
-        dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
-        below = dd < limit_m
-        if below.any():
-            k = int(np.argmax(below))  # the first sample too close
-            if ts[k] < first:
-                first = float(ts[k])
-                problem = f"drone {pt.drone_id} {float(dd.min()):.2f} m in {ts[k] - now_s:.1f} s"
-    if view.hover_ids:
-        d = np.linalg.norm(pos[:, None, :] - view.hover_points[None, :, :], axis=2)
-        below = d.min(axis=1) < limit_m
-        k = int(np.argmax(below))
-        if below.any() and ts[k] < first:
-            j = int(np.argmin(d[k]))
-            pid = view.hover_ids[j]
+        peer = pt.trajectory.sample(ts)
+        dd = np.linalg.norm(pos - peer, axis=1)
+        ref_d = None if ref is None else np.linalg.norm(ref - peer[: len(ref)], axis=1)
+        k, k_helps = _first_conflict(dd, limit_m, ref_d)
+        if k >= 0 and ts[k] < first:
+            first, helps = float(ts[k]), k_helps
+            problem = f"drone {pt.drone_id} {float(dd.min()):.2f} m in {ts[k] - now_s:.1f} s"
+    for j, pid in enumerate(view.hover_ids):
+        point = view.hover_points[j]
+        d = np.linalg.norm(pos - point, axis=1)
+        ref_d = None if ref is None else np.linalg.norm(ref - point, axis=1)
+        k, k_helps = _first_conflict(d, limit_m, ref_d)
+        if k >= 0 and ts[k] < first:
             if pid in view.silent:
                 what = "a ghost of silent"
             elif pid in view.quiet:
                 what = "a ghost of quiet"
             else:
                 what = "where it reported itself:"
-            first = float(ts[k])
-            problem = f"{what} drone {pid} {float(d[:, j].min()):.2f} m in {ts[k] - now_s:.1f} s"
-    return problem, first
+            first, helps = float(ts[k]), k_helps
+            problem = f"{what} drone {pid} {float(d.min()):.2f} m in {ts[k] - now_s:.1f} s"
+    return problem, first, helps
 
 
 def obstacle_conflict(
-    d: np.ndarray, ts: np.ndarray, now_s: float, limit_m: float
-) -> tuple[str, float]:
+    d: np.ndarray,
+    ts: np.ndarray,
+    now_s: float,
+    limit_m: float,
+    brake_d: np.ndarray | None = None,
+) -> tuple[str, float, bool]:
     """The first sample closer than ``limit_m`` to an obstacle, from the distances ``d`` (K,)
-    of our positions at the increasing times ``ts`` (d[0] where we are), as (what, its time);
-    ('', inf) when none. With the planner's rule for a start inside the limit
-    (``kernels.band_state``, the safety check's): a plan that starts inside it (inside the
-    mapped obstacle too), never comes closer than its start and leaves the limit is the way
-    out, not a conflict (braking there would hold the drone inside for good: every retry's
-    plan backs out and every brake undoes it)."""
-    close = d < limit_m
-    if not close.any() or band_state(d, limit_m) == BAND_OK:
-        return "", math.inf
-    k = int(np.argmax(close))
-    return f"obstacle {float(d.min()):.2f} m in {ts[k] - now_s:.1f} s", float(ts[k])
+    of our positions at the increasing times ``ts`` (d[0] where we are), as (what, its time,
+    whether a brake would help); ('', inf, True) when none. Judged by the planner's rule
+    (``_first_conflict``) against ``brake_d``: the distances of the braking stop the monitor
+    would fly instead, at ``ts`` (None: a start inside the limit against the start)."""
+    ref = None if brake_d is None else brake_d[: _brake_samples(ts)]
+    k, helps = _first_conflict(d, limit_m, ref)
+    if k < 0:
+        return "", math.inf, True
+    return f"obstacle {float(d.min()):.2f} m in {ts[k] - now_s:.1f} s", float(ts[k]), helps
 
 
 MONITOR_STEP_S = 0.1

@@ -169,6 +169,35 @@ def test_a_start_inside_the_check_distance_backs_out() -> None:
     assert d2.min() >= 0.15 - 1e-3
 
 
+@pytest.mark.parametrize("gap_m", [0.441, 0.455])
+def test_a_peer_coming_on_is_escaped_no_closer_than_a_stop(gap_m: float) -> None:
+    """CI's bus-faults flight (2026-11-29): drone 1, not hearing drone 2 (its uplink held),
+    backed toward it and stopped 0.32 m from it. Drone 2, 0.45 m away, refused every plan
+    away ('started inside at 0.45 m and comes closer': from rest, any way out dips while the
+    peer comes on), stayed, and was touched. A way out is judged against the stop flown
+    instead: inside the check distance it may dip as far as the stop would; from outside it
+    (0.455 m) it is flown only as a last resort, when no attempt stays outside."""
+    from onboard.service.ports import braking_trajectory
+
+    params = PlannerParams()
+    me = np.array([5.57, 0.18, 1.0])
+    start = me + (np.array([5.82, -0.20, 1.0]) - me) * gap_m / 0.4548626
+    toward = (me - start) / np.linalg.norm(me - start)
+    peer = braking_trajectory(10.0, start, 0.12 * toward, ZERO, 0.5)  # backs 0.043 m on
+    assert abs(float(np.linalg.norm(peer.sample(10.0) - me)) - gap_m) < 1e-3
+    planner = FormationPlanner(params, LINE3[:2], slot=1)
+    goal = np.array([11.0, -1.5, 1.0])
+    field = AnalyticField(_world([]))
+    res = planner.plan(10.0, me, ZERO, ZERO, goal, [PeerTrajectory(2, 0, peer)], field)
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
+    assert ("last resort" in res.message) == (gap_m > params.check_drone_m), res.message
+    ts = np.arange(10.0, res.trajectory.t_end_s, params.check_step_s)
+    dd = np.linalg.norm(res.trajectory.sample(ts) - peer.sample(ts), axis=1)
+    stop = np.linalg.norm(me - peer.sample(ts[ts <= 11.0]), axis=1)  # hovering here instead
+    assert dd.min() >= stop.min() - 1e-3 and dd.min() < params.check_drone_m
+    assert dd[-1] > params.check_drone_m  # and away
+
+
 def test_a_start_inside_a_mapped_obstacle_backs_out() -> None:
     """On the drone's own map a trunk is inflated, and one mapped late can put the drone inside
     it (the real stack: 0.18 m, then -0.2 m on the map; every plan refused for 18 s, the drone

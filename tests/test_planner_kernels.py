@@ -26,6 +26,7 @@ from onboard.planner.minco import Minco
 from onboard.planner.npexact import norm3, np_arange, np_interp, np_linspace, np_sum
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import (
+    MARGINAL,
     SWARM_TARGET_MIN_M,
     FormationPlanner,
     PeerTrajectory,
@@ -34,6 +35,7 @@ from onboard.planner.planner import (
 )
 from onboard.planner.timemap import tau_from_T
 from onboard.planner.trajectory import Trajectory, eval_position, eval_position_velocity
+from onboard.service.ports import braking_trajectory
 from onboard.world import World
 
 HEX = np.array(
@@ -211,11 +213,18 @@ def _oracle_x0(
     return np.concatenate([wps[1:-1].ravel(), tau_from_T(T0) / p.tau_scale])
 
 
-def _oracle_band(d: np.ndarray, thr: float) -> tuple[bool, str]:
+def _oracle_band(d: np.ndarray, thr: float, brake_d: np.ndarray) -> tuple[bool, str]:
+    """(ok, reason): a reason on an ok answer marks a last resort (it comes inside from
+    outside, no closer than the braking stop ``brake_d``)."""
     d0 = float(d[0])
+    floor = float(np.min(brake_d))
     if d0 >= thr:
-        return bool(np.min(d) >= thr), ""
-    if np.min(d) < d0 - 1e-3:
+        if np.min(d) >= thr:
+            return True, ""
+        if np.min(d) >= floor - 1e-3:
+            return True, f" (a braking stop: {floor:.2f} m)"
+        return False, ""
+    if np.min(d) < min(d0, floor) - 1e-3:
         return False, f" (started inside at {d0:.2f} m and comes closer)"
     if np.max(d) < thr:
         return False, f" (started inside at {d0:.2f} m and does not back out)"
@@ -244,22 +253,32 @@ def _oracle_check(
     clearance = float(np.min(d))
     later = ts >= t_from + 1.0
     ahead = float(np.min(d[later])) if np.any(later) else float("inf")
-    ok, why = _oracle_band(d, p.check_obstacle_m)
+    # a way that comes inside a threshold is judged against the braking stop flown instead,
+    # over its first second
+    early = ts <= t_from + 1.0 + 1e-9
+    brake = braking_trajectory(t_from, *traj.state(t_from), p.a_max_m_s2).sample(ts[early])
+    last_resort = ""  # the first obstacle or peer met only as a last resort
+    ok, why = _oracle_band(d, p.check_obstacle_m, field.distance(brake)[0])
+    k = int(np.argmin(d))
     if not ok:
-        k = int(np.argmin(d))
         return (
             False,
             f"obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}",
             (clearance),
             ahead,
         )
+    if why.startswith(" (a braking stop"):
+        last_resort = f"{MARGINAL}obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
     for pt in peers:
-        dd = np.linalg.norm(pos - pt.trajectory.sample(ts), axis=1)
-        ok, why = _oracle_band(dd, p.check_drone_m)
+        other = pt.trajectory.sample(ts)
+        dd = np.linalg.norm(pos - other, axis=1)
+        ok, why = _oracle_band(dd, p.check_drone_m, np.linalg.norm(brake - other[early], axis=1))
+        k = int(np.argmin(dd))
+        reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
         if not ok:
-            k = int(np.argmin(dd))
-            reason = f"drone {pt.drone_id} at {dd[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
             return False, reason, clearance, ahead
+        if why.startswith(" (a braking stop") and not last_resort:
+            last_resort = MARGINAL + reason
     if p.check_known_s > 0.0:
         n = int(np.searchsorted(ts, t_from + p.check_known_s, side="right"))
         known = field.is_known(pos[:n])
@@ -274,7 +293,7 @@ def _oracle_check(
                     (clearance),
                     ahead,
                 )
-    return True, "", clearance, ahead
+    return True, last_resort, clearance, ahead
 
 
 # --- random problems ---------------------------------------------------------------------------
@@ -510,10 +529,12 @@ def test_safety_check_is_the_numpy_one() -> None:
             assert planner.check(traj, t_from, field, peers) == want[:2]
             key = want[1].split(" ")[0] if want[1] else "ok"
             key += " inside" if "started inside" in want[1] else ""
+            if want[0] and want[1]:
+                key = "last resort " + want[1][len(MARGINAL) :].split(" ")[0]
             if key == "enters":  # which way the unknown space was tested
                 key += " mask" if getattr(field, "known", None) is not None else " python"
             seen[key] = seen.get(key, 0) + 1
-    outcomes = ("ok", "altitude", "obstacle", "obstacle inside", "drone")
+    outcomes = ("ok", "altitude", "obstacle", "obstacle inside", "drone", "last resort obstacle")
     for key in (*outcomes, "enters mask", "enters python"):
         assert seen.get(key, 0) >= 3, seen  # every outcome was compared
 

@@ -1070,18 +1070,70 @@ def test_the_monitor_lets_a_drone_inside_the_check_distance_back_out(tmp_path: P
     assert h.svc.counters["monitor_brakes"] == 1
 
 
+def test_the_monitor_lets_a_drone_inside_a_peers_check_distance_back_out(tmp_path: Path) -> None:
+    """CI's bus-faults flight (2026-11-29): two drones stopped 0.42 m apart, inside the check
+    distance of each other. The planners accepted plans apart, and every one was braked by the
+    monitor ('drone 2 0.42 m in 0.0 s'), which judged peers without the planner's rule for a
+    start inside the limit: for 50 s they braked and retried, and touched. A way out is no
+    conflict; coming closer than a stop would is; a peer coming on that no stop escapes is a
+    conflict that a brake does not help."""
+    from onboard.agent import PeerView
+    from onboard.planner.planner import PeerTrajectory
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    limit = h.cfg.planner.check_drone_m
+    t = h.clock.t
+    peer_at = here + [0.0, 0.40, 0.0]
+    assert 0.40 < limit
+
+    def look(traj: Trajectory, peer: Trajectory) -> str:
+        view = PeerView(t, (PeerTrajectory(5, 1, peer),), (), np.zeros((0, 3)), (), (), ())
+        h.svc.peers_now = lambda now, fresh=False: view  # type: ignore[method-assign]
+        h.svc.agent.reset(traj)
+        h.svc._monitor_key = ()  # a new look, not the cached one
+        h.svc._monitor_brake_at = -math.inf  # not still braking from the look before
+        return h.svc.monitor_step()
+
+    hovering = Trajectory.hover(peer_at, t - 1.0, 30.0)
+    assert look(moving(here, here + [0.0, -1.0, 0.0], t), hovering) == ""
+    what = look(Trajectory.hover(here, t, 5.0), hovering)
+    assert what.startswith("holding: drone 5"), what
+    what = look(moving(here, here + [0.0, 0.1, 0.0], t), hovering)
+    assert what.startswith("brake: drone 5"), what
+    assert h.svc.counters["monitor_brakes"] == 1
+    # the peer comes on to 0.05 m from here: a way out that dips (to 0.30 m) but less than a
+    # stop here would (0.05 m) is no conflict; one that comes closer than the stop is
+    coming = moving(peer_at, here + [0.0, 0.05, 0.0], t, speed=0.6)
+    assert look(moving(here, here + [0.0, -1.0, 0.0], t, speed=0.8), coming) == ""
+    what = look(moving(here, here + [0.0, 0.3, 0.0], t, speed=0.2), coming)
+    assert what.startswith("brake: drone 5"), what
+    assert h.svc.counters["monitor_brakes"] == 2
+    # from outside the limit, a peer that runs through where any stop would leave us (it does
+    # not hear us): a plan that comes inside, but less close than a stop, is a conflict that
+    # is not braked (a replan is asked for)
+    charging = moving(here + [0.0, 0.5, 0.0], here - [0.0, 0.6, 0.0], t, speed=1.5)
+    sideways = moving(here, here + [1.0, 0.0, 0.0], t, speed=0.2)
+    what = look(sideways, charging)
+    assert what.startswith("no better stop: drone 5"), what
+    assert h.svc.counters["monitor_brakes"] == 2
+    assert h.svc.counters["monitor_no_better_stop"] == 1
+
+
 def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     from onboard.agent import obstacle_conflict
 
     ts = np.arange(10) * 0.1 + 100.0
     limit = 0.22
+    none = ("", math.inf, True)
     clear = np.full(10, 0.5)
-    assert obstacle_conflict(clear, ts, 100.0, limit) == ("", math.inf)
+    assert obstacle_conflict(clear, ts, 100.0, limit) == none
     enters = np.linspace(0.5, 0.1, 10)
-    what, at = obstacle_conflict(enters, ts, 100.0, limit)
-    assert "obstacle 0.10 m" in what and at == ts[int(np.argmax(enters < limit))]
+    what, at, helps = obstacle_conflict(enters, ts, 100.0, limit)
+    assert "obstacle 0.10 m" in what and at == ts[int(np.argmax(enters < limit))] and helps
     backs_out = np.linspace(0.15, 0.4, 10)
-    assert obstacle_conflict(backs_out, ts, 100.0, limit) == ("", math.inf)
+    assert obstacle_conflict(backs_out, ts, 100.0, limit) == none
     stays = np.full(10, 0.15)
     assert obstacle_conflict(stays, ts, 100.0, limit)[1] == ts[0]
     closer_first = np.concatenate([[0.15, 0.14], np.linspace(0.2, 0.4, 8)])
@@ -1090,11 +1142,24 @@ def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     assert obstacle_conflict(out_then_closer, ts, 100.0, limit)[1] == ts[0]
     # from inside the (mapped, inflated) obstacle the same rule: backing out is the way out
     out_of_the_obstacle = np.linspace(-0.05, 0.4, 10)
-    assert obstacle_conflict(out_of_the_obstacle, ts, 100.0, limit) == ("", math.inf)
+    assert obstacle_conflict(out_of_the_obstacle, ts, 100.0, limit) == none
     deeper_in = np.concatenate([[-0.05, -0.07], np.linspace(0.0, 0.4, 8)])
     assert obstacle_conflict(deeper_in, ts, 100.0, limit)[1] == ts[0]
     held_inside = np.full(10, -0.05)
     assert obstacle_conflict(held_inside, ts, 100.0, limit)[1] == ts[0]
+    # against the braking stop flown instead: still moving inward, the stop comes to 0.12 m,
+    # so a way out that dips to 0.14 m is no conflict, one that dips to 0.10 m is
+    stop = np.concatenate([np.linspace(0.15, 0.12, 4), np.full(6, 0.12)])
+    assert obstacle_conflict(closer_first, ts, 100.0, limit, stop) == none
+    deeper = np.concatenate([[0.15, 0.10], np.linspace(0.2, 0.4, 8)])
+    assert obstacle_conflict(deeper, ts, 100.0, limit, stop)[1] == ts[0]
+    # from outside: coming inside, but no closer than the stop would (a late-mapped obstacle
+    # within the braking distance) is a conflict a brake does not help
+    stop_in = np.linspace(0.5, 0.05, 10)
+    what, at, helps = obstacle_conflict(enters, ts, 100.0, limit, stop_in)
+    assert at == ts[int(np.argmax(enters < limit))] and not helps
+    what, at, helps = obstacle_conflict(enters, ts, 100.0, limit, np.full(10, 0.5))
+    assert at == ts[int(np.argmax(enters < limit))] and helps
 
 
 def test_the_setpoint_yaw_looks_where_the_drone_will_be_in_a_second(tmp_path: Path) -> None:

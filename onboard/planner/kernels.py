@@ -71,6 +71,10 @@ BAND_COMES_CLOSER = 2
 """Started inside the threshold and comes closer than the start."""
 BAND_NO_BACK_OUT = 3
 """Started inside the threshold and never leaves it."""
+BAND_MARGINAL = 4
+"""Started outside the threshold and comes inside it, but no closer than the braking stop
+from the same start would (``_band``'s floor): a way the planner takes only when no attempt
+stays outside (``FormationPlanner.plan``)."""
 
 GUESS_SAMPLES = 24
 """Points sampled along the previous trajectory for the warm start."""
@@ -488,22 +492,29 @@ def trajectory_from_x(
     return c.reshape((M, 6, 3)), T, finite
 
 
-def band_state(d: np.ndarray, threshold: float) -> int:
+def band_state(d: np.ndarray, threshold: float, floor: float = math.inf) -> int:
     """``_band`` from Python (BAND_*): the safety check's rule for a trajectory's distances
-    to obstacles or a peer, which the flight service's monitor applies too."""
-    return int(_band(np.ascontiguousarray(d, dtype=np.float64), float(threshold)))
+    to obstacles or a peer, which the flight service's monitor applies too (``floor``: see
+    ``_band``; inf: the start)."""
+    return int(_band(np.ascontiguousarray(d, dtype=np.float64), float(threshold), float(floor)))
 
 
 @njit(cache=True, nogil=True)
-def _band(d: np.ndarray, threshold: float) -> int:
+def _band(d: np.ndarray, threshold: float, floor: float) -> int:
     """Distances d (K,) along a trajectory, d[0] at its start, against ``threshold``: clear of
-    it everywhere; or, starting inside it, never closer than the start (1 mm tolerance) and
-    outside it at some point (the trajectory backs out). That holds for a start inside the
-    obstacle as well (d[0] < 0): on the drone's own map an obstacle is inflated
-    (``OccupancyParams.inflation_m``) and a trunk mapped late may put the drone inside it, where
-    holding still, refusing every plan out, is the one thing sure not to end well (the real
-    stack, 2026-11-29: a drone hovered 18 s inside a late-mapped trunk's inflation, then
-    touched it)."""
+    it everywhere; or, starting inside it, never closer than the start or ``floor`` if that is
+    less (1 mm tolerance), and outside it at some point (the trajectory backs out). That holds
+    for a start inside the obstacle as well (d[0] < 0): on the drone's own map an obstacle is
+    inflated (``OccupancyParams.inflation_m``) and a trunk mapped late may put the drone inside
+    it, where holding still, refusing every plan out, is the one thing sure not to end well
+    (the real stack, 2026-11-29: a drone hovered 18 s inside a late-mapped trunk's inflation,
+    then touched it). ``floor`` is how close the alternative to the trajectory, a braking stop
+    from the same start, comes (``check_trajectory``'s reference): a drone still moving
+    inward, or a peer moving toward it, makes every way out dip below the start, and refusing
+    them all leaves the drone to the stop, which comes closer still (the real stack's bus
+    faults test, 2026-11-29: two drones 0.42 m apart refused every plan apart, and touched).
+    A start outside the threshold that comes inside it but no closer than ``floor`` is
+    BAND_MARGINAL (no better way may exist: a peer that does not hear us coming on)."""
     d0 = d[0]
     lo = d[0]
     hi = d[0]
@@ -511,8 +522,10 @@ def _band(d: np.ndarray, threshold: float) -> int:
         lo = min(lo, d[k])
         hi = max(hi, d[k])
     if d0 >= threshold:
-        return BAND_OK if lo >= threshold else BAND_INSIDE
-    if lo < d0 - 1e-3:
+        if lo >= threshold:
+            return BAND_OK
+        return BAND_MARGINAL if lo >= floor - 1e-3 else BAND_INSIDE
+    if lo < min(d0, floor) - 1e-3:
         return BAND_COMES_CLOSER
     if hi < threshold:
         return BAND_NO_BACK_OUT
@@ -571,17 +584,27 @@ def check_trajectory(
     known_mode: int,
     known_s: float,
     known: np.ndarray,
+    ref_c: np.ndarray,
+    ref_T: np.ndarray,
+    ref_t0: float,
+    ref_s: float,
 ) -> tuple[int, int, int, int, float, float, float, float, float, int]:
     """The safety check of ``FormationPlanner.check`` on the samples ``ts`` = every ``step``
     from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
     starting at global time t0); the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
-    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX).
+    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A start closer than the
+    threshold to an obstacle or a peer is judged by ``_band`` with the floor of the reference
+    (ref_c (M, 6, 3), ref_T (M,), from global time ref_t0: the braking stop that would be flown
+    instead): its closest approach to that obstacle or peer over the samples up to t_from +
+    ref_s.
 
     Returns (code, band code, sample k, peer index, value at k, value at the start, t_k -
     t_from, clearance, ahead, samples): the value is the altitude (CHECK_ALTITUDE), the obstacle
     distance (CHECK_OBSTACLE) or the peer distance (CHECK_DRONE) at the worst sample k, and k
-    the first sample in unobserved space after one in observed space (CHECK_UNKNOWN);
+    the first sample in unobserved space after one in observed space (CHECK_UNKNOWN); CHECK_OK
+    with BAND_MARGINAL: the first obstacle or peer (index -1: an obstacle) met that way, its
+    closest approach, and in place of the value at the start the braking stop's (the floor);
     clearance is the closest approach to an obstacle over all samples and ahead from
     ``lookahead`` after t_from on (inf without such samples; both NaN when the check stopped
     before the obstacle distances); ``samples`` is how many of ``ts`` there are.
@@ -632,9 +655,32 @@ def check_trajectory(
         clearance = min(clearance, dist[i])
         if ts[i] >= t_ahead:
             ahead = min(ahead, dist[i])
-    band = _band(dist, check_obstacle)
-    if band != BAND_OK:
-        k = _argmin(dist)
+    # the reference's positions on the samples up to t_from + ref_s (for a start inside)
+    n_ref = 1
+    while n_ref < n and ts[n_ref] <= t_from + ref_s + 1e-9:
+        n_ref += 1
+    ref = np.empty((n_ref, 3))
+    for i in range(n_ref):
+        x, y, z = eval_position(ref_c, ref_T, ts[i] - ref_t0)
+        ref[i, 0] = x
+        ref[i, 1] = y
+        ref[i, 2] = z
+    # a way that comes inside a threshold but no closer than the braking stop: taken only
+    # when nothing better is found (the first such, returned with CHECK_OK)
+    m_band = BAND_OK
+    m_k = 0
+    m_ph = -1
+    m_value = nan
+    m_floor = nan
+    k = _argmin(dist)
+    floor = math.inf
+    if dist[k] < check_obstacle:
+        for i in range(n_ref):
+            floor = min(floor, _dist(fld, ref[i, 0], ref[i, 1], ref[i, 2]))
+    band = _band(dist, check_obstacle, floor)
+    if band == BAND_MARGINAL:
+        m_band, m_k, m_value, m_floor = band, k, dist[k], floor
+    elif band != BAND_OK:
         return CHECK_OBSTACLE, band, k, -1, dist[k], dist[0], ts[k] - t_from, clearance, ahead, n
     # (1) peers
     dd = np.empty(n)
@@ -645,9 +691,17 @@ def check_trajectory(
         for i in range(n):
             x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
             dd[i] = norm3(pos[i, 0] - x, pos[i, 1] - y, pos[i, 2] - z)
-        band = _band(dd, check_drone)
-        if band != BAND_OK:
-            k = _argmin(dd)
+        k = _argmin(dd)
+        floor = math.inf
+        if dd[k] < check_drone:
+            for i in range(n_ref):
+                x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
+                floor = min(floor, norm3(ref[i, 0] - x, ref[i, 1] - y, ref[i, 2] - z))
+        band = _band(dd, check_drone, floor)
+        if band == BAND_MARGINAL:
+            if m_band == BAND_OK:
+                m_band, m_k, m_ph, m_value, m_floor = band, k, ph, dd[k], floor
+        elif band != BAND_OK:
             return CHECK_DRONE, band, k, ph, dd[k], dd[0], ts[k] - t_from, clearance, ahead, n
     # (2) unknown space in the samples up to t_from + known_s
     if known_mode != KNOWN_SKIP:
@@ -666,4 +720,7 @@ def check_trajectory(
                 seen = True
             elif seen:
                 return CHECK_UNKNOWN, BAND_OK, i, -1, nan, nan, ts[i] - t_from, clearance, ahead, n
+    if m_band != BAND_OK:
+        t_m = ts[m_k] - t_from
+        return CHECK_OK, m_band, m_k, m_ph, m_value, m_floor, t_m, clearance, ahead, n
     return CHECK_OK, BAND_OK, 0, -1, nan, nan, nan, clearance, ahead, n

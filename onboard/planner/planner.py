@@ -53,6 +53,14 @@ from onboard.planner.trajectory import Trajectory
 COMFORT_LOOKAHEAD_S = 1.0
 """``comfort_obstacle_m`` looks at the trajectory from this long after its start (the replan
 period): an approach sooner than that is flown before another way could be taken."""
+MARGINAL = "inside the check's distance, no closer than a stop: "
+"""How ``check``'s reason begins for a trajectory it accepts only as a last resort: it comes
+inside the check's distance of an obstacle or a peer, but no closer than a braking stop from
+the same start would (``kernels.BAND_MARGINAL``)."""
+BRAKE_REFERENCE_S = 1.0
+"""A start closer than the check's distance to an obstacle or a peer may fly a way out that
+comes as close as a braking stop would within this long (``kernels._band``'s floor): beyond
+it, a peer's motion says nothing about the moment the choice is made."""
 COMFORT_ASTAR_MARGIN_M = 1.5
 """The A* box of the comfort alternative grows the start-target box by this much (3 m for the
 fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
@@ -682,7 +690,9 @@ class FormationPlanner:
         every peer by ``check_drone_m`` to its end; a drone that is already closer than that
         at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
         inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
-        it starts and leaves the band, so it can always back out; (2) during the first
+        it starts (or than a braking stop from there would within ``BRAKE_REFERENCE_S``, if
+        that is closer: still moving inward, or a peer coming on) and leaves the band, so it
+        can always back out; (2) during the first
         ``check_known_s`` (the part flown before the next replan can replace it) it does not
         enter space the field has not observed (``field.is_known``); a start in unobserved
         space may be left. Positions are sampled every ``check_step_s`` from
@@ -727,10 +737,15 @@ class FormationPlanner:
         view: _FieldView,
         peers: Sequence[PeerTrajectory],
         pack: _PeerPack,
+        brake: Trajectory | None = None,
     ) -> tuple[bool, str, float, float]:
         """``check`` plus the trajectory's closest approach to an obstacle, over all of it and
-        from ``COMFORT_LOOKAHEAD_S`` on (NaN when the test stopped before the distances)."""
+        from ``COMFORT_LOOKAHEAD_S`` on (NaN when the test stopped before the distances).
+        ``brake``: the braking stop from ``traj``'s state at ``t_from_s`` (``_stop``; made
+        here when not given), the alternative a start inside a threshold is judged against."""
         p = self.params
+        if brake is None:
+            brake = self._stop(t_from_s, *traj.state(t_from_s))
         res = kn.check_trajectory(
             traj.coeffs,
             traj.durations_s,
@@ -750,6 +765,10 @@ class FormationPlanner:
             view.known_mode,
             p.check_known_s,
             view.known,
+            brake.coeffs,
+            brake.durations_s,
+            brake.t0_s,
+            BRAKE_REFERENCE_S,
         )
         return self._verdict(res, traj, t_from_s, field, view, peers)
 
@@ -767,7 +786,11 @@ class FormationPlanner:
         code, band, k, ph, value, start, t_k, clearance, ahead, n = res
         if code == kn.CHECK_OK:
             why = self._unknown_space(traj, t_from_s, field) if view.python_known else ""
-            return not why, why, clearance, ahead
+            if why or band != kn.BAND_MARGINAL:
+                return not why, why, clearance, ahead
+            what = "obstacle clearance" if ph < 0 else f"drone {peers[ph].drone_id} at"
+            why = f"{MARGINAL}{what} {value:.2f} m at t={t_k:.2f} s (a braking stop: {start:.2f} m)"
+            return True, why, clearance, ahead
         if code == kn.CHECK_UNKNOWN:
             return False, f"enters unobserved space at t={t_k:.2f} s", clearance, ahead
         if code == kn.CHECK_NON_FINITE:
@@ -819,6 +842,7 @@ class FormationPlanner:
         view: _FieldView,
         peers: Sequence[PeerTrajectory],
         pack: _PeerPack,
+        brake: Trajectory | None = None,
     ) -> tuple[Trajectory | None, bool, str, float, float]:
         """(trajectory, safe, reason, clearance, ahead) of an attempt's solution x (trajectory
         None and not safe when x or its trajectory is not finite)."""
@@ -826,7 +850,9 @@ class FormationPlanner:
         if not finite:
             return None, False, "non-finite solution", math.nan, math.nan
         traj = Trajectory.trusted(problem.t_start_s, coeffs, T)
-        safe, why, clearance, ahead = self._check(traj, problem.t_start_s, field, view, peers, pack)
+        safe, why, clearance, ahead = self._check(
+            traj, problem.t_start_s, field, view, peers, pack, brake
+        )
         return traj, safe, why, clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
@@ -870,9 +896,14 @@ class FormationPlanner:
         self._check_time_and_peers(t_start_s, peers)
         pack = _pack_peers(peers)
         view = self._field_view(field)
+        # the stop flown if every attempt is refused: what a start inside the check's distance
+        # compares its ways out with
+        brake = self._stop(t_start_s, sp, sv, sa)
         iters = evals = 0
         messages: list[str] = []
         last_status: LbfgsStatus | None = None
+        last_resort: tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray] | None
+        last_resort = None
 
         def solve(
             use_formation: bool,
@@ -914,28 +945,39 @@ class FormationPlanner:
         ) -> tuple[PlanResult | None, Problem, bool]:
             """One attempt: (its result when the check accepts it, else None with the reason
             in ``messages``; its problem; whether it was canceled). An accepted rescue says so
-            in the message, with the clearance of its A* path."""
-            nonlocal last_status
+            in the message, with the clearance of its A* path. A trajectory the check accepts
+            only as a last resort (``MARGINAL``) is kept in ``last_resort`` (the first one)
+            and the attempt counts as refused."""
+            nonlocal last_status, last_resort
             problem, x, last_status = solve(use_formation, force_astar, ladder=ladder)
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
                 return None, problem, True
-            traj, safe, why, clearance, ahead = self._finish(problem, x, field, view, peers, pack)
+            traj, safe, why, clearance, ahead = self._finish(
+                problem, x, field, view, peers, pack, brake
+            )
             if traj is None:
                 messages.append(why)
                 return None, problem, False
-            if not safe:
+            if not safe or why:
                 # tighter; where it passes too close to an obstacle also on denser points
-                # and stiffer (NaN: the test stopped before the distances)
+                # and stiffer (NaN: the test stopped before the distances); a last resort is
+                # replaced only by a trajectory the check accepts outright
                 close = clearance < self.params.check_obstacle_m
                 x2, st2 = problem.solve(
                     x, self._lb_prm_refine, problem.refine_prob() if close else None
                 )
                 if st2 != LbfgsStatus.CANCELED:
-                    refined = self._finish(problem, x2, field, view, peers, pack)
-                    if refined[0] is not None:
+                    refined = self._finish(problem, x2, field, view, peers, pack, brake)
+                    if refined[0] is not None and (not safe or (refined[1] and not refined[2])):
                         x, last_status = x2, st2
                         traj, safe, why, clearance, ahead = refined
+            if safe and why:  # a last resort
+                assert traj is not None
+                if last_resort is None:
+                    last_resort = (ok_status, traj, last_status, problem, x)
+                messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
+                return None, problem, False
             if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
                 # chose when the gap was far) far enough ahead to choose another: try the way
@@ -947,10 +989,10 @@ class FormationPlanner:
                         use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M
                     )
                     if st_alt != LbfgsStatus.CANCELED:
-                        traj_alt, ok_alt, _, clr_alt, _ = self._finish(
-                            alt, x_alt, field, view, peers, pack
+                        traj_alt, ok_alt, why_alt, clr_alt, _ = self._finish(
+                            alt, x_alt, field, view, peers, pack, brake
                         )
-                        if traj_alt is not None and ok_alt and clr_alt > clearance:
+                        if traj_alt is not None and ok_alt and not why_alt and clr_alt > clearance:
                             problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
                             messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
             if safe:
@@ -983,8 +1025,8 @@ class FormationPlanner:
             nonlocal kept_checked, kept
             if not kept_checked and previous is not None:
                 kept_checked = True
-                safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack)
-                if safe:
+                safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack, brake)
+                if safe and not why:
                     kept = previous
                 else:
                     messages.append(f"previous: {why}")
@@ -1037,9 +1079,21 @@ class FormationPlanner:
             return PlanResult(
                 PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
+        if last_resort is not None:
+            # nothing stays outside the check's distances; this comes no closer than the stop
+            status, traj, lb_status, problem, x = last_resort
+            return PlanResult(
+                status,
+                traj,
+                iters,
+                evals,
+                lb_status,
+                "; ".join([*messages, "flown as a last resort"]),
+                functools.partial(problem.cost_terms, x),
+            )
         return PlanResult(
             PlanStatus.EMERGENCY,
-            self._stop(t_start_s, sp, sv, sa),
+            brake,
             iters,
             evals,
             last_status,

@@ -248,7 +248,7 @@ class FlightService:
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
         # the conflict found for _monitor_key, and whether that plan holds still
-        self._monitor_problem: tuple[str, float, bool] = ("", math.inf, False)
+        self._monitor_problem: tuple[str, float, bool, bool] = ("", math.inf, False, True)
         self._plan_ms: list[float] = []
         self._plan_status = ""
         self._plan_stamp: float | None = None
@@ -263,6 +263,7 @@ class FlightService:
             "monitor_replans": 0,
             "monitor_brakes": 0,
             "monitor_holding": 0,
+            "monitor_no_better_stop": 0,
             "frames": 0,
             "frames_rejected": 0,
             "frames_missed": 0,
@@ -712,22 +713,31 @@ class FlightService:
             # the plan as it will be flown: a plan made a moment ago takes control plan_ahead_s
             # later, and judging the one it replaces would brake for what it already avoids
             pos = self.agent.planned(ts)
-            problem, at = "", math.inf  # the earliest conflict and when
+            # where the brake below would take the drone: a start inside a limit may fly a
+            # way out that comes as close as that stop would (the planner's rule)
+            brake = braking_trajectory(now, *traj.state(now), p.a_max_m_s2, peak_fraction=1.0)
+            brake_pos = brake.sample(ts)
+            # the earliest conflict, when, and whether the brake would come less close
+            problem, at, helps = "", math.inf, True
             if fld is not None:
-                d, _ = fld.distance(pos)
-                problem, at = obstacle_conflict(d, ts, now, p.check_obstacle_m)
-            peer, peer_at = peer_conflict(view, now, ts, pos, p.check_drone_m)
+                d, _ = fld.distance(np.concatenate([pos, brake_pos]))
+                problem, at, helps = obstacle_conflict(
+                    d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :]
+                )
+            peer, peer_at, peer_helps = peer_conflict(
+                view, now, ts, pos, p.check_drone_m, brake_pos
+            )
             if peer_at < at:
-                problem, at = peer, peer_at
+                problem, at, helps = peer, peer_at, peer_helps
             lo = np.asarray(self.cfg.geofence.min_enu_m)
             hi = np.asarray(self.cfg.geofence.max_enu_m)
             out = ~np.all((pos >= lo) & (pos <= hi), axis=1)
             if out.any() and ts[int(np.argmax(out))] < at:
-                problem, at = "geofence", ts[int(np.argmax(out))]
+                problem, at, helps = "geofence", ts[int(np.argmax(out))], True
             self._monitor_key = (fld, view, plan, g)
             still = float(np.ptp(pos, axis=0).max()) < HOLDING_STILL_M
-            self._monitor_problem = (problem, float(at), still)
-        problem, at, still = self._monitor_problem
+            self._monitor_problem = (problem, float(at), still, helps)
+        problem, at, still, helps = self._monitor_problem
         if not problem:
             return ""
         action = monitor_action(
@@ -753,6 +763,14 @@ class FlightService:
             if it.state is S.FORMATION_FLIGHT:
                 self._ask_replan()
             return f"holding: {problem}"
+        if not helps:
+            # the plan comes inside the check's distance, but a braking stop would come as
+            # close (a peer that does not hear us coming on): the stop is no way out, a
+            # replan may be
+            self.counters["monitor_no_better_stop"] += 1
+            if it.state is S.FORMATION_FLIGHT:
+                self._ask_replan()
+            return f"no better stop: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
         # a conflict ahead: the hardest stop within the acceleration limit
