@@ -9,7 +9,13 @@ from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
-from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
+from onboard.planner.planner import (
+    LAST_RESORT,
+    FormationPlanner,
+    PeerTrajectory,
+    PlanStatus,
+    _pack_peers,
+)
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -190,7 +196,7 @@ def test_a_peer_coming_on_is_escaped_no_closer_than_a_stop(gap_m: float) -> None
     field = AnalyticField(_world([]))
     res = planner.plan(10.0, me, ZERO, ZERO, goal, [PeerTrajectory(2, 0, peer)], field)
     assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
-    assert ("last resort" in res.message) == (gap_m > params.check_drone_m), res.message
+    assert res.message.endswith(LAST_RESORT) == (gap_m > params.check_drone_m), res.message
     ts = np.arange(10.0, res.trajectory.t_end_s, params.check_step_s)
     dd = np.linalg.norm(res.trajectory.sample(ts) - peer.sample(ts), axis=1)
     stop = np.linalg.norm(me - peer.sample(ts[ts <= 11.0]), axis=1)  # hovering here instead

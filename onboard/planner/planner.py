@@ -57,6 +57,9 @@ MARGINAL = "inside the check's distance, no closer than a stop: "
 """How ``check``'s reason begins for a trajectory it accepts only as a last resort: it comes
 inside the check's distance of an obstacle or a peer, but no closer than a braking stop from
 the same start would (``kernels.BAND_MARGINAL``)."""
+LAST_RESORT = "flown as a last resort"
+"""How the message of a plan flown as a last resort ends (a ``MARGINAL`` trajectory, when no
+attempt stayed outside the check's distances)."""
 BRAKE_REFERENCE_S = 1.0
 """A start closer than the check's distance to an obstacle or a peer may fly a way out that
 comes as close as a braking stop would within this long (``kernels._band``'s floor): beyond
@@ -1088,7 +1091,7 @@ class FormationPlanner:
                 iters,
                 evals,
                 lb_status,
-                "; ".join([*messages, "flown as a last resort"]),
+                "; ".join([*messages, LAST_RESORT]),
                 functools.partial(problem.cost_terms, x),
             )
         return PlanResult(

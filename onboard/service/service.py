@@ -63,7 +63,7 @@ from onboard.agent import (
     replan_asked_s,
     same_peers,
 )
-from onboard.planner.planner import PlanStatus
+from onboard.planner.planner import LAST_RESORT, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
 from onboard.sensors.simulated import heading_yaw, look_velocity
@@ -264,6 +264,7 @@ class FlightService:
             "monitor_brakes": 0,
             "monitor_holding": 0,
             "monitor_no_better_stop": 0,
+            "plans_last_resort": 0,
             "frames": 0,
             "frames_rejected": 0,
             "frames_missed": 0,
@@ -1006,6 +1007,9 @@ class FlightService:
                     self.counters["plans_over_budget"] += 1
                     event(log, "plan_over_budget", logging.INFO, plan_ms=round(plan_ms), why=why)
                 elif status in _OK:
+                    if why.endswith(LAST_RESORT):  # inside a check distance, less than a stop
+                        self.counters["plans_last_resort"] += 1
+                        event(log, "plan_last_resort", logging.WARNING, why=why)
                     m.plan_ok()
                 else:  # a kept previous trajectory flies on (it passed the check), as in fast time
                     self.counters["plans_failed"] += 1
