@@ -124,3 +124,24 @@ def test_invalid_parameters_are_rejected() -> None:
         m.set_parameters(np.zeros((1, 3)), np.array([1.0, 0.0]))
     with pytest.raises(ValueError):
         Minco(0)
+
+
+def test_the_closed_form_stop_is_the_one_piece_minco() -> None:
+    """``Trajectory.to_rest`` (the braking stops of the planner and the monitor) gives the
+    coefficients of ``Minco(1)`` with the same two end states, to rounding."""
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        p, v, a, end = rng.normal(0.0, 2.0, (4, 3))
+        T = float(rng.uniform(0.2, 4.0))
+        m = Minco(1)
+        m.set_conditions(np.stack([p, v, a]), np.stack([end, np.zeros(3), np.zeros(3)]))
+        m.set_parameters(np.zeros((0, 3)), np.array([T]))
+        tr = Trajectory.to_rest(3.0, p, v, a, end, T)
+        np.testing.assert_allclose(tr.coeffs, m.coeffs, rtol=1e-9, atol=1e-9)
+        pe, ve, ae = tr.state(3.0 + T)
+        np.testing.assert_allclose(pe, end, atol=1e-9)
+        np.testing.assert_allclose(np.concatenate([ve, ae]), 0.0, atol=1e-9)
+    with pytest.raises(ValueError):
+        Trajectory.to_rest(0.0, p, v, a, end, 0.0)
+    with pytest.raises(ValueError):
+        Trajectory.to_rest(0.0, p, v * np.nan, a, end, 1.0)

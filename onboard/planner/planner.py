@@ -46,7 +46,7 @@ from onboard.planner.astar import astar_path_levels
 from onboard.planner.field import AnalyticField, DistanceField, GridField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
-from onboard.planner.minco import BAND_COLS, Minco
+from onboard.planner.minco import BAND_COLS
 from onboard.planner.params import PlannerParams
 from onboard.planner.trajectory import Trajectory
 
@@ -862,10 +862,7 @@ class FormationPlanner:
         """A one-piece braking trajectory to rest."""
         speed = float(np.linalg.norm(sv))
         Tb = max(0.5, 3.0 * speed / self.params.a_max_m_s2)
-        m = Minco(1)
-        m.set_conditions(np.stack([sp, sv, sa]), np.stack([sp + 0.5 * Tb * sv, 0 * sv, 0 * sv]))
-        m.set_parameters(np.zeros((0, 3)), np.array([Tb]))
-        return Trajectory(t_start, m.coeffs, np.array([Tb]))
+        return Trajectory.to_rest(t_start, sp, sv, sa, sp + 0.5 * Tb * sv, Tb)
 
     # --- the replan -------------------------------------------------------------------------
 

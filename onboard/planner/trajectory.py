@@ -8,6 +8,7 @@ at its last point with zero derivatives (a drone that finished its plan hovers).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -239,3 +240,33 @@ class Trajectory:
         c = np.zeros((1, N_COEFFS, 3))
         c[0, 0] = np.asarray(position, dtype=np.float64).reshape(3)
         return Trajectory(t0_s, c, np.array([duration_s]))
+
+    @staticmethod
+    def to_rest(
+        t0_s: float,
+        p: np.ndarray,
+        v: np.ndarray,
+        a: np.ndarray,
+        end: np.ndarray,
+        duration_s: float,
+    ) -> Trajectory:
+        """The one quintic piece from (p, v, a) (3,) float64 at ``t0_s`` to rest at ``end``
+        after ``duration_s`` (> 0): what a one-piece MINCO with both ends fixed is, in closed
+        form, a tenth of the time of ``Minco(1)`` (the planner and the monitor make one braking
+        stop per replan and per look)."""
+        T = float(duration_s)
+        if not (T > 0.0 and math.isfinite(T)):
+            raise ValueError(f"duration_s must be positive and finite, got {duration_s!r}")
+        T2 = T * T
+        T3 = T2 * T
+        dp = end - p
+        c = np.empty((1, N_COEFFS, 3))
+        c[0, 0] = p
+        c[0, 1] = v
+        c[0, 2] = 0.5 * a
+        c[0, 3] = (20.0 * dp - 12.0 * T * v - 3.0 * T2 * a) / (2.0 * T3)
+        c[0, 4] = (-30.0 * dp + 16.0 * T * v + 3.0 * T2 * a) / (2.0 * T3 * T)
+        c[0, 5] = (12.0 * dp - 6.0 * T * v - T2 * a) / (2.0 * T3 * T2)
+        if not (np.isfinite(c).all() and math.isfinite(t0_s)):
+            raise ValueError("trajectory contains non-finite values")
+        return Trajectory.trusted(t0_s, c, np.array([T]))

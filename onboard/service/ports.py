@@ -176,19 +176,13 @@ def braking_trajectory(
     for a collision ahead), lasting at least 0.5 s."""
     if not 0.0 < peak_fraction <= 1.0:
         raise ValueError(f"peak_fraction must be in (0, 1], got {peak_fraction!r}")
-    from onboard.planner.minco import Minco
-
     p = np.asarray(p, dtype=np.float64).reshape(3)
     v = np.asarray(v, dtype=np.float64).reshape(3)
     a = np.asarray(a, dtype=np.float64).reshape(3)
     speed = float(np.linalg.norm(v))
     # a rest-to-rest-like quintic from speed v over tb peaks at 1.5 v / tb
     tb = max(0.5, 1.5 * speed / (peak_fraction * max(a_max_m_s2, 1e-3)))
-    m = Minco(1)
-    z = np.zeros(3)
-    m.set_conditions(np.stack([p, v, a]), np.stack([p + 0.5 * tb * v, z, z]))
-    m.set_parameters(np.zeros((0, 3)), np.array([tb]))
-    return Trajectory(t0_s, m.coeffs, np.array([tb]))
+    return Trajectory.to_rest(t0_s, p, v, a, p + 0.5 * tb * v, tb)
 
 
 def climb_trajectory(
