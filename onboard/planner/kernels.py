@@ -565,6 +565,19 @@ def _is_known(fld: tuple, mode: int, known: np.ndarray, x: float, y: float, z: f
 
 
 @njit(cache=True, nogil=True)
+def _positions(coeffs: np.ndarray, T: np.ndarray, t_rel: np.ndarray) -> np.ndarray:
+    """Positions (K, 3) of the trajectory (coeffs, T) at the times ``t_rel`` (K,) from its
+    start."""
+    out = np.empty((t_rel.shape[0], 3))
+    for i in range(t_rel.shape[0]):
+        x, y, z = eval_position(coeffs, T, t_rel[i])
+        out[i, 0] = x
+        out[i, 1] = y
+        out[i, 2] = z
+    return out
+
+
+@njit(cache=True, nogil=True)
 def check_trajectory(
     coeffs: np.ndarray,
     T: np.ndarray,
@@ -593,11 +606,11 @@ def check_trajectory(
     from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
     starting at global time t0); the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
-    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A start closer than the
-    threshold to an obstacle or a peer is judged by ``_band`` with the floor of the reference
-    (ref_c (M, 6, 3), ref_T (M,), from global time ref_t0: the braking stop that would be flown
-    instead): its closest approach to that obstacle or peer over the samples up to t_from +
-    ref_s.
+    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A trajectory that comes
+    closer than the threshold to an obstacle or a peer is judged by ``_band`` with the floor
+    of the reference (ref_c (M, 6, 3), ref_T (M,), from global time ref_t0: the braking stop
+    that would be flown instead): its closest approach to that obstacle or peer over the
+    samples up to t_from + ref_s.
 
     Returns (code, band code, sample k, peer index, value at k, value at the start, t_k -
     t_from, clearance, ahead, samples): the value is the altitude (CHECK_ALTITUDE), the obstacle
@@ -655,16 +668,12 @@ def check_trajectory(
         clearance = min(clearance, dist[i])
         if ts[i] >= t_ahead:
             ahead = min(ahead, dist[i])
-    # the reference's positions on the samples up to t_from + ref_s (for a start inside)
+    # the reference's positions on the samples up to t_from + ref_s, made when a distance
+    # first comes inside its threshold
     n_ref = 1
     while n_ref < n and ts[n_ref] <= t_from + ref_s + 1e-9:
         n_ref += 1
-    ref = np.empty((n_ref, 3))
-    for i in range(n_ref):
-        x, y, z = eval_position(ref_c, ref_T, ts[i] - ref_t0)
-        ref[i, 0] = x
-        ref[i, 1] = y
-        ref[i, 2] = z
+    ref = np.empty((0, 3))
     # a way that comes inside a threshold but no closer than the braking stop: taken only
     # when nothing better is found (the first such, returned with CHECK_OK)
     m_band = BAND_OK
@@ -675,6 +684,7 @@ def check_trajectory(
     k = _argmin(dist)
     floor = math.inf
     if dist[k] < check_obstacle:
+        ref = _positions(ref_c, ref_T, ts[:n_ref] - ref_t0)
         for i in range(n_ref):
             floor = min(floor, _dist(fld, ref[i, 0], ref[i, 1], ref[i, 2]))
     band = _band(dist, check_obstacle, floor)
@@ -694,6 +704,8 @@ def check_trajectory(
         k = _argmin(dd)
         floor = math.inf
         if dd[k] < check_drone:
+            if ref.shape[0] == 0:
+                ref = _positions(ref_c, ref_T, ts[:n_ref] - ref_t0)
             for i in range(n_ref):
                 x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
                 floor = min(floor, norm3(ref[i, 0] - x, ref[i, 1] - y, ref[i, 2] - z))

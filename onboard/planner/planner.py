@@ -695,7 +695,9 @@ class FormationPlanner:
         inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
         it starts (or than a braking stop from there would within ``BRAKE_REFERENCE_S``, if
         that is closer: still moving inward, or a peer coming on) and leaves the band, so it
-        can always back out; (2) during the first
+        can always back out; a trajectory that starts outside and comes inside, but no closer
+        than that stop, is accepted with a reason (``MARGINAL``), which ``plan`` flies only as
+        a last resort; (2) during the first
         ``check_known_s`` (the part flown before the next replan can replace it) it does not
         enter space the field has not observed (``field.is_known``); a start in unobserved
         space may be left. Positions are sampled every ``check_step_s`` from
