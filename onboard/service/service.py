@@ -247,7 +247,8 @@ class FlightService:
         self._monitor_asked_s = -math.inf  # when the monitor asked for the replan awaited
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
-        # the conflict found for _monitor_key, and whether that plan holds still
+        # the conflict found for _monitor_key, whether that plan holds still, and whether a
+        # braking stop would come less close than it (else the monitor does not brake)
         self._monitor_problem: tuple[str, float, bool, bool] = ("", math.inf, False, True)
         self._plan_ms: list[float] = []
         self._plan_status = ""
