@@ -43,6 +43,7 @@ from onboard.comm.faults import BusFaults, FaultyBus
 from onboard.comm.messages import TrajectoryMsg
 from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.field import AnalyticField, DistanceField
+from onboard.planner.planner import APPROACH, APPROACH_S, LAST_RESORT
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -350,7 +351,9 @@ class SimResult:
     ok-no-formation, kept-previous or emergency refused one or more): ``attempts`` in all,
     ``unobserved`` of them because they entered unobserved map space within
     ``check_known_s``, ``obstacle`` / ``drone`` / ``altitude`` for those reasons (from the
-    plan reports' messages)."""
+    plan reports' messages); ``approach`` / ``last_resort``: replans that flew a refused way
+    toward a conflict more than ``APPROACH_S`` ahead, or one no closer than a stop
+    (``count_refusals``)."""
 
     def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
         """A JSON-serialisable summary (tracks only when asked: they are large)."""
@@ -406,14 +409,30 @@ class SimResult:
         return out
 
 
-REFUSAL_KEYS = ("attempts", "unobserved", "obstacle", "drone", "altitude", "other")
+REFUSAL_KEYS = (
+    "attempts",
+    "unobserved",
+    "obstacle",
+    "drone",
+    "altitude",
+    "other",
+    "approach",
+    "last_resort",
+)
 _ATTEMPT_PREFIXES = ("formation", "a* retry")
+_APPROACH_END = APPROACH.format(APPROACH_S)
 
 
 def count_refusals(message: str, counts: dict[str, int]) -> None:
     """Add the attempts a plan's message says the safety check refused to ``counts``
     (``REFUSAL_KEYS``): the planner joins one "<attempt>: <reason>" per refused attempt
-    (``FormationPlanner.plan``) with "; "."""
+    (``FormationPlanner.plan``) with "; ". ``approach`` and ``last_resort`` count the plans
+    flown although every attempt was refused (the message ends with ``APPROACH`` or
+    ``LAST_RESORT``)."""
+    if message.endswith(_APPROACH_END):
+        counts["approach"] += 1
+    elif message.endswith(LAST_RESORT):
+        counts["last_resort"] += 1
     for part in message.split("; "):
         if not part.startswith(_ATTEMPT_PREFIXES) or ": " not in part:
             continue

@@ -152,7 +152,13 @@ def test_refused_attempts_are_counted_by_reason() -> None:
     from gcs.fastsim import REFUSAL_KEYS, count_refusals
     from onboard.planner.field import AnalyticField, GridField
     from onboard.planner.params import PlannerParams
-    from onboard.planner.planner import FormationPlanner, PlanStatus
+    from onboard.planner.planner import (
+        APPROACH,
+        APPROACH_S,
+        LAST_RESORT,
+        FormationPlanner,
+        PlanStatus,
+    )
     from onboard.world import World
 
     exact = AnalyticField(World.empty(0.0))
@@ -173,12 +179,21 @@ def test_refused_attempts_are_counted_by_reason() -> None:
                    "0.3 m; a* retry without formation: drone 3 at 0.40 m at t=0.50 s; previous: "
                    "obstacle clearance 0.1 m at t=0.10 s", counts)  # fmt: skip
     assert (counts["attempts"], counts["obstacle"], counts["drone"]) == (2, 1, 1)
+    assert counts["approach"] == counts["last_resort"] == 0
+    for ending, key in ((APPROACH.format(APPROACH_S), "approach"), (LAST_RESORT, "last_resort")):
+        counts = dict.fromkeys(REFUSAL_KEYS, 0)
+        count_refusals(f"formation: obstacle clearance 0.28 m at t=9.10 s; {ending}", counts)
+        assert (counts["attempts"], counts["obstacle"], counts[key]) == (1, 1, 1)
 
 
 def test_a_flight_reports_its_refusals(small_flight: tuple[SimResult, list[PlanCall]]) -> None:
     r = small_flight[0]
     refused = sum(v for k, v in r.status_counts.items() if k != "ok")
     d = r.to_json()["refusals"]
-    assert set(d) == {"attempts", "unobserved", "obstacle", "drone", "altitude", "other"}
+    reasons = {"unobserved", "obstacle", "drone", "altitude", "other"}
+    assert set(d) == {"attempts", *reasons, "approach", "last_resort"}
     assert d["attempts"] >= refused  # every replan not "ok" refused at least one attempt
-    assert d["attempts"] == sum(v for k, v in d.items() if k != "attempts")
+    assert d["attempts"] == sum(d[k] for k in reasons)
+    # plans flown although every attempt was refused: counted once each, under their status
+    flown = sum(v for k, v in r.status_counts.items() if k in ("ok", "ok-no-formation"))
+    assert d["approach"] + d["last_resort"] <= flown

@@ -145,3 +145,23 @@ def test_the_closed_form_stop_is_the_one_piece_minco() -> None:
         Trajectory.to_rest(0.0, p, v, a, end, 0.0)
     with pytest.raises(ValueError):
         Trajectory.to_rest(0.0, p, v * np.nan, a, end, 1.0)
+
+
+def test_a_trajectory_cut_short_is_the_same_up_to_the_cut() -> None:
+    """``Trajectory.until`` (the planner's check of a way over its first seconds): the same
+    states up to the cut, which becomes its end, on a cut inside a piece and on a boundary."""
+    rng = np.random.default_rng(11)
+    m = Minco(4)
+    m.set_conditions(rng.normal(0.0, 1.0, (3, 3)), rng.normal(0.0, 1.0, (3, 3)))
+    m.set_parameters(rng.normal(0.0, 2.0, (3, 3)), np.array([0.7, 1.1, 0.4, 0.9]))
+    tr = Trajectory(5.0, m.coeffs, np.array([0.7, 1.1, 0.4, 0.9]))
+    for cut in (0.3, 0.7, 1.2, 1.8, 2.5, 3.09):
+        part = tr.until(5.0 + cut)
+        assert part.t0_s == tr.t0_s
+        assert part.t_end_s == pytest.approx(5.0 + cut, abs=1e-12)
+        ts = np.linspace(5.0, 5.0 + cut, 57)
+        for order in range(4):
+            np.testing.assert_allclose(part.sample(ts, order), tr.sample(ts, order), atol=1e-9)
+    assert tr.until(5.0 + 3.2) is tr and tr.until(100.0) is tr
+    with pytest.raises(ValueError):
+        tr.until(5.0)

@@ -10,6 +10,8 @@ from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import (
+    APPROACH,
+    APPROACH_S,
     LAST_RESORT,
     FormationPlanner,
     PeerTrajectory,
@@ -121,29 +123,53 @@ def test_two_drones_pass_each_other_with_separation() -> None:
     assert sep.min() >= params.check_drone_m
 
 
-def test_unreachable_goal_keeps_the_safe_previous_trajectory() -> None:
-    # the goal is inside a trunk: no new trajectory can be safe
+def test_an_unreachable_goal_is_approached_and_the_drone_holds_short_of_it() -> None:
+    """The goal is inside a trunk: no plan passes the check. A drone holding still far from
+    the trunk flies toward it (``APPROACH``: the conflict lies more than ``APPROACH_S`` ahead)
+    and looks again at every replan, then holds short of the trunk once every conflict is
+    nearer; never inside the check's distance on the part flown between replans. The old
+    planner held the first hover forever (mapped forest-medium seed 3 locked up that way)."""
     world = _world([[4.0, 0.0, 0.5, 0.0, 3.0]])
+    field = AnalyticField(world)
     params = PlannerParams(v_max_m_s=1.0)
     planner = FormationPlanner(params, LINE3, slot=1)
-    start = np.array([0.0, 0.0, 1.0])
-    previous = Trajectory.hover(start, 0.0, duration_s=3.0)
+    p, v, a = np.array([0.0, 0.0, 1.0]), ZERO, ZERO
     goal = np.array([4.0, 0.0, 1.0])
-    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], AnalyticField(world), previous=previous)
-    assert res.status == PlanStatus.KEPT_PREVIOUS
-    assert res.trajectory is previous
-    res = planner.plan(1.0, start, ZERO, ZERO, goal, [], AnalyticField(world), previous=None)
+    previous = Trajectory.hover(p, 0.0, duration_s=3.0)
+    t = 1.0
+    statuses = []
+    closest = np.inf
+    for k in range(14):
+        res = planner.plan(t, p, v, a, goal, [], field, previous=previous)
+        if k == 0:
+            assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
+            assert res.message.endswith(APPROACH.format(APPROACH_S)), res.message
+            assert np.linalg.norm(res.trajectory.sample(t + 1.0) - p) > 0.1
+        flown = res.trajectory.sample(np.linspace(t, t + 1.0, 201))
+        closest = min(closest, float(field.distance(flown)[0].min()))
+        statuses.append(res.status)
+        previous = res.trajectory
+        p, v, a = previous.state(t + 1.0)
+        t += 1.0
+    assert closest >= params.check_obstacle_m
+    assert statuses[-5:] == [PlanStatus.KEPT_PREVIOUS] * 5
+    assert np.linalg.norm(v) < 1e-9
+    held = float(field.distance(p[None, :])[0][0])
+    assert params.check_obstacle_m <= held < 1.5, f"held {held:.2f} m from the trunk"
+    # from there no approach is left: without a trajectory to keep, an emergency stop
+    res = planner.plan(t, p, v, a, goal, [], field, previous=None)
     assert res.status == PlanStatus.EMERGENCY
     tr = res.trajectory
     np.testing.assert_allclose(tr.sample(tr.t_end_s, order=1), ZERO, atol=1e-9)
-    np.testing.assert_allclose(tr.sample(tr.t0_s), start, atol=1e-9)
+    np.testing.assert_allclose(tr.sample(tr.t0_s), p, atol=1e-9)
 
 
 def test_emergency_stop_brakes_from_speed() -> None:
+    # 1.3 m from the trunk at 0.8 m/s: every way is refused within APPROACH_S
     world = _world([[4.0, 0.0, 0.5, 0.0, 3.0]])
     planner = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
     v = np.array([0.8, 0.0, 0.0])
-    res = planner.plan(0.0, np.array([0.0, 0, 1]), v, ZERO, np.array([4.0, 0, 1]), [],
+    res = planner.plan(0.0, np.array([2.2, 0, 1]), v, ZERO, np.array([4.0, 0, 1]), [],
                        AnalyticField(world))  # fmt: skip
     assert res.status == PlanStatus.EMERGENCY
     tr = res.trajectory

@@ -16,6 +16,8 @@ from onboard.planner.lbfgs import LbfgsStatus
 from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import (
+    APPROACH,
+    APPROACH_S,
     KEEP_MOVING_M,
     FormationPlanner,
     PeerTrajectory,
@@ -190,12 +192,17 @@ def test_a_drone_in_front_of_a_refused_gap_is_rescued_by_the_way_around(
     assert plan(RESCUE, None).status == PlanStatus.OK_NO_FORMATION
 
 
+@pytest.mark.parametrize("approach", [False, True])
 def test_a_refused_rescue_keeps_the_hover_and_counts_as_a_refusal(
-    ladders: list[tuple[tuple[float, ...], float]],
+    ladders: list[tuple[tuple[float, ...], float]], monkeypatch: Any, approach: bool
 ) -> None:
     """The narrow gap unobserved and a peer hovering in the wide one: the rescue's plan through
-    the wide gap is refused too, so the hover is kept; the message names the three refused
-    attempts, as the simulator counts them."""
+    the wide gap is refused too; the message names the three refused attempts, as the
+    simulator counts them. The peer lies more than ``APPROACH_S`` ahead, so the drone flies
+    the rescue's way toward it and looks again (``APPROACH``, no refusal more); were it nearer
+    (``APPROACH_S`` longer than the way), the hover would be kept."""
+    if not approach:
+        monkeypatch.setattr(planner_module, "APPROACH_S", 1e3)
     field = _gap_unobserved(_wall(0.3, False))
     peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.0, 2.2, 1.0]), 0.0, 30.0))]
     start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
@@ -204,8 +211,15 @@ def test_a_refused_rescue_keeps_the_hover_and_counts_as_a_refusal(
     params = _params(v_max_m_s=1.0, astar_keeps_formation=False)
     planner = FormationPlanner(params, LINE3, slot=1)
     res = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, hover)
-    assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
-    assert res.trajectory is hover
+    if approach:
+        assert res.status == PlanStatus.OK_NO_FORMATION, res.message
+        assert res.message.endswith(APPROACH.format(APPROACH_S)), res.message
+        ok, why = planner.check(res.trajectory.until(APPROACH_S), 0.0, field, peers)
+        assert ok and not why
+        assert not planner.check(res.trajectory, 0.0, field, peers)[0]
+    else:
+        assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
+        assert res.trajectory is hover
     assert [ladder for ladder, _ in ladders] == [TWO_STEP, RESCUE]
     assert "a* retry at the rescue levels without formation: drone 7 at" in res.message
     counts = dict.fromkeys(REFUSAL_KEYS, 0)

@@ -14,13 +14,16 @@ previous trajectory that still moves the drone (``KEEP_MOVING_M``) is kept. Othe
 A* path kept only the check's distance, one rescue attempt without the formation term starts
 from an A* path at the largest of the clearances in between that finds one
 (``astar_rescue_ladder_m``): the roomier way around a gap that the check refuses every plan
-through. Failing that a safe previous trajectory (a hover) is kept, else an emergency stop is
-returned. A caller short of time passes ``give_up``: once it says so, no further attempt starts
-while the previous trajectory is safe and moves the drone on; that trajectory is kept
-(``OVER_BUDGET``). A drone ahead of its slot relative to its peers plans with a lower speed
-limit (``lead_slowdown_m``), so the swarm waits for a drone left behind rather than stretching
-the shape for the rest of the flight. The planner never replaces a safe trajectory with an
-unsafe one, reads no clock and does no I/O; failure is a status, never an exception (bad
+through. Failing that a refused trajectory that the check accepts over its first
+``APPROACH_S`` is flown (the drone approaches and looks again), else a safe previous trajectory
+(a hover) is kept, else a last resort (``MARGINAL``) or an emergency stop is returned. A caller
+short of time passes ``give_up``: once it says so, no further attempt starts while the previous
+trajectory is safe and moves the drone on; that trajectory is kept (``OVER_BUDGET``). A drone
+ahead of its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so
+the swarm waits for a drone left behind rather than stretching the shape for the rest of the
+flight. The planner never returns a trajectory that the check refuses within ``APPROACH_S``,
+nor one refused later while the previous trajectory is safe and moves the drone on; it reads no
+clock and does no I/O; failure is a status, never an exception (bad
 *inputs* raise ValueError).
 
 The set-up (local target, initial guess), the solve and the safety check run in compiled code
@@ -67,6 +70,18 @@ it, a peer's motion says nothing about the moment the choice is made."""
 COMFORT_ASTAR_MARGIN_M = 1.5
 """The A* box of the comfort alternative grows the start-target box by this much (3 m for the
 fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
+APPROACH_S = 3.0
+"""When every attempt of a replan was refused and the drone would otherwise hold where it is
+(or brake to a stop), a refused trajectory that the check accepts over its first this long is
+flown (``APPROACH``): the drone approaches what it cannot pass yet and looks again at the next
+replan, rather than holding still forever in front of a way that every plan is refused for far
+ahead (mapped forest-medium seed 3, 2026-11-29: a drone hovered 150 s 0.78 m from a trunk,
+every plan refused for 0.26-0.30 m from an obstacle 9-15 s ahead). Three replan periods: the
+next replans can still stop it short of the conflict, and the service's monitor, which looks
+2 s ahead, never meets it. Not for plans in general: a check lenient far ahead for every plan
+let trunks closer and loosened the shape (BENCHMARKS, 2026-11-28)."""
+APPROACH = "flown toward a conflict at least {:g} s ahead, to look again"
+"""How the message of a plan flown that way ends (``APPROACH_S`` formatted in)."""
 KEEP_MOVING_M = 0.1
 """When every attempt of a replan was refused, a safe previous trajectory whose end lies at
 least this far from the replan's start is kept before the rescue attempt is tried (as before
@@ -906,6 +921,7 @@ class FormationPlanner:
         last_status: LbfgsStatus | None = None
         last_resort: tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray] | None
         last_resort = None
+        refused: list[tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]] = []
 
         def solve(
             use_formation: bool,
@@ -1011,8 +1027,32 @@ class FormationPlanner:
                     functools.partial(problem.cost_terms, x),
                 )
                 return result, problem, False
+            assert traj is not None
+            refused.append((ok_status, traj, last_status, problem, x))
             messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
             return None, problem, False
+
+        def approach() -> PlanResult | None:
+            """The first refused trajectory that the check accepts outright over its first
+            ``APPROACH_S`` (``APPROACH``), else None."""
+            t_cut = t_start_s + APPROACH_S
+            for status, traj, lb_status, problem, x in refused:
+                if traj.t_end_s <= t_cut:
+                    continue  # refused before its end: within APPROACH_S
+                safe, why, _, _ = self._check(
+                    traj.until(t_cut), t_start_s, field, view, peers, pack, brake
+                )
+                if safe and not why:
+                    return PlanResult(
+                        status,
+                        traj,
+                        iters,
+                        evals,
+                        lb_status,
+                        "; ".join([*messages, APPROACH.format(APPROACH_S)]),
+                        functools.partial(problem.cost_terms, x),
+                    )
+            return None
 
         attempts = [(True, False, PlanStatus.OK, "formation")]
         if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
@@ -1077,6 +1117,9 @@ class FormationPlanner:
             )
             if result is not None:
                 return result
+        # Rather than hold or stop in front of a way refused only far ahead: approach it.
+        if not canceled and (result := approach()) is not None:
+            return result
         if prev is not None:
             return PlanResult(
                 PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)

@@ -234,6 +234,20 @@ class Trajectory:
         ends = np.concatenate([[0.0], np.cumsum(self.durations_s)])
         return self.sample(self.t0_s + ends)
 
+    def until(self, t_global: float) -> Trajectory:
+        """The part of the trajectory up to ``t_global`` (after its start): the same pieces,
+        the last one cut short; the whole trajectory when it ends before ``t_global``."""
+        cut = float(t_global) - self.t0_s
+        if not cut > 0.0:
+            raise ValueError(f"until({t_global!r}) is not after the start {self.t0_s!r}")
+        ends = np.cumsum(self.durations_s)
+        if cut >= ends[-1]:
+            return self
+        m = int(np.searchsorted(ends, cut, side="left")) + 1
+        T = self.durations_s[:m].copy()
+        T[-1] = cut - (float(ends[m - 2]) if m > 1 else 0.0)  # > 0: ends[m - 2] < cut
+        return Trajectory.trusted(self.t0_s, self.coeffs[:m].copy(), T)
+
     @staticmethod
     def hover(position: np.ndarray, t0_s: float, duration_s: float = 1.0) -> Trajectory:
         """A one-piece trajectory that stays at ``position``."""
