@@ -392,3 +392,50 @@ def test_a_replan_over_its_time_budget_keeps_the_safe_previous_and_tries_no_more
         full.message,
         full.evaluations,
     )
+
+
+@pytest.mark.parametrize("see_still", [True, False])
+def test_the_a_star_path_leads_around_peers_out_of_the_formation_that_hold_still(
+    monkeypatch: Any, see_still: bool
+) -> None:
+    """Where a killed peer may have stopped (hovers 0.23 m apart along its last trajectory,
+    avoided only), 0.6 m from a trunk: no way passes between them. The A* search used to lead
+    straight through the hovers, which it does not know, and every plan was refused; a drone
+    behind them held still for 35 s (bench faults seed 1000, trial 45). The hovers are
+    obstacles to the search now, and the plan goes around them (``see_still`` False: the old
+    search, which holds the drone)."""
+    if not see_still:
+        monkeypatch.setattr(planner_module, "_still_peers", lambda peers, t: np.zeros((0, 3)))
+    world = World(
+        cylinders=np.array([[15.65, -0.62, 0.32, 0.0, 3.0]]),
+        rings=np.zeros((0, 7)),
+        boxes=np.zeros((0, 6)),
+        ground_z=0.0,
+    )
+    field = AnalyticField(world)
+    ghosts = np.linspace([15.75, 0.29, 1.0], [16.66, 0.51, 1.0], 5)
+    t0 = 28.7
+    peers = [
+        PeerTrajectory(0, 3 + k, Trajectory.hover(q, t0 - 0.1, 3600.0))
+        for k, q in enumerate(ghosts)
+    ]
+    n = LINE3.shape[0]
+    formation = np.vstack([LINE3, np.zeros((len(ghosts), 3))])
+    mask = np.zeros((n + len(ghosts),) * 2)
+    mask[:n, :n] = 1.0 - np.eye(n)
+    params = PlannerParams(v_max_m_s=1.0)
+    planner = FormationPlanner(params, formation, 1, edge_mask=mask)
+    start = np.array([14.97, -0.1, 1.0])
+    hover = Trajectory.hover(start, t0 - 1.0, 3.0)
+    res = planner.plan(t0, start, ZERO, ZERO, np.array([24.4, -0.72, 1.0]), peers, field, hover)
+    if not see_still:
+        assert res.status == PlanStatus.KEPT_PREVIOUS, res.message
+        return
+    assert res.status in (PlanStatus.OK, PlanStatus.OK_NO_FORMATION), res.message
+    assert planner.check(res.trajectory, t0, field, peers) == (True, "")
+    # around the hovers or around the trunk, not between them
+    pts = res.trajectory.sample(np.linspace(t0, res.trajectory.t_end_s, 400))
+    beside = pts[(pts[:, 0] > 15.75) & (pts[:, 0] < 16.66)]
+    above = beside[:, 1] > 0.29 + params.check_drone_m
+    below = beside[:, 1] < -0.62 - 0.32 - params.check_obstacle_m
+    assert beside.shape[0] and (np.all(above) or np.all(below))

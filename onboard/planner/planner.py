@@ -46,7 +46,7 @@ import numpy as np
 from onboard.planner import kernels as kn
 from onboard.planner import objective as obj
 from onboard.planner.astar import astar_path_levels
-from onboard.planner.field import AnalyticField, DistanceField, GridField
+from onboard.planner.field import AnalyticField, DistanceField, FieldData, GridField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
 from onboard.planner.minco import BAND_COLS
@@ -82,6 +82,15 @@ next replans can still stop it short of the conflict, and the service's monitor,
 let trunks closer and loosened the shape (BENCHMARKS, 2026-11-28)."""
 APPROACH = "flown toward a conflict at least {:g} s ahead, to look again"
 """How the message of a plan flown that way ends (``APPROACH_S`` formatted in)."""
+STILL_S = 4.0
+STILL_M = 0.05
+"""A peer out of the formation term whose trajectory stays within ``STILL_M`` of where it is
+over the next ``STILL_S`` holds still; the A* search treats it as an obstacle
+(``_still_peers``). The field does not
+know peers, and the optimiser avoids them only near the way it starts from: a drone behind
+where a killed peer may have stopped (hovers along its last trajectory) refused every way
+through them for 35 s, from an A* path that led straight through (bench faults seed 1000,
+trial 45, 2026-11-29)."""
 KEEP_MOVING_M = 0.1
 """When every attempt of a replan was refused, a safe previous trajectory whose end lies at
 least this far from the replan's start is kept before the rescue attempt is tried (as before
@@ -330,6 +339,52 @@ def _vectors(
     return a[0], a[1], a[2], a[3]
 
 
+def _still_peers(peers: Sequence[PeerTrajectory], t_s: float) -> np.ndarray:
+    """(K, 3) where the peers that hold still from ``t_s`` on stand: a peer whose trajectory
+    stays within ``STILL_M`` of its position at ``t_s`` over the next ``STILL_S`` (a hover
+    where a silent peer may have stopped, a stuck drone's re-announced hover, a peer at rest
+    at the end of its plan)."""
+    ts = t_s + np.linspace(0.0, STILL_S, 5)
+    out = []
+    for peer in peers:
+        pts = peer.trajectory.sample(ts)
+        if float(np.max(np.linalg.norm(pts - pts[0], axis=1))) < STILL_M:
+            out.append(pts[0])
+    return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+
+class _WithPoints:
+    """A field with vertical cylinders added (radius ``radius`` about each of ``points``):
+    what the A* guide path searches, so that it leads around peers that hold still, which the
+    field does not know, rather than over them (the drones fly at one altitude; the trajectory
+    keeps it). Used for A* only (distance, and unknown space as the field's)."""
+
+    def __init__(self, field: DistanceField, points: np.ndarray, radius: float) -> None:
+        self.field = field
+        self.points = points
+        self.radius = radius
+
+    def distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, g = self.field.distance(points)
+        d = np.array(d, dtype=np.float64)
+        g = np.array(g, dtype=np.float64)
+        for q in self.points:
+            off = points - q
+            off[:, 2] = 0.0
+            r = np.linalg.norm(off, axis=1)
+            dq = r - self.radius
+            closer = dq < d
+            d[closer] = dq[closer]
+            g[closer] = off[closer] / np.maximum(r[closer], 1e-12)[:, None]
+        return d, g
+
+    def kernel_data(self) -> FieldData:
+        raise NotImplementedError("a field for the A* search only")
+
+    def is_known(self, points: np.ndarray) -> np.ndarray:
+        return self.field.is_known(points)
+
+
 def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     try:
         a = np.array(v, dtype=np.float64)
@@ -445,12 +500,16 @@ class FormationPlanner:
         astar_margin_m: float,
         ladder: tuple[float, ...],
         horizon_m: float,
+        peers: Sequence[PeerTrajectory] = (),
     ) -> tuple[np.ndarray, np.ndarray, float]:
         """(local target, solver start x0, clearance of the A* path or NaN). The initial path
         is the previous trajectory (the warm start keeps its timing), else a straight line,
         else an A* path (at the largest of the clearances ``ladder`` that finds one) when the
         line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``. The
-        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``)."""
+        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``). The A*
+        search treats the peers outside the formation term (avoided only: silent, stuck,
+        expired, the hovers where a silent one may have stopped) that hold still
+        (``_still_peers``) as obstacles too; formation peers move on with the swarm."""
         p = self.params
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
@@ -478,6 +537,11 @@ class FormationPlanner:
         )
         clearance = math.nan
         if code == kn.GUESS_NEEDS_ASTAR:
+            row = self.mask[self.slot]
+            still = _still_peers([pt for pt in peers if not row[pt.slot] > 0.0], t_start)
+            if still.shape[0]:
+                radius = max(p.swarm_clearance_m, p.check_drone_m) - p.obstacle_clearance_m
+                field = _WithPoints(field, still, max(radius, 0.0))
             path, clearance = self._astar(sp, target, field, astar_margin_m, ladder)
             path[0] = sp
             x0 = kn.path_guess(
@@ -653,6 +717,7 @@ class FormationPlanner:
             astar_margin_m,
             ladder,
             horizon,
+            peers,
         )
         head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
