@@ -43,7 +43,7 @@ from onboard.comm.faults import BusFaults, FaultyBus
 from onboard.comm.messages import TrajectoryMsg
 from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.field import AnalyticField, DistanceField
-from onboard.planner.planner import APPROACH, APPROACH_S, LAST_RESORT
+from onboard.planner.planner import APPROACH, LAST_RESORT
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -352,7 +352,7 @@ class SimResult:
     ``unobserved`` of them because they entered unobserved map space within
     ``check_known_s``, ``obstacle`` / ``drone`` / ``altitude`` for those reasons (from the
     plan reports' messages); ``approach`` / ``last_resort``: replans that flew a refused way
-    toward a conflict more than ``APPROACH_S`` ahead, or one no closer than a stop
+    toward a conflict far ahead (``APPROACH``), or one no closer than a stop
     (``count_refusals``)."""
 
     def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
@@ -420,7 +420,6 @@ REFUSAL_KEYS = (
     "last_resort",
 )
 _ATTEMPT_PREFIXES = ("formation", "a* retry")
-_APPROACH_END = APPROACH.format(APPROACH_S)
 
 
 def count_refusals(message: str, counts: dict[str, int]) -> None:
@@ -429,7 +428,7 @@ def count_refusals(message: str, counts: dict[str, int]) -> None:
     (``FormationPlanner.plan``) with "; ". ``approach`` and ``last_resort`` count the plans
     flown although every attempt was refused (the message ends with ``APPROACH`` or
     ``LAST_RESORT``)."""
-    if message.endswith(_APPROACH_END):
+    if message.endswith(APPROACH):
         counts["approach"] += 1
     elif message.endswith(LAST_RESORT):
         counts["last_resort"] += 1

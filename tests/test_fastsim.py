@@ -154,7 +154,6 @@ def test_refused_attempts_are_counted_by_reason() -> None:
     from onboard.planner.params import PlannerParams
     from onboard.planner.planner import (
         APPROACH,
-        APPROACH_S,
         LAST_RESORT,
         FormationPlanner,
         PlanStatus,
@@ -180,7 +179,7 @@ def test_refused_attempts_are_counted_by_reason() -> None:
                    "obstacle clearance 0.1 m at t=0.10 s", counts)  # fmt: skip
     assert (counts["attempts"], counts["obstacle"], counts["drone"]) == (2, 1, 1)
     assert counts["approach"] == counts["last_resort"] == 0
-    for ending, key in ((APPROACH.format(APPROACH_S), "approach"), (LAST_RESORT, "last_resort")):
+    for ending, key in ((APPROACH, "approach"), (LAST_RESORT, "last_resort")):
         counts = dict.fromkeys(REFUSAL_KEYS, 0)
         count_refusals(f"formation: obstacle clearance 0.28 m at t=9.10 s; {ending}", counts)
         assert (counts["attempts"], counts["obstacle"], counts[key]) == (1, 1, 1)

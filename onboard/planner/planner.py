@@ -21,10 +21,10 @@ short of time passes ``give_up``: once it says so, no further attempt starts whi
 trajectory is safe and moves the drone on; that trajectory is kept (``OVER_BUDGET``). A drone
 ahead of its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so
 the swarm waits for a drone left behind rather than stretching the shape for the rest of the
-flight. The planner never returns a trajectory that the check refuses within ``APPROACH_S``,
-nor one refused later while the previous trajectory is safe and moves the drone on; it reads no
-clock and does no I/O; failure is a status, never an exception (bad
-*inputs* raise ValueError).
+flight. But for an emergency stop, the planner never returns a trajectory that the check
+refuses within ``APPROACH_S``, nor one refused later while the previous trajectory is safe and
+moves the drone on; it reads no clock and does no I/O; failure is a status, never an exception
+(bad *inputs* raise ValueError).
 
 The set-up (local target, initial guess), the solve and the safety check run in compiled code
 (``kernels``, ``objective``; the GIL is released there); this module validates the inputs,
@@ -80,17 +80,16 @@ every plan refused for 0.26-0.30 m from an obstacle 9-15 s ahead). Three replan 
 next replans can still stop it short of the conflict, and the service's monitor, which looks
 2 s ahead, never meets it. Not for plans in general: a check lenient far ahead for every plan
 let trunks closer and loosened the shape (BENCHMARKS, 2026-11-28)."""
-APPROACH = "flown toward a conflict at least {:g} s ahead, to look again"
-"""How the message of a plan flown that way ends (``APPROACH_S`` formatted in)."""
+APPROACH = f"flown toward a conflict at least {APPROACH_S:g} s ahead, to look again"
+"""How the message of a plan flown that way ends."""
 STILL_S = 4.0
 STILL_M = 0.05
 """A peer out of the formation term whose trajectory stays within ``STILL_M`` of where it is
 over the next ``STILL_S`` holds still; the A* search treats it as an obstacle
-(``_still_peers``). The field does not
-know peers, and the optimiser avoids them only near the way it starts from: a drone behind
-where a killed peer may have stopped (hovers along its last trajectory) refused every way
-through them for 35 s, from an A* path that led straight through (bench faults seed 1000,
-trial 45, 2026-11-29)."""
+(``_still_peers``). The field does not know peers, and the optimiser avoids them only near the
+way it starts from: a drone behind where a killed peer may have stopped (hovers along its last
+trajectory) refused every way through them for 35 s, from an A* path that led straight through
+(bench faults seed 1000, trial 45, 2026-11-29)."""
 KEEP_MOVING_M = 0.1
 """When every attempt of a replan was refused, a safe previous trajectory whose end lies at
 least this far from the replan's start is kept before the rescue attempt is tried (as before
@@ -1114,7 +1113,7 @@ class FormationPlanner:
                         iters,
                         evals,
                         lb_status,
-                        "; ".join([*messages, APPROACH.format(APPROACH_S)]),
+                        "; ".join([*messages, APPROACH]),
                         functools.partial(problem.cost_terms, x),
                     )
             return None

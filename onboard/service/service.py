@@ -63,7 +63,7 @@ from onboard.agent import (
     replan_asked_s,
     same_peers,
 )
-from onboard.planner.planner import APPROACH, APPROACH_S, LAST_RESORT, PlanStatus
+from onboard.planner.planner import APPROACH, LAST_RESORT, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
 from onboard.sensors.simulated import heading_yaw, look_velocity
@@ -107,8 +107,6 @@ log = logging.getLogger("onboard.service")
 
 S = FlightState
 _OK = (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
-_APPROACH_END = APPROACH.format(APPROACH_S)
-"""How the message of a plan flown toward a conflict far ahead ends (``plans_approach``)."""
 HOLDING_STILL_M = 0.01
 """A plan whose positions over the monitor's horizon stay within this (and whose velocity is
 nil now) holds still: the monitor does not brake it (see ``monitor_step``)."""
@@ -1014,7 +1012,7 @@ class FlightService:
                     if why.endswith(LAST_RESORT):  # inside a check distance, less than a stop
                         self.counters["plans_last_resort"] += 1
                         event(log, "plan_last_resort", logging.WARNING, why=why)
-                    elif why.endswith(_APPROACH_END):  # refused far ahead, else holding still
+                    elif why.endswith(APPROACH):  # refused far ahead, else holding still
                         self.counters["plans_approach"] += 1
                         event(log, "plan_approach", logging.INFO, why=why)
                     m.plan_ok()
