@@ -1096,26 +1096,36 @@ class FormationPlanner:
             messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
             return None, problem, False
 
+        def flown(
+            entry: tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray],
+            ending: str,
+        ) -> PlanResult:
+            """A kept attempt (a last resort, a refused one) flown; its message ends with
+            ``ending``."""
+            status, traj, lb_status, problem, x = entry
+            return PlanResult(
+                status,
+                traj,
+                iters,
+                evals,
+                lb_status,
+                "; ".join([*messages, ending]),
+                functools.partial(problem.cost_terms, x),
+            )
+
         def approach() -> PlanResult | None:
             """The first refused trajectory that the check accepts outright over its first
             ``APPROACH_S`` (``APPROACH``), else None."""
             t_cut = t_start_s + APPROACH_S
-            for status, traj, lb_status, problem, x in refused:
+            for entry in refused:
+                traj = entry[1]
                 if traj.t_end_s <= t_cut:
                     continue  # refused before its end: within APPROACH_S
                 safe, why, _, _ = self._check(
                     traj.until(t_cut), t_start_s, field, view, peers, pack, brake
                 )
                 if safe and not why:
-                    return PlanResult(
-                        status,
-                        traj,
-                        iters,
-                        evals,
-                        lb_status,
-                        "; ".join([*messages, APPROACH]),
-                        functools.partial(problem.cost_terms, x),
-                    )
+                    return flown(entry, APPROACH)
             return None
 
         attempts = [(True, False, PlanStatus.OK, "formation")]
@@ -1190,16 +1200,7 @@ class FormationPlanner:
             )
         if last_resort is not None:
             # nothing stays outside the check's distances; this comes no closer than the stop
-            status, traj, lb_status, problem, x = last_resort
-            return PlanResult(
-                status,
-                traj,
-                iters,
-                evals,
-                lb_status,
-                "; ".join([*messages, LAST_RESORT]),
-                functools.partial(problem.cost_terms, x),
-            )
+            return flown(last_resort, LAST_RESORT)
         return PlanResult(
             PlanStatus.EMERGENCY,
             brake,
