@@ -434,6 +434,20 @@ def _numpy_swarm_setup(
         horizon = float(np.linalg.norm(w))
         goal_t = sp + (horizon + (dist - h) + 1.0) * (w / horizon)
     amount = math.nan
+    centroid = reference("centroid")
+    if lead and p.lead_from_slowest and p.lead_turned and centroid is not None:
+        # the template turned about its centroid to the members' least-squares yaw
+        g = F[:, :2] - F[:, :2].mean(axis=0)
+        q = P[:, :2] - P[:, :2].mean(axis=0)
+        th = math.atan2(float(np.sum(g[:, 0] * q[:, 1] - g[:, 1] * q[:, 0])),
+                        float(np.sum(g[:, 0] * q[:, 0] + g[:, 1] * q[:, 1])))  # fmt: skip
+        Ft = F.copy()
+        Ft[:, :2] = F[:, :2].mean(axis=0) + g @ np.array(
+            [[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]]
+        )
+        r, u, _ = centroid
+        along = ((P - Ft) - r) @ u
+        return goal_t, horizon, float(along[0] - along.min())
     if lead:
         lead_ref = reference("slowest") if p.lead_from_slowest else ref
         d = goal - sp
@@ -451,10 +465,16 @@ def test_swarm_setup_is_the_numpy_one() -> None:
     """The compiled swarm set-up (members, reference, local goal, lead) against numpy, in every
     reference mode, with partial formation graphs, near and at the goal's origin, alone."""
     rng = np.random.default_rng(11)
-    seen = dict.fromkeys(("far", "near", "at the origin", "alone", "lead fallback"), 0)
+    seen = dict.fromkeys(
+        ("far", "near", "at the origin", "alone", "lead fallback", "lead turned"), 0
+    )
     for trial in range(240):
         mode = ("own-goal", "centroid", "slowest")[trial % 3]
-        params = PlannerParams(swarm_target=mode, lead_from_slowest=bool(trial // 3 % 2))
+        params = PlannerParams(
+            swarm_target=mode,
+            lead_from_slowest=bool(trial // 3 % 2),
+            lead_turned=bool(trial // 6 % 2),
+        )
         mask = None if trial % 5 else (rng.uniform(size=(7, 7)) < 0.4).astype(float)
         slot = int(rng.integers(0, 7))
         planner = FormationPlanner(params, HEX, slot, mask)
@@ -497,6 +517,8 @@ def test_swarm_setup_is_the_numpy_one() -> None:
             seen["far" if not np.array_equal(got[0], goal) else "near"] += 1
         if n_members >= 2 and mode == "own-goal" and not params.lead_from_slowest:
             seen["lead fallback"] += 1
+        if n_members >= 2 and params.lead_from_slowest and params.lead_turned:
+            seen["lead turned"] += 1
     assert min(seen.values()) >= 3, seen  # every branch was compared
 
 

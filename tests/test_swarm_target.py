@@ -102,7 +102,8 @@ def test_slowest_waits_for_the_member_behind() -> None:
     assert off[0] == pytest.approx(sp[0] + h, abs=1e-6)
     assert cen[0] == pytest.approx(sp[0] + h - 1.0, abs=0.01)
     assert slow[0] == pytest.approx(sp[0] + h - 3.0, abs=0.01)
-    params = PlannerParams(swarm_target="slowest", lead_slowdown_m=6.0)
+    # at the template's yaw (a line of three that lags at one end also reads as turned)
+    params = PlannerParams(swarm_target="slowest", lead_slowdown_m=6.0, lead_turned=False)
     planner = FormationPlanner(params, LINE3, slot=1)
     goal = GOAL_ORIGIN + LINE3[1]
     _, _, lead = planner._swarm_setup(0.0, sp, goal, peers, _pack_peers(peers), True)
@@ -260,7 +261,9 @@ def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
     sp = np.array([3.0, 0.0, 1.0])
     peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
     goal = GOAL_ORIGIN + LINE3[1]
-    base = PlannerParams(lead_slowdown_m=4.0, lead_deadband_m=1.0, lead_min_speed_frac=0.1)
+    base = PlannerParams(
+        lead_slowdown_m=4.0, lead_deadband_m=1.0, lead_min_speed_frac=0.1, lead_turned=False
+    )
     for slowest, lead in ((False, 5.0 / 3.0), (True, 3.0)):
         params = dataclasses.replace(base, lead_from_slowest=slowest)
         planner = FormationPlanner(params, LINE3, slot=1)
@@ -271,6 +274,35 @@ def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
         )
     with pytest.raises(ValueError, match="lead_deadband_m"):
         PlannerParams(lead_deadband_m=-1.0)
+
+
+@pytest.mark.parametrize("yaw_deg", [30.0, -20.0])
+def test_a_formation_flown_turned_is_no_drone_ahead_of_another(yaw_deg: float) -> None:
+    """The line flown turned by ``yaw_deg``, every drone in its turned slot: at the template's
+    own yaw the end drone ahead reads a lead of 1.5 m (at 30 deg) over the other end and is
+    slowed; measured against the template turned to the swarm's yaw (``lead_turned``, an
+    option) it has none, as the formation term, e_sim and e_dist see it."""
+    th = np.radians(yaw_deg)
+    turn = np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0, 0, 1]])
+    origin = np.array([3.0, 0.0, 1.0])
+    at = origin + LINE3 @ turn.T
+    front = int(np.argmax(at[:, 0]))
+    peers = [_peer(k, list(at[k])) for k in range(3) if k != front]
+    goal = GOAL_ORIGIN + LINE3[front]
+    base = PlannerParams(lead_slowdown_m=4.0, lead_deadband_m=0.5, lead_min_speed_frac=0.1)
+    assert base.lead_from_slowest and not base.lead_turned  # off by default
+    full = base.v_max_m_s * base.limit_margin
+    for turned in (True, False):
+        params = dataclasses.replace(base, lead_turned=turned)
+        problem = FormationPlanner(params, LINE3, slot=front).prepare(
+            0.0, at[front], ZERO, ZERO, goal, peers, EMPTY
+        )
+        v = float(problem.prob[3][obj.P_V_MAX])
+        if turned:
+            assert v == pytest.approx(full, rel=1e-9)
+        else:
+            lead = 3.0 * abs(np.sin(th))
+            assert v == pytest.approx(full * (1.0 - (lead - 0.5) / 4.0), rel=1e-6)
 
 
 def test_while_reforming_the_lead_is_measured_from_the_centroid_and_the_shape_pulls_harder() -> (

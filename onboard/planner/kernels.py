@@ -361,6 +361,49 @@ def _slowest_back(origins: np.ndarray, r: np.ndarray, u: np.ndarray) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _turned(F: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The template points ``F`` (K, 3) turned about the vertical through their centroid by the
+    yaw that fits them best (least squares) to the members' positions ``P`` (K, 3): the
+    formation's slots as the swarm holds them, which the formation term (like e_sim and e_dist)
+    does not tell from the template's own yaw."""
+    k = F.shape[0]
+    fx = 0.0
+    fy = 0.0
+    px = 0.0
+    py = 0.0
+    for j in range(k):
+        fx += F[j, 0]
+        fy += F[j, 1]
+        px += P[j, 0]
+        py += P[j, 1]
+    fx /= k
+    fy /= k
+    px /= k
+    py /= k
+    a = 0.0
+    b = 0.0
+    for j in range(k):
+        gx = F[j, 0] - fx
+        gy = F[j, 1] - fy
+        qx = P[j, 0] - px
+        qy = P[j, 1] - py
+        a += gx * qx + gy * qy
+        b += gx * qy - gy * qx
+    out = F.copy()
+    if a == 0.0 and b == 0.0:
+        return out
+    th = math.atan2(b, a)
+    c = math.cos(th)
+    s = math.sin(th)
+    for j in range(k):
+        gx = F[j, 0] - fx
+        gy = F[j, 1] - fy
+        out[j, 0] = fx + c * gx - s * gy
+        out[j, 1] = fy + s * gx + c * gy
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _swarm_reference(
     P: np.ndarray, F: np.ndarray, goal: np.ndarray, slowest: bool
 ) -> tuple[bool, np.ndarray, np.ndarray, float]:
@@ -401,6 +444,7 @@ def swarm_setup(
     ref_mode: int,
     lead: bool,
     lead_from_slowest: bool,
+    lead_turned: bool,
 ) -> tuple[np.ndarray, float, float]:
     """(goal, horizon, lead) of a replan at global time ``t`` from the packed peers (``c``,
     ``T``, ``n``, ``t0``): the members are this drone at ``sp`` and the packed peers ``rows``
@@ -417,7 +461,9 @@ def swarm_setup(
     ahead of the reference along the shared path: the slowest member's reference with
     ``lead_from_slowest``, else the local target's. Without that reference: its offset from
     the members' centroid minus its slot's offset from their template's, projected on the
-    direction to ``goal`` (0 at the goal or alone)."""
+    direction to ``goal`` (0 at the goal or alone). With ``lead_from_slowest`` and
+    ``lead_turned`` the origin estimates of the lead take the template turned to the members'
+    yaw (``_turned``): a formation flown turned is no member ahead of another."""
     K = rows.shape[0] + 1
     pos = peer_positions(c, T, n, t0, t)
     P = np.empty((K, 3))
@@ -448,6 +494,13 @@ def swarm_setup(
             goal_t = sp + ((reach + (dist - horizon_m)) + 1.0) * w
             horizon = reach
     amount = math.nan
+    if lead and lead_from_slowest and lead_turned and K >= 2:
+        # from the centroid reference (the direction u of every mode), each member's origin
+        # estimate with the template turned to the swarm's yaw, which keeps its centroid
+        found_c, r_c, u_c, _ = _swarm_reference(P, F, goal, False)
+        if found_c:
+            O = P - _turned(F, P)
+            return goal_t, horizon, _dot3(O[0] - r_c, u_c) - _slowest_back(O, r_c, u_c)
     if lead:
         # the slowest reference: the local target's one already, moved back from the centroid
         # one, or computed afresh (a centroid one that was not found is not found either)

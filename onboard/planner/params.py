@@ -150,6 +150,17 @@ class PlannerParams:
     shared path (the 'slowest' reference of ``swarm_target``) instead of the centroid or the
     swarm target's reference: a drone left behind slows every drone ahead of it, not only by
     its share of the centroid."""
+    lead_turned: bool = False
+    """With ``lead_from_slowest``: measure the members' leads against the template turned to the
+    yaw the swarm holds (a least-squares fit), not at the template's own yaw. The formation
+    term, e_sim and e_dist do not see the yaw, and the swarm turns by up to 30 deg in a forest;
+    at the template's yaw a turned formation reads as drones ahead and drones behind, and the
+    front ones wait for a "laggard" in its place in the shape (``bench faults --seed 1000``:
+    a swarm that had lost two members flew on at 0.5-0.6 m/s instead of 0.9 and arrived at 62 s
+    instead of 44-47 s without the slow-down, 2026-11-29). Off by default: on, the table's mean
+    e_sim fell in every density and 1757 of 1772 healthy drones arrived in 300 fault trials
+    (1725 off), but one of those trials had a collision (a peer killed in a close pass stopped
+    in the other's way), none off; BENCHMARKS section 8, 2026-11-29 (fourth session)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
     flight's first assignment is not a change) a drone plans with ``reform_params``: the lead

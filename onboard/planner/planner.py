@@ -611,6 +611,7 @@ class FormationPlanner:
             _REF_MODES[p.swarm_target],
             lead,
             p.lead_from_slowest,
+            p.lead_turned,
         )
         return goal_t, float(horizon), float(amount)
 
