@@ -367,19 +367,9 @@ def _turned(F: np.ndarray, P: np.ndarray) -> np.ndarray:
     formation's slots as the swarm holds them, which the formation term (like e_sim and e_dist)
     does not tell from the template's own yaw."""
     k = F.shape[0]
-    fx = 0.0
-    fy = 0.0
-    px = 0.0
-    py = 0.0
-    for j in range(k):
-        fx += F[j, 0]
-        fy += F[j, 1]
-        px += P[j, 0]
-        py += P[j, 1]
-    fx /= k
-    fy /= k
-    px /= k
-    py /= k
+    mf = _row_mean(F)
+    mp = _row_mean(P)
+    fx, fy, px, py = mf[0], mf[1], mp[0], mp[1]
     a = 0.0
     b = 0.0
     for j in range(k):
