@@ -43,15 +43,10 @@ system-deps:
 		$$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$need; \
 	fi
 
-# No byte-compiling of every installed module at install time (~11 000 files, open3d's
-# dependencies mostly): Python compiles what is imported when it is first imported. Measured
-# on 2 cores (2026-11-29): the 3.10 environment's install 112 s -> 62 s.
-PIP_NO_COMPILE := --no-compile
-
 $(STAMP): pyproject.toml | system-deps
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q $(PIP_NO_COMPILE) -e ".[dev]"
+	$(PY) -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
 lint: $(STAMP)
@@ -90,7 +85,7 @@ PYTEST_PARALLEL := -m "not fleet and not vehicle" -n $(shell echo $$(( $$(env -u
 # the single vehicles' (FLIGHTS_vehicle) one at a time (`make -j2 --output-sync`: each run's
 # output printed whole).
 # A vehicle flight is light (~0.35 of a core); the fleet's average about one core, the demo's
-# 1.6, so the demo goes last, after the ~90 s of vehicle flights. (Before: the vehicle run, 2 at
+# 1.6, so the demo goes last, after the ~2 minutes of vehicle flights. (Before: the vehicle run, 2 at
 # a time, 49 s, then the fleet run alone, ~280 s.) pytest-xdist's `--dist loadgroup` would do
 # this in one run, but its group marks do nothing under pytest 9 (it renames `item._nodeid`,
 # which pytest 9 no longer reads).
@@ -104,8 +99,11 @@ KERNEL_SMOKE := $(addprefix tests/test_planner_kernels.py::test_,np_sum_is_numpy
 SMOKE_TESTS := tests/test_imports.py tests/test_layers.py $(KERNEL_SMOKE) \
 	tests/test_sitl_autopilot.py tests/test_zenoh_bus.py tests/test_view.py tests/test_report.py
 # numba's kernels compiled once, two processes side by side, before the xdist workers start
-# (else each worker compiles the same kernels at the same time: tests/warm_kernels.py)
-WARM = $(1) tests/warm_kernels.py planner & p=$$!; $(1) tests/warm_kernels.py rest; r=$$?; \
+# (else each worker compiles the same kernels at the same time: tests/warm_kernels.py). First
+# the packages' bytecode, written once: where PYTHONDONTWRITEBYTECODE is set (this machine's
+# environment sets it) every one of the suite's processes would compile them again on import.
+WARM = $(1) -m compileall -q onboard gcs sitl_mock || exit 1; \
+	$(1) tests/warm_kernels.py planner & p=$$!; $(1) tests/warm_kernels.py rest; r=$$?; \
 	wait $$p && test $$r = 0
 pytest: $(STAMP)
 ifeq ($(strip $(PYTHON310)),)
@@ -127,7 +125,7 @@ $(STAMP310): pyproject.toml | system-deps
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq python3.10-venv; }
 	test -x $(PY310) || $(PYTHON310) -m venv $(VENV310)
 	$(PY310) -m pip install -q --upgrade pip
-	$(PY310) -m pip install -q $(PIP_NO_COMPILE) -e ".[dev]"
+	$(PY310) -m pip install -q -e ".[dev]"
 	touch $(STAMP310)
 
 ifeq ($(strip $(PYTHON310)),)

@@ -184,7 +184,7 @@ def test_a_killed_service_fails_safe_comes_back_out_of_control_and_rejoins(
 
 
 @pytest.mark.slow
-@pytest.mark.fleet
+@pytest.mark.vehicle  # one vehicle and its one flight service: light, beside the fleet's flights
 @pytest.mark.timeout(240)
 def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
     tmp_path: Path,
