@@ -42,6 +42,7 @@ Trials are shortened by a time limit (``--time-limit``, default 60 s simulated) 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -172,16 +173,26 @@ def trial_config(
     time_limit_s: float | None,
     kill_model: str = "px4",
     monitor_hz: float = 100.0,
+    planner: Any = None,
+    peer_silence_s: float | None = None,
 ) -> Any:
-    """The ``SimConfig`` of a trial (hexagon-7, its world and seed, its faults)."""
+    """The ``SimConfig`` of a trial (hexagon-7, its world and seed, its faults); ``planner``:
+    the planner's parameters (None: config/planner.yaml), flown at ``v_max_m_s``;
+    ``peer_silence_s``: None for the simulator's default."""
     from gcs.fastsim import SimConfig
     from onboard.config import load_formation, load_world_spec
 
+    extra: dict[str, Any] = {}
+    if planner is not None:
+        extra["planner"] = dataclasses.replace(planner, v_max_m_s=v_max_m_s)
+    else:
+        extra["v_max_m_s"] = v_max_m_s
+    if peer_silence_s is not None:
+        extra["peer_silence_s"] = peer_silence_s
     return SimConfig(
         load_formation(FORMATION),
         load_world_spec(trial.world),
         seed=trial.seed,
-        v_max_m_s=v_max_m_s,
         time_limit_s=time_limit_s,
         bus_faults=trial.bus,
         fault_seed=trial.seed,
@@ -191,6 +202,7 @@ def trial_config(
         peer_forget_s=AVOID_FOR_S,
         kill_model=kill_model,
         monitor_rate_hz=monitor_hz,
+        **extra,
     )
 
 
@@ -316,11 +328,13 @@ class ReactionLog:
         return out
 
 
-def _run_one(args: tuple[FaultTrial, float, float | None, str, float]) -> dict[str, Any]:
+def _run_one(
+    args: tuple[FaultTrial, float, float | None, str, float, Any, float | None],
+) -> dict[str, Any]:
     from gcs.fastsim import run_sim
 
-    trial, v_max, limit, kill_model, monitor_hz = args
-    cfg = trial_config(trial, v_max, limit, kill_model, monitor_hz)
+    trial, v_max, limit, kill_model, monitor_hz, planner, peer_silence_s = args
+    cfg = trial_config(trial, v_max, limit, kill_model, monitor_hz, planner, peer_silence_s)
     log = ReactionLog(
         cfg.formation.n, cfg.plan_ahead_s, sorted(set(trial.killed) | set(trial.stuck))
     )
@@ -331,7 +345,20 @@ def _run_one(args: tuple[FaultTrial, float, float | None, str, float]) -> dict[s
     row["reactions"] = log.reactions(stopped)
     row["healthy_hover_plans"] = log.healthy_hover_plans
     row["healthy_dropped_plans"] = log.healthy_dropped_plans
+    # what was flown: the planner's parameters that differ from config/planner.yaml's
+    from onboard.config import load_planner_params
+
+    base = dataclasses.asdict(load_planner_params(v_max_m_s=cfg.params.v_max_m_s))
+    row["planner_changes"] = {
+        k: v for k, v in dataclasses.asdict(cfg.params).items() if not _same(v, base[k])
+    }
+    row["v_max_m_s"] = cfg.params.v_max_m_s
+    row["peer_silence_s"] = cfg.peer_silence_s
     return row
+
+
+def _same(a: Any, b: Any) -> bool:
+    return bool(np.array_equal(a, b)) if isinstance(a, np.ndarray) else bool(a == b)
 
 
 def run_bench(
@@ -346,9 +373,12 @@ def run_bench(
     first: int = 0,
     kill_model: str = "px4",
     monitor_hz: float = 100.0,
+    planner: Any = None,
+    peer_silence_s: float | None = None,
 ) -> dict[str, Any]:
     """Fly ``trials`` trials (indices ``first`` ... ``first + trials - 1``) on ``jobs``
-    processes; the whole report (see ``summarise``)."""
+    processes; the whole report (see ``summarise``). ``planner`` and ``peer_silence_s`` as in
+    ``trial_config``."""
     from onboard.config import load_formation
 
     if trials < 1:
@@ -365,6 +395,8 @@ def run_bench(
             time_limit_s,
             kill_model,
             monitor_hz,
+            planner,
+            peer_silence_s,
         )
         for k in range(first, first + trials)
     ]
@@ -503,7 +535,35 @@ def _reaction_summary(rows: Sequence[dict[str, Any]], kind: str) -> dict[str, An
     show_default=True,
     help="Rate of the flight service's safety monitor between replans (0: off).",
 )
-@click.option("--v-max", "v_max", default=1.0, show_default=True, help="Speed limit, m/s.")
+@click.option(
+    "--v-max",
+    "v_max",
+    default=None,
+    type=float,
+    help="Speed limit, m/s [default: 1.0, unless --set v_max_m_s= gives it].",
+)
+@click.option(
+    "--planner",
+    "planner_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Planner parameter file (default config/planner.yaml).",
+)
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a planner parameter, e.g. --set lead_turned=true (repeatable).",
+)
+@click.option(
+    "--peer-silence",
+    "peer_silence_s",
+    default=None,
+    type=float,
+    help="Heard of nothing newer for this long [s], a peer is quiet: avoided where it may "
+    "have stopped [default: the simulator's, 0.5].",
+)
 @click.option(
     "--time-limit",
     "time_limit_s",
@@ -522,7 +582,10 @@ def bench_faults(
     first: int,
     kill_model: str,
     monitor_hz: float,
-    v_max: float,
+    v_max: float | None,
+    planner_file: Path | None,
+    sets: tuple[str, ...],
+    peer_silence_s: float | None,
     time_limit_s: float,
     json_path: Path | None,
     quiet: bool,
@@ -538,8 +601,19 @@ def bench_faults(
         raise click.BadParameter("must be >= 0", param_hint="--first")
     if not (math.isfinite(monitor_hz) and monitor_hz >= 0.0):
         raise click.BadParameter("must be >= 0", param_hint="--monitor-hz")
-    if not (math.isfinite(v_max) and v_max > 0.0):
+    if v_max is not None and not (math.isfinite(v_max) and v_max > 0.0):
         raise click.BadParameter("must be > 0", param_hint="--v-max")
+    if peer_silence_s is not None and not (math.isfinite(peer_silence_s) and peer_silence_s > 0.0):
+        raise click.BadParameter("must be > 0", param_hint="--peer-silence")
+    from gcs.cli import _planner_params, _sets_v_max
+    from onboard.config import ConfigError
+
+    if v_max is None and not _sets_v_max(sets):
+        v_max = 1.0
+    try:
+        planner = _planner_params(planner_file, sets, v_max)
+    except ConfigError as exc:
+        raise click.ClickException(str(exc)) from exc
     if not time_limit_s >= 0.0:
         raise click.BadParameter("must be >= 0", param_hint="--time-limit")
 
@@ -559,13 +633,21 @@ def bench_faults(
         trials,
         jobs,
         seed,
-        v_max,
+        planner.v_max_m_s,
         time_limit_s or None,
         on_trial=line,
         first=first,
         kill_model=kill_model,
         monitor_hz=monitor_hz,
+        planner=planner,
+        peer_silence_s=peer_silence_s,
     )
+    rep["settings"] = {
+        "planner_file": None if planner_file is None else str(planner_file),
+        "set": list(sets),
+        "v_max_m_s": planner.v_max_m_s,
+        "peer_silence_s": peer_silence_s,
+    }
     es = rep["e_sim_remaining_mean"]
     click.echo(
         f"{rep['n_trials']} trials in {rep['wall_s']:.0f} s ({jobs} jobs), faults "

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gcs.bench_faults import ReactionLog, bench_faults, draw_trial, run_bench
+from gcs.bench_faults import ReactionLog, bench_faults, draw_trial, run_bench, trial_config
 from gcs.fastsim import PeerAudit, PlanCall, SimConfig, SimResult, run_sim
 from onboard.agent import HOVER_S, PlanInputs
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults
 from onboard.comm.messages import TrajectoryMsg
-from onboard.config import load_formation, load_world_spec
+from onboard.config import load_formation, load_planner_params, load_world_spec
 from onboard.planner.field import AnalyticField
 from onboard.planner.planner import PeerTrajectory
 from onboard.planner.trajectory import Trajectory
@@ -297,3 +297,48 @@ def test_run_bench_refuses_bad_arguments() -> None:
         run_bench(0, 1, 0)
     with pytest.raises(ValueError, match="jobs"):
         run_bench(1, 0, 0)
+
+
+def test_a_trial_flies_the_planner_and_the_silence_it_is_given() -> None:
+    trial = draw_trial(5, 0, 7, (3.0, 25.0))
+    default = trial_config(trial, 1.0, 60.0)
+    assert default.params.lead_turned is False and default.peer_silence_s == 0.5
+    p = load_planner_params(lead_turned=True, v_max_m_s=0.5)
+    cfg = trial_config(trial, 1.0, 60.0, planner=p, peer_silence_s=0.3)
+    # the trial's speed limit wins over the parameters' own
+    assert cfg.params.lead_turned is True and cfg.params.v_max_m_s == 1.0
+    assert cfg.peer_silence_s == 0.3
+    assert dataclasses.replace(cfg.params, lead_turned=False) == default.params
+
+
+def test_bench_faults_command_takes_planner_settings(tmp_path: Path) -> None:
+    out = tmp_path / "faults.json"
+    args = ["--trials", "1", "--jobs", "1", "--seed", "3", "--time-limit", "2", "-q"]
+    res = CliRunner().invoke(
+        bench_faults,
+        [*args, "--set", "lead_turned=true", "--peer-silence", "0.3", "--json", str(out)],
+    )
+    assert res.exit_code == 0, res.output
+    rep = json.loads(out.read_text())
+    # flown, not only written down
+    row = rep["trials"][0]
+    assert row["planner_changes"] == {"lead_turned": True} and row["peer_silence_s"] == 0.3
+    settings = rep["settings"]
+    assert settings == {
+        "planner_file": None,
+        "set": ["lead_turned=true"],
+        "v_max_m_s": 1.0,
+        "peer_silence_s": 0.3,
+    }
+    res = CliRunner().invoke(bench_faults, [*args, "--set", "v_max_m_s=0.5", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    rep = json.loads(out.read_text())
+    assert rep["settings"]["v_max_m_s"] == 0.5 and rep["trials"][0]["v_max_m_s"] == 0.5
+    assert rep["trials"][0]["planner_changes"] == {} and rep["trials"][0]["peer_silence_s"] == 0.5
+    for bad, what in (
+        (["--set", "no_such_key=1"], "no_such_key"),
+        (["--set", "v_max_m_s=0.5", "--v-max", "1.0"], "disagree"),
+        (["--peer-silence", "0"], "--peer-silence"),
+    ):
+        res = CliRunner().invoke(bench_faults, [*args, *bad])
+        assert res.exit_code != 0 and what in res.output, (bad, res.output)
