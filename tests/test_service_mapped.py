@@ -159,7 +159,7 @@ def _land(gs: GroundStation, mock: MockProcess, drones: list[int], alive: Any) -
 
 
 @pytest.mark.slow
-@pytest.mark.fleet
+@pytest.mark.vehicle  # one vehicle and its flight service: beside the fleet's flights
 @pytest.mark.timeout(300)
 def test_service_maps_the_mocks_depth_frames_and_flies_around_a_trunk(tmp_path: Path) -> None:
     trunk = (2.5, 0.0, 0.25, 0.0, 3.0)  # on the straight line from the start to the goal
