@@ -30,7 +30,9 @@ A quiet peer may have died (its autopilot then holds where it was: PX4's offboar
 failsafe) anywhere along its last trajectory after it was last heard: besides its last
 trajectory, it is avoided as hovers ("ghosts") at points ``ghost_spacing_m`` apart along that
 trajectory from where it was last heard to where it could have flown in ``ghost_window_s`` more
-(its messages in between lost), and at its last reported position; ``watch`` asks for a replan
+(its messages in between lost), at its last reported position, and along the straight line
+PX4's failsafe carries a vehicle on from where it died (``_coast``: along the velocity it had,
+which a turning trajectory leaves); ``watch`` asks for a replan
 at once only if the trajectory we fly comes closer than ``check_drone_m`` to a ghost (it is in
 our way). A quiet peer stays in the formation term until it is *silent*: quiet for longer than
 its silence limit, the longest *quiet spell* it had in the last ``spell_window_s`` (the age of
@@ -117,6 +119,15 @@ GHOST_WINDOW_S = 1.0
 state period or two before it died, then PX4's offboard-loss failsafe, which keeps the last
 setpoint for COM_OF_LOSS_T (1 s) and so carries the vehicle on about 0.65 s worth of its speed
 (position gain MPC_XY_P 0.95: ``v (1 - exp(-0.95)) / 0.95``) before it brakes to a hold."""
+OFFBOARD_LOSS_S = 1.0
+"""PX4's COM_OF_LOSS_T (v1.16 default): how long its position controller keeps the last
+setpoint (position and velocity feed-forward) once the stream stops, before the failsafe."""
+PX4_POSITION_GAIN = 0.95
+"""PX4's MPC_XY_P (v1.16 default, 1/s): over ``OFFBOARD_LOSS_S`` the vehicle carries on in a
+straight line along the velocity it had, slowing: ``p + v (1 - exp(-k t)) / k``."""
+COAST_DEATH_S = 0.2
+"""A quiet peer may have died this long after its newest message (two state periods); it
+carries on in a straight line from where its trajectory had it then (``_coast``)."""
 GHOST_FORGET_S = 60.0
 """A quiet peer's ghosts (where its vehicle may hold) are avoided this long."""
 MONITOR_REPLAN_AFTER_S = 0.3
@@ -1327,7 +1338,8 @@ class DroneAgent:
         """Where each quiet peer may have stopped (its ghosts, avoided as hovers): points
         ``ghost_spacing_m`` apart along its last reported position and its last trajectory
         from when it was last heard to ``ghost_window_s`` later (one replan period more without
-        states; at most now)."""
+        states; at most now), and along the straight lines PX4's failsafe would carry it on
+        had it died up to ``COAST_DEATH_S`` after it was last heard (``_coast``)."""
         out: list[tuple[int, np.ndarray]] = []
         for pid in sorted(quiet):
             with self._peer_lock:
@@ -1350,11 +1362,37 @@ class DroneAgent:
             pts = tr.sample(ts)
             if state is not None and state.position is not None and state.stamp_s >= h - EPS_T:
                 pts = np.vstack([state.position, pts])
+            # the coasts from moments it may have died, 0.1 s apart (a state period; the
+            # rest points of two such moments lie up to ~0.3 m apart at 1 m/s and 3 m/s^2),
+            # each point kept only if no ghost is within half a spacing: every hover is a peer
+            # the planner avoids
+            t_d = min(t_b, t_a + lim - self.peer_silence_s + COAST_DEATH_S)
             ghosts = _spaced(pts, self.ghost_spacing_m)
+            for t in np.linspace(t_a, t_d, 1 + int(math.ceil((t_d - t_a) / 0.1 - 1e-9))):
+                for q in _spaced(self._coast(tr, t), self.ghost_spacing_m):
+                    if np.min(np.linalg.norm(ghosts - q, axis=1)) >= 0.5 * self.ghost_spacing_m:
+                        ghosts = np.vstack([ghosts, q])
             ghosts.setflags(write=False)
             self._ghost_cache[pid] = ((seen, state, t_a, t_b), ghosts)
             out.extend((pid, p) for p in ghosts)
         return out
+
+    def _coast(self, tr: Trajectory, t: float) -> np.ndarray:
+        """(2, 3): where a peer flying ``tr`` whose setpoints stop at ``t`` comes to rest,
+        from where it was then: PX4's offboard-loss failsafe keeps the last setpoint for
+        ``OFFBOARD_LOSS_S``, so the vehicle carries on in a straight line along the velocity it
+        had (its trajectory may have turned away: a peer crossing toward us to pass behind us
+        comes on toward us), slowing with gain ``PX4_POSITION_GAIN``, then brakes to a hold
+        (half an ``a_max`` stop, as the flight service's ``braking_trajectory``)."""
+        p, v, _ = tr.state(t)
+        speed = float(np.linalg.norm(v))
+        if speed < 1e-6:
+            return np.stack([p, p])
+        decay = math.exp(-PX4_POSITION_GAIN * OFFBOARD_LOSS_S)
+        carry = speed * (1.0 - decay) / PX4_POSITION_GAIN
+        v1 = speed * decay
+        brake = 0.5 * v1 * max(0.5, 3.0 * v1 / max(self.params.a_max_m_s2, 1e-3))
+        return np.stack([p, p + v * ((carry + brake) / speed)])
 
     def _split_peers(
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float, silent: set[int]

@@ -274,3 +274,35 @@ def test_views_of_the_same_peers_are_told_apart_from_changed_ones() -> None:
     a.heard(1, 0.9, tr2.sample(0.9))
     new = a.peer_view(0.9)
     assert new.deviating == () and new.hover_ids == () and not same_peers(v1, new)
+
+
+def test_a_quiet_peer_is_avoided_where_px4s_failsafe_carries_it_not_only_along_its_path() -> None:
+    """Peer 1 flies toward us (+y at 1 m/s) on a path that turns away (4 m/s^2 along +x). If
+    it died after its last message, PX4's offboard-loss failsafe carries it on in a straight
+    line along the velocity it had, not along the turn (bench faults seed 1000 trial 61: a
+    killed drone coasted into the drone whose path it was about to leave). Its ghosts must
+    hold where the simulator's model of that failsafe brings it to rest, for a death up to
+    two state periods after the last message (at 0.1 s steps); its path alone passes 0.3 m or
+    more from there."""
+    from gcs.fastsim import offboard_loss_trajectory
+
+    bus = InMemoryBus()
+    a = _agent(bus, None)
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = [0.0, -2.0, 1.0]
+    c[0, 1] = [0.0, 1.0, 0.0]
+    c[0, 2] = [2.0, 0.0, 0.0]  # x = 2 t^2
+    tr = Trajectory(0.0, c, np.array([600.0]))
+    bus.publish(TrajectoryMsg(1, 0, 1, tr, valid_until_s=3.0), 0.0)
+    a.heard(1, 0.0, tr.sample(0.0))
+    first = a.peer_view(0.4)
+    assert first.quiet + first.silent == () and first.hover_points.size == 0
+    view = a.peer_view(0.6)
+    assert view.quiet + view.silent == (1,)  # silent too: no quiet spells heard
+    path = tr.sample(np.arange(0.0, 1.5, 0.01))
+    for died in (0.0, 0.1, 0.2):
+        fs = offboard_loss_trajectory(died, *tr.state(died), 1.0, 0.95, PARAMS.a_max_m_s2, 10.0)
+        rest = fs.sample(fs.t_end_s)
+        assert np.linalg.norm(fs.sample(fs.t_end_s - 5.0) - rest) < 1e-9  # at rest by then
+        assert np.min(np.linalg.norm(path - rest, axis=1)) >= 0.3
+        assert np.min(np.linalg.norm(view.hover_points - rest, axis=1)) < 0.05, died
