@@ -83,12 +83,11 @@ PYTEST_PARALLEL := -m "not fleet and not vehicle" -n $(shell echo $$(( $$(env -u
 # costs ~10 s a run); -m still selects the tests within them.
 # The flights: the fleet's (FLIGHTS_fleet) one at a time, and beside them, in a second pytest,
 # the single vehicles' (FLIGHTS_vehicle) one at a time (`make -j2 --output-sync`: each run's
-# output printed whole).
-# A vehicle flight is light (~0.35 of a core); the fleet's average about one core, the demo's
-# 1.6, so the demo goes last, after the ~2 minutes of vehicle flights. (Before: the vehicle run, 2 at
-# a time, 49 s, then the fleet run alone, ~280 s.) pytest-xdist's `--dist loadgroup` would do
-# this in one run, but its group marks do nothing under pytest 9 (it renames `item._nodeid`,
-# which pytest 9 no longer reads).
+# output printed whole). A vehicle flight is light (~0.35 of a core); the fleet's average about
+# one core, the demo's 1.6, so the demo goes last, after the ~2 minutes of vehicle flights.
+# (Before: the vehicle run, 2 at a time, 49 s, then the fleet run alone, ~280 s; BENCHMARKS
+# section 11.) pytest-xdist's `--dist loadgroup` would do this in one run, but its group marks
+# do nothing under pytest 9 (it renames `item._nodeid`, which pytest 9 no longer reads).
 FLEET_FILES := $(shell grep -l "mark\.fleet" tests/test_*.py)
 FLIGHTS_fleet := -m fleet $(filter-out tests/test_demo.py,$(FLEET_FILES)) \
 	$(filter tests/test_demo.py,$(FLEET_FILES))
