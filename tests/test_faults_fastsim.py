@@ -5,6 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -342,3 +347,49 @@ def test_bench_faults_command_takes_planner_settings(tmp_path: Path) -> None:
     ):
         res = CliRunner().invoke(bench_faults, [*args, *bad])
         assert res.exit_code != 0 and what in res.output, (bad, res.output)
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    rest = f.read().rsplit(") ", 1)[1].split()
+            except OSError:
+                continue
+            if int(rest[1]) == pid and rest[0] != "Z":
+                out.add(int(d))
+    return out
+
+
+def test_a_terminated_bench_leaves_no_worker_flying() -> None:
+    """SIGTERM to ``bench faults`` on two workers: it ends and so do its pool's workers (they
+    went on flying the trials queued to them before)."""
+    cmd = "from gcs.cli import main; main()"
+    args = ["bench", "faults", "--trials", "8", "--jobs", "2", "--seed", "3", "-q"]
+    proc = subprocess.Popen([sys.executable, "-c", cmd, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    kids: set[int] = set()
+    try:
+        end = time.monotonic() + 60.0
+        while len(kids) < 3 and time.monotonic() < end:  # two workers and the resource tracker
+            assert proc.poll() is None, proc.communicate()
+            kids |= _children(proc.pid)
+            time.sleep(0.2)
+        assert len(kids) >= 3, kids
+        time.sleep(2.0)  # the workers at their trials
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30.0)  # not its output: orphaned workers would hold its pipes open
+        # at once: a worker left alone would first finish its trial (several seconds)
+        end = time.monotonic() + 3.0
+        while {k for k in kids if os.path.exists(f"/proc/{k}")} and time.monotonic() < end:
+            time.sleep(0.1)
+        assert not {k for k in kids if os.path.exists(f"/proc/{k}")}
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        for k in kids:
+            if os.path.exists(f"/proc/{k}"):
+                os.kill(k, signal.SIGKILL)
