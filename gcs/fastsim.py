@@ -34,6 +34,8 @@ from onboard.agent import (
     GHOST_WINDOW_S,
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_REPLAN_AFTER_S,
+    OFFBOARD_LOSS_S,
+    PX4_POSITION_GAIN,
     DroneAgent,
     MapSource,
     PlanInputs,
@@ -132,9 +134,9 @@ class SimConfig:
     so the vehicle carries on and slows (``p = p0 + v0 (1 - exp(-k t)) / k`` with ``k`` =
     ``px4_position_gain``, MPC_XY_P), then the failsafe brakes it to a hold. 'instant': it
     stops dead where it is (no vehicle can; the harshest case, kept for comparison)."""
-    offboard_loss_s: float = 1.0
+    offboard_loss_s: float = OFFBOARD_LOSS_S
     """PX4's COM_OF_LOSS_T (v1.16 default 1.0 s), for ``kill_model`` 'px4'."""
-    px4_position_gain: float = 0.95
+    px4_position_gain: float = PX4_POSITION_GAIN
     """PX4's MPC_XY_P (v1.16 default 0.95 1/s), for ``kill_model`` 'px4'."""
     monitor_rate_hz: float = 0.0
     """The safety monitor of the flight service between replans (0: off): at this rate every
