@@ -83,6 +83,10 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
          "unknown key"),
         ("reactions:\n  peer_lost: {peer_silence_s: 0.15}\n",
          "reactions.peer_lost.peer_silence_s", "bus.state_rate_hz 10"),
+        ("reactions:\n  peer_lost: {peer_silence_in_way_s: 0.15}\n",
+         "reactions.peer_lost.peer_silence_in_way_s", "bus.state_rate_hz 10"),
+        ("reactions:\n  peer_lost: {peer_silence_in_way_s: 0}\n",
+         "reactions.peer_lost: peer_silence_in_way_s", "[0.05, 60]"),
         ("reactions:\n  peer_lost: {peer_silence_s: 0.8, peer_silence_max_s: 0.6}\n",
          "reactions.peer_lost: peer_silence_max_s", "at least peer_silence_s"),
     ],
@@ -103,6 +107,7 @@ def test_the_peer_reaction_defaults_are_the_agents() -> None:
 
     pl = load_onboard_config(default_config_path()).reactions.peer_lost
     assert pl.peer_silence_s == ag.PEER_SILENCE_S
+    assert pl.peer_silence_in_way_s == ag.PEER_SILENCE_IN_WAY_S
     assert pl.peer_silence_max_s == ag.PEER_SILENCE_MAX_S
     assert pl.peer_deviation_m == ag.PEER_DEVIATION_M
     assert pl.ghost_window_s == ag.GHOST_WINDOW_S
@@ -117,7 +122,7 @@ def test_the_peer_reaction_keys_reach_the_agent(tmp_path: Path) -> None:
     text = (
         "reactions:\n  peer_lost: {peer_silence_s: 0.8, peer_deviation_m: 0.5, "
         "ghost_window_s: 0.7, ghost_forget_s: 30, avoid_for_s: 4, validity_s: 2, "
-        "peer_silence_max_s: 2.5}\n"
+        "peer_silence_max_s: 2.5, peer_silence_in_way_s: 0.4}\n"
     )
     cfg = load_onboard_config(_write(tmp_path, text))
     svc = FlightService(cfg, FakeAutopilot(lambda: 0.0), FakeBus(), notifier=Notifier({}))
@@ -130,8 +135,9 @@ def test_the_peer_reaction_keys_reach_the_agent(tmp_path: Path) -> None:
         a.peer_forget_s,
         a.validity_s,
         a.peer_silence_max_s,
+        a.peer_silence_in_way_s,
     )
-    assert got == (0.8, 0.5, 0.7, 30.0, 4.0, 2.0, 2.5)
+    assert got == (0.8, 0.5, 0.7, 30.0, 4.0, 2.0, 2.5, 0.4)
 
 
 def test_each_drone_gets_its_own_autopilot_origin(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ from onboard.agent import (
     GHOST_FORGET_S,
     GHOST_WINDOW_S,
     PEER_DEVIATION_M,
+    PEER_SILENCE_IN_WAY_S,
     PEER_SILENCE_MAX_S,
     PEER_SILENCE_S,
 )
@@ -432,6 +433,10 @@ class PeerLostReaction:
     peer_silence_s: float = PEER_SILENCE_S
     """Nothing heard from a peer for this long: it is quiet, avoided at its ghosts (more than 2
     state periods)."""
+    peer_silence_in_way_s: float = PEER_SILENCE_IN_WAY_S
+    """Nothing heard from a peer for this long and its ghosts in our way: quiet already (a
+    peer dying as it crosses toward us comes on along PX4's failsafe coast); a value above
+    ``peer_silence_s`` acts as ``peer_silence_s``."""
     peer_silence_max_s: float = PEER_SILENCE_MAX_S
     """Nothing heard from a peer for this long: it is silent, out of the formation, whatever its
     link's recent quiet spells (at least ``peer_silence_s``)."""
@@ -447,6 +452,7 @@ class PeerLostReaction:
         _in_range("validity_s", self.validity_s, 0.1, 60.0)
         _in_range("avoid_for_s", self.avoid_for_s, 0.0, 600.0)
         _in_range("peer_silence_s", self.peer_silence_s, 0.05, 60.0)
+        _in_range("peer_silence_in_way_s", self.peer_silence_in_way_s, 0.05, 60.0)
         _in_range("peer_silence_max_s", self.peer_silence_max_s, 0.05, 60.0)
         if self.peer_silence_max_s < self.peer_silence_s:
             raise ValueError(
@@ -575,6 +581,13 @@ class OnboardConfig:
                 f"reactions.peer_lost.peer_silence_s: {silence:g} s is less than two state "
                 f"periods (bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers would be "
                 "taken for silent between their states"
+            )
+        in_way = self.reactions.peer_lost.peer_silence_in_way_s
+        if not in_way >= 2.0 / self.bus.state_rate_hz:
+            raise ValueError(
+                f"reactions.peer_lost.peer_silence_in_way_s: {in_way:g} s is less than two "
+                f"state periods (bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers in "
+                "our way would be taken for quiet between their states"
             )
         if not g.min_enu_m[2] + self.flight.takeoff_altitude_m <= g.max_enu_m[2]:
             raise ValueError(

@@ -194,6 +194,7 @@ class FlightService:
             validity_s=rc.validity_s,
             peer_forget_s=rc.avoid_for_s,
             peer_silence_s=rc.peer_silence_s,
+            peer_silence_in_way_s=rc.peer_silence_in_way_s,
             peer_silence_max_s=rc.peer_silence_max_s,
             ghost_window_s=rc.ghost_window_s,
             ghost_forget_s=rc.ghost_forget_s,
