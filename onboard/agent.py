@@ -93,7 +93,7 @@ from onboard.planner.planner import (
     PeerTrajectory,
     PlanStatus,
 )
-from onboard.planner.trajectory import Trajectory
+from onboard.planner.trajectory import Trajectory, braking_distance_m
 
 EPS_T = 1e-9
 """Times closer than this count as equal (a trajectory starting at t is in control at t)."""
@@ -1425,7 +1425,7 @@ class DroneAgent:
         decay = math.exp(-PX4_POSITION_GAIN * OFFBOARD_LOSS_S)
         carry = speed * (1.0 - decay) / PX4_POSITION_GAIN
         v1 = speed * decay
-        brake = 0.5 * v1 * max(0.5, 3.0 * v1 / max(self.params.a_max_m_s2, 1e-3))
+        brake = braking_distance_m(v1, self.params.a_max_m_s2)
         return np.stack([p, p + v * ((carry + brake) / speed)])
 
     def _split_peers(

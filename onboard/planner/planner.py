@@ -941,10 +941,8 @@ class FormationPlanner:
         return traj, safe, why, clearance, ahead
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
-        """A one-piece braking trajectory to rest."""
-        speed = float(np.linalg.norm(sv))
-        Tb = max(0.5, 3.0 * speed / self.params.a_max_m_s2)
-        return Trajectory.to_rest(t_start, sp, sv, sa, sp + 0.5 * Tb * sv, Tb)
+        """A one-piece braking trajectory to rest (a gentle stop, as the service's)."""
+        return Trajectory.braking(t_start, sp, sv, sa, self.params.a_max_m_s2)
 
     # --- the replan -------------------------------------------------------------------------
 

@@ -256,6 +256,20 @@ class Trajectory:
         return Trajectory(t0_s, c, np.array([duration_s]))
 
     @staticmethod
+    def braking(
+        t0_s: float,
+        p: np.ndarray,
+        v: np.ndarray,
+        a: np.ndarray,
+        a_max_m_s2: float,
+        peak_fraction: float = 0.5,
+    ) -> Trajectory:
+        """A braking stop from (p, v, a) (3,) float64 at ``t0_s``: ``to_rest`` over
+        ``braking_duration_s``, ending ``braking_distance_m`` along v."""
+        tb = braking_duration_s(float(np.linalg.norm(v)), a_max_m_s2, peak_fraction)
+        return Trajectory.to_rest(t0_s, p, v, a, p + 0.5 * tb * v, tb)
+
+    @staticmethod
     def to_rest(
         t0_s: float,
         p: np.ndarray,
@@ -284,3 +298,19 @@ class Trajectory:
         if not (np.isfinite(c).all() and math.isfinite(t0_s)):
             raise ValueError("trajectory contains non-finite values")
         return Trajectory.trusted(t0_s, c, np.array([T]))
+
+
+def braking_duration_s(speed_m_s: float, a_max_m_s2: float, peak_fraction: float = 0.5) -> float:
+    """How long a braking stop from ``speed_m_s`` lasts when its deceleration peaks at about
+    ``peak_fraction`` of ``a_max_m_s2`` (a rest-to-rest-like quintic over tb peaks at 1.5 v /
+    tb; from a steady speed the default, a gentle stop, averages a third of the limit; 1.0 is
+    the hardest stop within it): at least 0.5 s. The planner's own stop, the flight service's
+    brakes and the agent's model of a peer's failsafe stop all brake this way."""
+    if not 0.0 < peak_fraction <= 1.0:
+        raise ValueError(f"peak_fraction must be in (0, 1], got {peak_fraction!r}")
+    return max(0.5, 1.5 * speed_m_s / (peak_fraction * max(a_max_m_s2, 1e-3)))
+
+
+def braking_distance_m(speed_m_s: float, a_max_m_s2: float, peak_fraction: float = 0.5) -> float:
+    """How far a braking stop (``braking_duration_s``) from ``speed_m_s`` carries on."""
+    return 0.5 * speed_m_s * braking_duration_s(speed_m_s, a_max_m_s2, peak_fraction)

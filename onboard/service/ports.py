@@ -174,15 +174,10 @@ def braking_trajectory(
     deceleration peaks at about ``peak_fraction`` of ``a_max_m_s2`` (from a steady speed; the
     default, a gentle stop, averages a third of it; 1.0 is the hardest stop within the limit,
     for a collision ahead), lasting at least 0.5 s."""
-    if not 0.0 < peak_fraction <= 1.0:
-        raise ValueError(f"peak_fraction must be in (0, 1], got {peak_fraction!r}")
     p = np.asarray(p, dtype=np.float64).reshape(3)
     v = np.asarray(v, dtype=np.float64).reshape(3)
     a = np.asarray(a, dtype=np.float64).reshape(3)
-    speed = float(np.linalg.norm(v))
-    # a rest-to-rest-like quintic from speed v over tb peaks at 1.5 v / tb
-    tb = max(0.5, 1.5 * speed / (peak_fraction * max(a_max_m_s2, 1e-3)))
-    return Trajectory.to_rest(t0_s, p, v, a, p + 0.5 * tb * v, tb)
+    return Trajectory.braking(t0_s, p, v, a, a_max_m_s2, peak_fraction)
 
 
 def climb_trajectory(
