@@ -26,7 +26,8 @@ kind: a new trajectory (``valid_until_s - validity_s``; the receive time when va
 infinite) or a state message the owner passes to ``heard`` (10 Hz in the service and the
 simulator). It is *quiet* when nothing newer was heard for ``peer_silence_s`` (plus one replan
 period for a peer never heard through ``heard``, whose trajectories are its only sign of life),
-or already for ``peer_silence_in_way_s`` (as much more) when ``watch`` then finds its ghosts
+or already for ``peer_silence_in_way_s`` (as much more; on a link whose quiet spells are
+longer, their longest plus ``IN_WAY_SPELL_MARGIN_S``) when ``watch`` then finds its ghosts
 (below) in our way, until it is heard again: a peer that dies as it crosses toward us comes on
 along PX4's failsafe coast, and the 0.2 s gained are the room to evade it.
 A quiet peer may have died (its autopilot then holds where it was: PX4's offboard-loss
@@ -105,9 +106,15 @@ PEER_SILENCE_S = 0.5
 """A peer heard of nothing newer for this long is quiet: avoided where it may have stopped."""
 PEER_SILENCE_IN_WAY_S = 0.3
 """A peer heard of nothing newer for this long (but less than ``PEER_SILENCE_S``) is quiet
-already if its ghosts lie in our way: three state periods. A peer that dies while it crosses
-toward us comes on along PX4's failsafe coast; at 0.9 m/s from 0.85 m the quiet limit's 0.2 s
-are the margin between evading it and touching it (``bench faults --seed 1000``, trial 61)."""
+already if its ghosts lie in our way, on a link whose quiet spells allow it (``IN_WAY_SPELL_
+MARGIN_S``): three state periods. A peer that dies while it crosses toward us comes on along
+PX4's failsafe coast; at 0.9 m/s from 0.85 m the quiet limit's 0.2 s are the margin between
+evading it and touching it (``bench faults --seed 1000``, trial 61)."""
+IN_WAY_SPELL_MARGIN_S = 0.15
+"""... but at least its longest recent quiet spell plus this: on a clean link (spells of one
+look period plus the bus's delay, 0.15 s in fast time) the in-the-way limit holds; on a
+delayed or lossy one (spells of 0.45-0.55 s with up to 300 ms of delay) a healthy peer in a
+formation lane would be taken for quiet again and again, and the limit is the quiet one."""
 PEER_SILENCE_MAX_S = 1.5
 """A quiet peer is silent (out of the formation) at the latest this long after its newest
 message was sent (10 Hz states with 28 % of them missing: 12 in a row with p = 2e-7)."""
@@ -899,10 +906,13 @@ class DroneAgent:
     def _in_way_limit(self, pid: int) -> float:
         """How long ``pid`` may be heard of nothing newer before it is quiet if its ghosts lie
         in our way (``watch`` looks): ``peer_silence_in_way_s`` (one replan period more
-        without states)."""
-        if not math.isfinite(self.peer_silence_s):
+        without states), but at least its longest recent quiet spell plus
+        ``IN_WAY_SPELL_MARGIN_S`` and at most its quiet limit. Under ``_peer_lock``."""
+        quiet = self._silence_limit(pid)
+        if not math.isfinite(quiet):
             return math.inf
-        return self.peer_silence_in_way_s + (self._silence_limit(pid) - self.peer_silence_s)
+        base = self.peer_silence_in_way_s + (quiet - self.peer_silence_s)
+        return min(quiet, max(base, self._longest_spell(pid) + IN_WAY_SPELL_MARGIN_S))
 
     def _is_quiet(self, pid: int, h: float, now: float) -> bool:
         """Quiet: heard of nothing newer than ``h`` for longer than its quiet limit, or found
