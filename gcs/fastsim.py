@@ -178,8 +178,9 @@ class SimConfig:
     under a second (0.8 s grazed one in bench faults seed 1000 trial 59). With 10 Hz states a
     live drone goes unheard this long with probability 3e-4 per look under 20 % loss, ~1 % with
     loss, 300 ms delays and reordering together (harmless: quiet, not silent). A peer whose
-    ghosts lie in a drone's way is quiet for it after ``DroneAgent``'s
-    ``peer_silence_in_way_s`` (0.3 s) already."""
+    ghosts lie in a drone's way is quiet for it already after ``DroneAgent``'s
+    ``peer_silence_in_way_s`` (0.3 s) on a clean link (its longest recent quiet spell plus
+    0.15 s, if longer)."""
 
     def __post_init__(self) -> None:
         positive = ("replan_period_s", "dt_s", "sample_period_s", "goal_tolerance_m")

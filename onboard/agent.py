@@ -1005,15 +1005,19 @@ class DroneAgent:
                 elif now - h > self._silence_limit(pid):
                     if pid in self._seen and self._in_way.get(pid) != h:
                         quiet.append((pid, h))
-                elif now - h > self._in_way_limit(pid):
-                    if pid in self._seen and self._in_way.get(pid) != h:
-                        early.append((pid, h))
-                elif self._deviation(pid) is not None:
-                    if pid not in self._deviant:
-                        self._deviant.add(pid)
-                        out.append(pid)
                 else:
-                    self._deviant.discard(pid)
+                    if (
+                        now - h > self._in_way_limit(pid)
+                        and pid in self._seen
+                        and self._in_way.get(pid) != h
+                    ):
+                        early.append((pid, h))
+                    if self._deviation(pid) is not None:
+                        if pid not in self._deviant:
+                            self._deviant.add(pid)
+                            out.append(pid)
+                    else:
+                        self._deviant.discard(pid)
         for pid, h in quiet + early:  # outside the lock: sampling trajectories
             if self._in_the_way(pid, now):
                 with self._peer_lock:
