@@ -264,8 +264,11 @@ class Trajectory:
         a_max_m_s2: float,
         peak_fraction: float = 0.5,
     ) -> Trajectory:
-        """A braking stop from (p, v, a) (3,) float64 at ``t0_s``: ``to_rest`` over
+        """A braking stop from (p, v, a) (3,) at ``t0_s``: ``to_rest`` over
         ``braking_duration_s``, ending ``braking_distance_m`` along v."""
+        p = np.asarray(p, dtype=np.float64).reshape(3)
+        v = np.asarray(v, dtype=np.float64).reshape(3)
+        a = np.asarray(a, dtype=np.float64).reshape(3)
         tb = braking_duration_s(float(np.linalg.norm(v)), a_max_m_s2, peak_fraction)
         return Trajectory.to_rest(t0_s, p, v, a, p + 0.5 * tb * v, tb)
 

@@ -575,20 +575,14 @@ class OnboardConfig:
                 ) from None
             object.__setattr__(self, "planner", planner)
         self._check_map_window()
-        silence = self.reactions.peer_lost.peer_silence_s
-        if not silence >= 2.0 / self.bus.state_rate_hz:
-            raise ValueError(
-                f"reactions.peer_lost.peer_silence_s: {silence:g} s is less than two state "
-                f"periods (bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers would be "
-                "taken for silent between their states"
-            )
-        in_way = self.reactions.peer_lost.peer_silence_in_way_s
-        if not in_way >= 2.0 / self.bus.state_rate_hz:
-            raise ValueError(
-                f"reactions.peer_lost.peer_silence_in_way_s: {in_way:g} s is less than two "
-                f"state periods (bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers in "
-                "our way would be taken for quiet between their states"
-            )
+        for key, taken in (("peer_silence_s", "silent"), ("peer_silence_in_way_s", "quiet")):
+            limit = getattr(self.reactions.peer_lost, key)
+            if not limit >= 2.0 / self.bus.state_rate_hz:
+                raise ValueError(
+                    f"reactions.peer_lost.{key}: {limit:g} s is less than two state periods "
+                    f"(bus.state_rate_hz {self.bus.state_rate_hz:g}): live peers would be "
+                    f"taken for {taken} between their states"
+                )
         if not g.min_enu_m[2] + self.flight.takeoff_altitude_m <= g.max_enu_m[2]:
             raise ValueError(
                 "flight.takeoff_altitude_m: the take-off altitude must lie inside the geofence "

@@ -162,22 +162,9 @@ class SwarmBusPort(Protocol):
     def close(self) -> None: ...
 
 
-def braking_trajectory(
-    t0_s: float,
-    p: np.ndarray,
-    v: np.ndarray,
-    a: np.ndarray,
-    a_max_m_s2: float,
-    peak_fraction: float = 0.5,
-) -> Trajectory:
-    """One quintic piece from (p, v, a) to rest, then hovering there: a braking stop whose
-    deceleration peaks at about ``peak_fraction`` of ``a_max_m_s2`` (from a steady speed; the
-    default, a gentle stop, averages a third of it; 1.0 is the hardest stop within the limit,
-    for a collision ahead), lasting at least 0.5 s."""
-    p = np.asarray(p, dtype=np.float64).reshape(3)
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    a = np.asarray(a, dtype=np.float64).reshape(3)
-    return Trajectory.braking(t0_s, p, v, a, a_max_m_s2, peak_fraction)
+braking_trajectory = Trajectory.braking
+"""One quintic piece from (p, v, a) to rest, then hovering there: the service's brakes
+(``peak_fraction`` 1.0, the hardest stop within the limit, for a collision ahead)."""
 
 
 def climb_trajectory(
