@@ -675,7 +675,6 @@ class DroneAgent:
         self._heard: dict[int, _Heard] = {}  # newest state per peer (``heard`` writes)
         self._flagged: dict[int, float] = {}  # peer -> heard time its silence was flagged at
         self._in_way: dict[int, float] = {}  # peer -> heard time its quiet ghosts were in the way
-        self._early: dict[int, float] = {}  # peer -> heard time it fell quiet early, in the way
         self._looked: dict[int, float] = {}  # peer -> its newest heard time at the last look
         # what ``_ghosts`` and ``_deviation`` last computed per peer, with what it came from
         # (``peer_view`` runs 20-40 times a second, a peer's messages change at 10 Hz)
@@ -916,8 +915,8 @@ class DroneAgent:
 
     def _is_quiet(self, pid: int, h: float, now: float) -> bool:
         """Quiet: heard of nothing newer than ``h`` for longer than its quiet limit, or found
-        in our way by ``watch`` past its in-the-way limit and not heard since."""
-        return now - h > self._silence_limit(pid) or self._early.get(pid) == h
+        in our way by ``watch`` (past its in-the-way limit) and not heard since."""
+        return now - h > self._silence_limit(pid) or self._in_way.get(pid) == h
 
     def silence_limit(self, drone_id: int) -> float:
         """How long ``drone_id`` may now be heard of nothing newer before it is silent:
@@ -1021,9 +1020,7 @@ class DroneAgent:
         for pid, h in quiet + early:  # outside the lock: sampling trajectories
             if self._in_the_way(pid, now):
                 with self._peer_lock:
-                    self._in_way[pid] = h
-                    if (pid, h) in early:
-                        self._early[pid] = h  # quiet from now on, until heard again
+                    self._in_way[pid] = h  # quiet from now on, until heard again
                 with self._cfg_lock:
                     self.in_the_way_count += 1
                 out.append(pid)
