@@ -985,8 +985,7 @@ class DroneAgent:
         ``peer_deviation_m`` or ``peer_silence_s`` set it reads the bus first (states are
         compared with the newest trajectories, ghosts lie along them)."""
         out = []
-        quiet = []
-        early = []
+        quiet = []  # (peer, heard time) to look at: in our way, it is quiet
         now = float(now_s)
         fresh = None
         if math.isfinite(self.peer_deviation_m) or math.isfinite(self.peer_silence_s):
@@ -1010,14 +1009,14 @@ class DroneAgent:
                         and pid in self._seen
                         and self._in_way.get(pid) != h
                     ):
-                        early.append((pid, h))
+                        quiet.append((pid, h))  # quiet already if in our way
                     if self._deviation(pid) is not None:
                         if pid not in self._deviant:
                             self._deviant.add(pid)
                             out.append(pid)
                     else:
                         self._deviant.discard(pid)
-        for pid, h in quiet + early:  # outside the lock: sampling trajectories
+        for pid, h in quiet:  # outside the lock: sampling trajectories
             if self._in_the_way(pid, now):
                 with self._peer_lock:
                     self._in_way[pid] = h  # quiet from now on, until heard again
