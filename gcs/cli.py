@@ -206,6 +206,14 @@ _start_z_jitter_opt = click.option(
     help="Every drone starts up to this far [m] above or below its start altitude (seeded): "
     "exactly level starts hide a formation that tilts.",
 )
+_replan_period_opt = click.option(
+    "--replan-period",
+    "replan_period",
+    type=click.FloatRange(0.1, 10.0),
+    default=1.0,
+    show_default=True,
+    help="Seconds between a drone's replans (the flight service's planning.replan_period_s).",
+)
 _vmax_opt = click.option(
     "--v-max",
     "v_max",
@@ -272,6 +280,7 @@ _set_opt = click.option(
 @click.option("--check", is_flag=True, help="Exit with status 1 unless the flight succeeded.")
 @perception_options
 @_start_z_jitter_opt
+@_replan_period_opt
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def sim(
     formation: str,
@@ -292,6 +301,7 @@ def sim(
     camera_rate_hz: float,
     camera_skip_pixel: int,
     start_z_jitter: float,
+    replan_period: float,
     quiet: bool,
 ) -> None:
     """Fly a formation through a world in fast simulated time and score the flight."""
@@ -318,6 +328,7 @@ def sim(
         cfg = dataclasses.replace(
             cfg,
             start_z_jitter_m=start_z_jitter,
+            replan_period_s=replan_period,
             **perception_overrides(perception, camera_rate_hz, camera_skip_pixel),
         )
         if change is not None:
@@ -547,6 +558,7 @@ _FLIGHT_KEYS = (
 @_set_opt
 @click.option("--jobs", default=1, show_default=True, help="Flights run in parallel processes.")
 @_start_z_jitter_opt
+@_replan_period_opt
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
 )
@@ -569,6 +581,7 @@ def bench_table(
     sets: tuple[str, ...],
     jobs: int,
     start_z_jitter: float,
+    replan_period: float,
     json_path: Path | None,
     plots_dir: Path | None,
     quiet: bool,
@@ -605,6 +618,7 @@ def bench_table(
                 jobs,
                 progress=lambda done, _n: bar.update(task, completed=done),
                 start_z_jitter_m=start_z_jitter,
+                replan_period_s=replan_period,
             )
         except (ConfigError, ValueError) as e:
             raise click.ClickException(str(e)) from e

@@ -126,15 +126,17 @@ def run_trial(
     base: PlannerParams,
     keep_result: bool,
     start_z_jitter_m: float = 0.0,
+    replan_period_s: float = 1.0,
 ) -> tuple[TrialResult, SimResult | None]:
     """Fly one trial with one method (speed limit: ``base.v_max_m_s``); the full SimResult only
-    when ``keep_result``. ``start_z_jitter_m``: ``SimConfig.start_z_jitter_m``."""
+    when ``keep_result``. ``start_z_jitter_m``, ``replan_period_s``: those of ``SimConfig``."""
     cfg = SimConfig(
         formation=formation,
         world=world,
         seed=seed,
         planner=method_params(method, base),
         start_z_jitter_m=start_z_jitter_m,
+        replan_period_s=replan_period_s,
     )
     if method == "zhou":
         from gcs.baselines import run_virtual_structure
@@ -228,12 +230,14 @@ def run_table(
     jobs: int = 1,
     progress: Callable[[int, int], None] | None = None,
     start_z_jitter_m: float = 0.0,
+    replan_period_s: float = 1.0,
 ) -> tuple[dict[str, Any], dict[tuple[str, str], SimResult]]:
     """Run every (world, method, trial) with the planner parameters ``base`` (default
     config/planner.yaml; its ``v_max_m_s`` is the speed limit of every method); returns (report,
     the first trial's SimResult of every (world label, method) for the plots).
     ``start_z_jitter_m``: every flight's drones start up to this far off their start altitude
-    (``SimConfig.start_z_jitter_m``)."""
+    (``SimConfig.start_z_jitter_m``); ``replan_period_s``: every drone replans this often
+    (``SimConfig.replan_period_s``; the zhou baseline has no replans)."""
     if trials < 1:
         raise ValueError("trials must be >= 1")
     for m in methods:
@@ -241,7 +245,7 @@ def run_table(
             raise ValueError(f"unknown method {m!r}; choose from {METHODS}")
     params = base if base is not None else load_planner_params()
     jobs_args = [
-        (m, label, k, seed + k, formation, spec, params, k == 0, start_z_jitter_m)
+        (m, label, k, seed + k, formation, spec, params, k == 0, start_z_jitter_m, replan_period_s)
         for label, spec in worlds
         for k in range(trials)
         for m in methods
@@ -271,6 +275,7 @@ def run_table(
         "wall_s": time.perf_counter() - t0,
         "jobs": jobs,
         "start_z_jitter_m": start_z_jitter_m,
+        "replan_period_s": replan_period_s,
         "definitions": {
             "success": "all drones within 0.5 m of their goals at rest before the time limit, "
             "no centre within 0.2 m of an obstacle surface, no two centres within 0.4 m",

@@ -271,3 +271,25 @@ def test_start_z_jitter_is_checked_and_flown() -> None:
     line = next(x for x in out.output.splitlines() if "altitude" in x)
     lo, hi = (float(v) for v in line.split("│")[2].split("m")[0].split(" to "))
     assert 0.95 <= lo < hi <= 1.05
+
+
+def test_replan_period_is_checked_and_flown(tmp_path: Path) -> None:
+    bad = CliRunner().invoke(main, ["sim", *SMALL, "--replan-period", "0.05", "-q"])
+    assert bad.exit_code == 2 and "--replan-period" in bad.output
+    counts = {}
+    for period in (1.0, 0.5):
+        js = tmp_path / f"{period}.json"
+        args = ["sim", *SMALL, "--time-limit", "6", "--replan-period", str(period), "-q"]
+        out = CliRunner().invoke(main, [*args, "--json", str(js)])
+        assert out.exit_code == 0, out.output
+        data = json.loads(js.read_text())
+        assert data["config"]["replan_period_s"] == period
+        counts[period] = sum(data["status_counts"].values())
+    # three drones over 6 s: about 18 replans at 1 s, twice as many at 0.5 s
+    assert 1.8 <= counts[0.5] / counts[1.0] <= 2.2, counts
+    js = tmp_path / "table.json"
+    args = ["bench", "table", "--trials", "1", "--world", "forest-small", "--method", "ours"]
+    args += ["--formation", "triangle-3", "--v-max", "1.0", "--replan-period", "0.5"]
+    out = CliRunner().invoke(main, [*args, "--json", str(js), "-q"])
+    assert out.exit_code == 0, out.output
+    assert json.loads(js.read_text())["replan_period_s"] == 0.5
