@@ -99,9 +99,11 @@ def run_fastsim_seed(
     depth_rate_hz: float,
     depth_step: int,
     planner: Any,
+    replan_period_s: float = 1.0,
 ) -> dict[str, Any]:
     """The fast-time flight of the demo's world for ``seed``: mapped perception at the demo's
-    depth rate and step, the demo's planner parameters, the same formation change."""
+    depth rate and step, the demo's planner parameters and replan period (the flight service's
+    ``planning.replan_period_s``), the same formation change."""
     from gcs.fastsim import SimConfig, run_sim
     from onboard.config import load_formation, load_world_spec
 
@@ -114,6 +116,7 @@ def run_fastsim_seed(
         camera_rate_hz=depth_rate_hz,
         camera_skip_pixel=depth_step,
         formation_change=None if change is None else (load_formation(change[0]), change[1]),
+        replan_period_s=replan_period_s,
     )
     r = run_sim(cfg)
     return {
@@ -207,6 +210,10 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
 @click.option("--altitude-band", type=float, nargs=2, default=None, metavar="BELOW ABOVE",
               help="The planner's altitude band around the cruise altitude [default: the "
               "demo's]; 0 0: config/onboard.yaml's.")  # fmt: skip
+@click.option("--set-onboard", "onboard_sets", multiple=True, metavar="KEY=VALUE",
+              help="Override a flight-service setting of every drone, as the demo's option of "
+              "that name (repeatable); the fast-time flight takes its planner and replan "
+              "period too.")  # fmt: skip
 @click.option("--no-fastsim", is_flag=True, help="Fly only the real stack.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None,
@@ -218,8 +225,8 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing.")
 def bench_demo(
     seeds: int, first_seed: int, drones: int, formation: str, world: str, change: str | None,
-    depth_rate: float | None, altitude_band: tuple[float, float] | None, no_fastsim: bool,
-    out_dir: Path | None, timeout_s: float,
+    depth_rate: float | None, altitude_band: tuple[float, float] | None,
+    onboard_sets: tuple[str, ...], no_fastsim: bool, out_dir: Path | None, timeout_s: float,
     json_path: Path | None, quiet: bool,
 ) -> None:  # fmt: skip
     """The end-to-end demo over seeds (1..N by default), each beside the fast-time simulator
@@ -237,7 +244,7 @@ def bench_demo(
         parse_change,
         planner_z_limits,
     )
-    from onboard.config import ConfigError, load_world_spec
+    from onboard.config import ConfigError, load_world_spec, merge_mappings, parse_override
     from onboard.service.config import load_onboard_config
 
     # a wide table when written to a file or a pipe (rich's default there is 80 columns)
@@ -248,7 +255,10 @@ def bench_demo(
         raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
         demo_templates(drones, formation, fc)  # the demo's own check, before the first seed
-        service = load_onboard_config(None, drone_id=0)
+        overrides: dict[str, Any] = {}
+        for s_ in onboard_sets:
+            overrides = merge_mappings(overrides, parse_override(s_))
+        service = load_onboard_config(None, drone_id=0, overrides=overrides)
     except (DemoError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate, altitude_band_m=altitude_band)
@@ -273,6 +283,9 @@ def bench_demo(
     argv += ["--altitude-band", *(str(x) for x in (band if band is not None else (0, 0)))]
     if change is not None:
         argv += ["--formation-change", change]
+    for s_ in onboard_sets:
+        argv += ["--set-onboard", s_]
+    replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
     rows: list[dict[str, Any]] = []
     for seed in range(first_seed, first_seed + seeds):
@@ -281,7 +294,9 @@ def bench_demo(
         row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
         if not no_fastsim:
             console.print(f"seed {seed}: fast-time flight ...")
-            row["fastsim"] = run_fastsim_seed(seed, formation, world, fc, rate, step, planner)
+            row["fastsim"] = run_fastsim_seed(
+                seed, formation, world, fc, rate, step, planner, replan_s
+            )
         rows.append(row)
     report: dict[str, Any] = {
         "benchmark": "demo",
@@ -296,6 +311,8 @@ def bench_demo(
             "depth_step": step,
             "v_max_m_s": planner.v_max_m_s,
             "altitude_band_m": list(planner.z_limits_m),
+            "replan_period_s": replan_s,
+            "onboard_sets": list(onboard_sets),
             "fastsim_perception": None if no_fastsim else "mapped",
         },
         "rows": rows,

@@ -58,3 +58,44 @@ def test_a_formation_of_another_size_is_refused_before_the_first_seed(tmp_path: 
         assert res.exit_code == 1, res.output
         assert f"formation {name} has 7 points, not 3" in res.output
         assert not out_dir.exists() and "seed 1" not in res.output
+
+
+def test_onboard_settings_reach_every_demo_and_the_fast_time_twin(
+    tmp_path: Path, monkeypatch: Any
+) -> None:
+    """``--set-onboard`` goes to each seed's demo and, for the planner and the replan period,
+    to its fast-time flight; a bad setting is refused before the first seed."""
+    import json
+
+    from click.testing import CliRunner
+
+    import gcs.bench_demo as bd
+    from gcs.cli import main
+
+    seen: dict[str, Any] = {}
+
+    def demo(seed: int, argv: list[str], out_dir: Path, timeout_s: float) -> dict[str, Any]:
+        seen["argv"] = argv
+        return {"success": True, "collisions": 0}
+
+    def twin(*args: Any) -> dict[str, Any]:
+        seen["planner"], seen["replan_s"] = args[6], args[7]
+        return {"success": True, "collisions": 0}
+
+    monkeypatch.setattr(bd, "run_demo_seed", demo)
+    monkeypatch.setattr(bd, "run_fastsim_seed", twin)
+    base = ["bench", "demo", "--seeds", "1", "--drones", "3", "--formation", "triangle-3"]
+    sets = ["--set-onboard", "planning.replan_period_s=0.5"]
+    sets += ["--set-onboard", "planner.w_formation=2e5"]
+    js = tmp_path / "b.json"
+    res = CliRunner().invoke(main, [*base, *sets, "--out", str(tmp_path / "f"), "--json", str(js)])
+    assert res.exit_code == 0, res.output
+    argv = seen["argv"]
+    assert argv[argv.index("planning.replan_period_s=0.5") - 1] == "--set-onboard"
+    assert "planner.w_formation=2e5" in argv
+    assert seen["replan_s"] == 0.5 and seen["planner"].w_formation == 2e5
+    assert json.loads(js.read_text())["config"]["replan_period_s"] == 0.5
+    too_fast = ["--set-onboard", "planning.replan_period_s=0.01"]
+    bad = CliRunner().invoke(main, [*base, *too_fast, "--out", str(tmp_path / "g")])
+    assert bad.exit_code == 1 and "replan_period_s" in bad.output
+    assert not (tmp_path / "g").exists()
