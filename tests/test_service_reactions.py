@@ -605,6 +605,31 @@ def test_goal_and_formation_take_effect_at_their_common_time_in_the_agent(
     assert epochs == sorted(epochs) and epochs[-1] == 2
 
 
+def test_a_resent_command_is_answered_again_not_applied_again(tmp_path: Path) -> None:
+    """The ground station resends a command it heard no answer to, with the same id (on a
+    starved host the first answer is late). Applied twice, a formation was refused as a
+    stale epoch and a take-off as out of state, and the station reported the drone as
+    refusing what it had done (the real-stack demo, seeds 2 and 5 of the seventh session)."""
+    h = Harness(tmp_path, depth=False)
+    form = SetFormation(1, h.clock.t, ((0, 0), (1, 1), (2, 2)), POINTS)
+    cid = h.bus.send(form)
+    h.bus.resend(cid, form)  # both copies in one poll
+    h.step()
+    takeoff = Takeoff()
+    tid = h.bus.send(takeoff)
+    h.step()
+    h.bus.resend(tid, takeoff)  # a resend after the first was applied and answered
+    h.bus.resend(cid, form)
+    h.step()
+    answers = {c: [(ok, why) for k, ok, why in h.bus.acks if k == c] for c in (cid, tid)}
+    assert answers[cid] == [(True, "")] * 3 and answers[tid] == [(True, "")] * 2
+    assert h.svc.counters["commands_repeated"] == 3 and h.svc.counters["commands"] == 2
+    assert h.state is S.TAKEOFF and h.svc.machine.assignment is not None
+    # a new command with the same content is a new command: the same epoch again is stale
+    ok, why = h.command(form)
+    assert not ok and "stale formation epoch 1" in why
+
+
 def test_a_plan_made_while_the_service_overrides_never_replaces_the_override(
     tmp_path: Path,
 ) -> None:

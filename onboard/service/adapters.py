@@ -314,7 +314,7 @@ class SwarmBusAdapter:
                 self._bad_commands += 1
             return
         with self._lock:
-            self._commands.append(IncomingCommand(int(body.cmd_id), cmd))
+            self._commands.append(IncomingCommand(int(body.cmd_id), cmd, int(env.sender)))
             self._last_cmd_s = receive_s
 
     # ---- SwarmBusPort ------------------------------------------------------------------------

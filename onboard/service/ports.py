@@ -121,8 +121,12 @@ class PeerState:
 
 @dataclass(frozen=True)
 class IncomingCommand:
+    """A ground-station command as it arrived. A resend (no answer heard in time) arrives again
+    with the same ``sender`` (the ground station's node id) and ``cmd_id``."""
+
     cmd_id: int
     command: Command
+    sender: int = 0
 
 
 class SwarmBusPort(Protocol):

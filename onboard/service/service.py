@@ -44,6 +44,7 @@ import os
 import queue
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,6 +111,9 @@ _OK = (PlanStatus.OK, PlanStatus.OK_NO_FORMATION)
 HOLDING_STILL_M = 0.01
 """A plan whose positions over the monitor's horizon stay within this (and whose velocity is
 nil now) holds still: the monitor does not brake it (see ``monitor_step``)."""
+ANSWERS_KEPT = 256
+"""The answers to this many recent commands are kept, so that a resend of one (the ground
+station resends what it heard no answer to) is answered again, not applied again."""
 
 
 @dataclass(frozen=True)
@@ -257,6 +261,7 @@ class FlightService:
         self._last_event = ""
         self.recorder: FlightRecorder | None = None
         self.health = Health()
+        self._answers: OrderedDict[tuple[int, int], CommandResult] = OrderedDict()
         self.counters: dict[str, int] = {
             "replans": 0,
             "plans_failed": 0,
@@ -276,6 +281,7 @@ class FlightService:
             "esdf_new_buffer_sets": 0,
             "commands": 0,
             "commands_rejected": 0,
+            "commands_repeated": 0,  # resends answered with the first answer, not applied again
             "setpoints_sampled": 0,
             # peers now (gauges): silent, reported off their trajectory, ghost hovers avoided
             "peers_silent": 0,
@@ -1040,7 +1046,18 @@ class FlightService:
         now = self.clock()
         veh = self.ap.vehicle()
         for inc in self.bus.poll_commands():
-            res = self._handle_command(inc)
+            key = (inc.sender, inc.cmd_id)
+            res = self._answers.get(key)
+            if res is None:
+                res = self._handle_command(inc)
+                self._answers[key] = res
+                if len(self._answers) > ANSWERS_KEPT:
+                    self._answers.popitem(last=False)
+            else:
+                # a resend whose first copy was applied (its answer was late or lost): the same
+                # answer again; applied twice, a formation would be refused as stale and a
+                # take-off as out of state, and the ground station would report that instead
+                self.counters["commands_repeated"] += 1
             self.bus.ack(inc.cmd_id, res.accepted, res.reason)
             self._apply_transitions(veh)
         self._drain_results()
