@@ -148,11 +148,9 @@ class FakeBus:
             self.gcs_heard = heard_s
         return cid
 
-    def resend(self, cmd_id: int, command: Command, heard_s: float | None = None) -> None:
+    def resend(self, cmd_id: int, command: Command) -> None:
         """The ground station's resend of an unanswered command: the same id again."""
         self.commands.append(IncomingCommand(cmd_id, command))
-        if heard_s is not None:
-            self.gcs_heard = heard_s
 
     def ack_of(self, cmd_id: int) -> tuple[bool, str]:
         for c, ok, why in self.acks:
