@@ -665,6 +665,7 @@ class DroneAgent:
             raise ValueError("first_replan_s must be finite")
         self._demand_s = math.inf
         self._seq = 0
+        self._pub_lock = threading.Lock()
         self._last: PlanReport | None = None
         self.status_counts: dict[str, int] = {}
         """Replans by plan status value (``PlanStatus.value``); other threads: ``counters()``."""
@@ -1260,17 +1261,20 @@ class DroneAgent:
         return f"done {done - t_start:.2f} s after its start, {jump:.2f} m off the flown one"
 
     def _publish(self, traj: Trajectory, a: _Assignment, now: float) -> int:
-        seq = self._seq
-        self._seq += 1
-        msg = TrajectoryMsg(
-            self.drone_id,
-            seq,
-            a.slot,
-            traj,
-            formation_epoch=a.epoch,
-            valid_until_s=now + self.validity_s,
-        )
-        self.bus.publish(msg, now)
+        """Any thread (a flight service announces its brakes from the thread that made them):
+        the numbers go out in the order they are taken."""
+        with self._pub_lock:
+            seq = self._seq
+            self._seq += 1
+            msg = TrajectoryMsg(
+                self.drone_id,
+                seq,
+                a.slot,
+                traj,
+                formation_epoch=a.epoch,
+                valid_until_s=now + self.validity_s,
+            )
+            self.bus.publish(msg, now)
         return seq
 
     def _take(self, msgs: dict[int, TrajectoryMsg], now: float) -> None:

@@ -423,6 +423,9 @@ def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_
     ts = np.arange(h.clock.t, h.clock.t + 5.0, 0.05)
     d = np.linalg.norm(flown.sample(ts) - block, axis=1)
     assert d.min() > keep
+    # the peers heard of the brake although the planner never came back
+    _, _, _, announced, _ = h.bus.trajectories[-1]
+    assert np.allclose(announced.sample(ts), flown.sample(ts))
 
 
 def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(

@@ -347,6 +347,13 @@ class FlightService:
             self.agent.reset(traj)
             self._in_control = True
         self._announce = True
+        if self._intent.state in AIRBORNE_CONTROLLED:
+            # now, from this thread: the planner thread announces too, but only once its
+            # running cycle is done, which on a starved CPU takes seconds in which the peers
+            # would plan around a trajectory this drone no longer flies
+            now = self.clock()
+            self.agent.announce(now)
+            self._last_pub_s = now
         self._wake.set()
 
     def flying(self, t_s: float) -> Trajectory | None:
