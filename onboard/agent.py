@@ -1001,16 +1001,16 @@ class DroneAgent:
                     if self._flagged.get(pid) != h:
                         self._flagged[pid] = h
                         out.append(pid)
-                elif now - h > self._silence_limit(pid):
-                    if pid in self._seen and self._in_way.get(pid) != h:
-                        quiet.append((pid, h))
                 else:
+                    # past the in-the-way limit (at most the quiet limit): quiet if in our way
                     if (
                         now - h > self._in_way_limit(pid)
                         and pid in self._seen
                         and self._in_way.get(pid) != h
                     ):
-                        quiet.append((pid, h))  # quiet already if in our way
+                        quiet.append((pid, h))
+                    if now - h > self._silence_limit(pid):
+                        continue  # quiet: no deviation to judge
                     if self._deviation(pid) is not None:
                         if pid not in self._deviant:
                             self._deviant.add(pid)
