@@ -244,7 +244,7 @@ def bench_demo(
         parse_change,
         planner_z_limits,
     )
-    from onboard.config import ConfigError, load_world_spec, merge_mappings, parse_override
+    from onboard.config import ConfigError, load_world_spec, parse_overrides
     from onboard.service.config import load_onboard_config
 
     # a wide table when written to a file or a pipe (rich's default there is 80 columns)
@@ -255,10 +255,7 @@ def bench_demo(
         raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
         demo_templates(drones, formation, fc)  # the demo's own check, before the first seed
-        overrides: dict[str, Any] = {}
-        for s_ in onboard_sets:
-            overrides = merge_mappings(overrides, parse_override(s_))
-        service = load_onboard_config(None, drone_id=0, overrides=overrides)
+        service = load_onboard_config(None, drone_id=0, overrides=parse_overrides(onboard_sets))
     except (DemoError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate, altitude_band_m=altitude_band)

@@ -22,8 +22,8 @@ from onboard.config import (
     load_planner_params,
     load_scenario,
     load_world_spec,
-    merge_mappings,
     parse_override,
+    parse_overrides,
 )
 
 if TYPE_CHECKING:
@@ -45,9 +45,7 @@ def _planner_params(
 ) -> PlannerParams:
     """The planner parameters: the file, then ``--set`` overrides, then ``--v-max`` (shorthand
     for ``--set v_max_m_s=``; both with different values is an error)."""
-    overrides: dict[str, Any] = {}
-    for s in sets:
-        overrides = merge_mappings(overrides, parse_override(s))
+    overrides = parse_overrides(sets)
     if v_max is not None:
         given = overrides.get("v_max_m_s")
         if given is not None and given != v_max:

@@ -100,7 +100,7 @@ def run(
     import signal
     import threading
 
-    from onboard.config import ConfigError, merge_mappings, parse_override
+    from onboard.config import ConfigError, parse_overrides
     from onboard.service.adapters import open_autopilot, open_bus, open_depth
     from onboard.service.config import load_onboard_config
     from onboard.service.logs import event, setup_logging
@@ -109,10 +109,7 @@ def run(
     from onboard.service.service import FlightService
 
     try:
-        overrides: dict = {}
-        for s_ in sets:
-            overrides = merge_mappings(overrides, parse_override(s_))
-        cfg = load_onboard_config(config_file, drone_id, overrides)
+        cfg = load_onboard_config(config_file, drone_id, parse_overrides(sets))
     except ConfigError as e:
         click.echo(f"config: {e}", err=True)
         sys.exit(2)

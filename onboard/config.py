@@ -24,7 +24,7 @@ import os
 import re
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, Union
@@ -796,6 +796,15 @@ def parse_override(text: str) -> dict[str, Any]:
     for part in parts[:-1]:
         node = node.setdefault(part, {})
     node[parts[-1]] = value
+    return out
+
+
+def parse_overrides(texts: Iterable[str], base: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``base`` (default empty) with every ``"a.b=VALUE"`` of ``texts`` merged in, in order
+    (``parse_override``, ``merge_mappings``): the ``--set`` options of the command lines."""
+    out: dict[str, Any] = dict(base) if base is not None else {}
+    for text in texts:
+        out = merge_mappings(out, parse_override(text))
     return out
 
 

@@ -23,7 +23,7 @@ from typing import Any
 import click
 import numpy as np
 
-from onboard.config import ConfigError, from_mapping, merge_mappings, parse_override, read_yaml
+from onboard.config import ConfigError, from_mapping, merge_mappings, parse_overrides, read_yaml
 
 
 def build_world(
@@ -193,8 +193,7 @@ def main(
             if not isinstance(loaded, dict):
                 raise ConfigError(f"{config_file}: expected a mapping")
             data = loaded
-        for s in sets:
-            data = merge_mappings(data, parse_override(s))
+        data = parse_overrides(sets, data)
         data = merge_mappings(
             data,
             {

@@ -22,6 +22,7 @@ from onboard.config import (
     load_planner_params,
     load_world_spec,
     parse_override,
+    parse_overrides,
     world_file,
 )
 from onboard.planner.params import PlannerParams
@@ -88,6 +89,12 @@ def test_planner_overrides_and_nested_merge() -> None:
     assert p.lbfgs.mem_size == PlannerParams().lbfgs.mem_size  # the rest kept
     assert parse_override("lbfgs.max_iterations=50") == {"lbfgs": {"max_iterations": 50}}
     assert parse_override("w_obstacle=1e4") == {"w_obstacle": 1e4}
+    # several --set options: merged in order over a base, which is not changed
+    base = {"lbfgs": {"mem_size": 8}, "kappa": 4}
+    sets = ["lbfgs.max_iterations=50", "kappa=6", "lbfgs.max_iterations=60"]
+    got = parse_overrides(sets, base)
+    assert got == {"lbfgs": {"mem_size": 8, "max_iterations": 60}, "kappa": 6}
+    assert base == {"lbfgs": {"mem_size": 8}, "kappa": 4} and parse_overrides([]) == {}
 
 
 @pytest.mark.parametrize(
