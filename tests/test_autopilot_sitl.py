@@ -428,6 +428,39 @@ def test_link_loss_detected_when_the_mock_stops(implementation: str) -> None:
         assert link.counters().setpoints_sent == sent
 
 
+@pytest.mark.timeout(60)
+def test_a_stalled_receiver_is_not_a_lost_link_but_a_hung_one_is() -> None:
+    """The receiving thread stops for 1.6 s (a starved process: seen on a loaded CI host,
+    "lost" after 1.0 s and "back" 0.02 s later, a take-off refused in between) while the mock's
+    messages wait in the socket: the link is not lost, streaming goes on. A receiver that stays
+    stuck (3 s without a look) loses the link as a silent one would."""
+    with rig("pymavlink", speedup=1.0) as rg:
+        link = rg.link
+        link.wait_healthy(10.0)
+        here = link.state().position_enu_m
+        assert here is not None
+        link.start_streaming(lambda t: Setpoint.hold(here))
+        poll(lambda: link.counters().setpoints_sent > 5, 5.0, "streaming")
+        handle = link._on_chunk  # type: ignore[attr-defined]
+        stall_s: list[float] = []
+
+        def stalling(*a: Any) -> None:
+            if stall_s:
+                time.sleep(stall_s.pop())
+            handle(*a)
+
+        link._on_chunk = stalling  # type: ignore[attr-defined]
+        stall_s.append(1.6)
+        poll(lambda: not stall_s, 2.0, "the stall")
+        time.sleep(2.0)  # the stall is over, the waiting messages are handled
+        assert not [e for e in rg.events if isinstance(e, LinkLost)]
+        assert link.streaming and not link.state().link_lost
+        stall_s.append(5.0)
+        lost = rg.wait_event(LinkLost, 6.0)
+        assert lost.rx_age_s > 2.5 and not link.streaming
+        rg.wait_event(LinkRegained, 6.0)
+
+
 @pytest.mark.slow
 @pytest.mark.vehicle
 @pytest.mark.timeout(90)

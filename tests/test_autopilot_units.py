@@ -246,6 +246,25 @@ def test_link_health_transitions() -> None:
     assert h.update(4.3, 4.29, 1.25) == "lost"
 
 
+def test_link_health_counts_silence_up_to_the_receivers_last_look() -> None:
+    """A receiving thread that did not run leaves messages waiting in the socket: the silence
+    it has not looked at is not the link's (a loaded CI host: "lost" at 1.0 s, "back" 0.02 s
+    later). A receiver that looked after the deadline and found nothing loses the link; one that
+    has not looked for ``receiver_stall_s`` (hung, dead) no longer holds the verdict back."""
+    h = LinkHealth(link_timeout_s=1.0, heartbeat_timeout_s=3.0, receiver_stall_s=3.0)
+    assert h.update(0.1, 0.05, 0.05, looked=0.1) == "connected"
+    # the receiver last looked at 0.5 (all handled by then); at 1.6 the checker wakes first
+    assert h.update(1.6, 0.5, 0.5, looked=0.5) is None and not h.lost
+    # it runs, drains the waiting messages and looks again: nothing lost
+    assert h.update(1.62, 1.61, 1.2, looked=1.6) is None and not h.lost
+    # a receiver that looked after the deadline and found nothing: lost
+    assert h.update(2.7, 1.61, 1.2, looked=2.65) == "lost"
+    assert h.update(2.8, 2.75, 2.75, looked=2.79) == "regained"
+    # a receiver that stopped looking (hung): the verdict runs up to now once it is stale
+    assert h.update(5.0, 2.75, 2.75, looked=2.79) is None  # 2.21 s without a look
+    assert h.update(5.8, 2.75, 2.75, looked=2.79) == "lost"  # 3.01 s without a look
+
+
 def test_mode_tracker_tells_commanded_from_uncommanded() -> None:
     m = ModeTracker(window_s=5.0)
     assert m.observe(FlightMode.HOLD, 0.0).change is None  # first heartbeat: no change

@@ -88,21 +88,41 @@ class LinkHealth:
 
     Lost when connected and nothing valid arrived for ``link_timeout_s`` or no heartbeat for
     ``heartbeat_timeout_s``; regained when both are fresh again.
+
+    Silence is measured up to the receiver's last look (``looked``: every message that had
+    arrived by then was handled), not up to ``now``: a receiving thread that did not run for a
+    while (the process starved of CPU or of the GIL) leaves the link's messages waiting in the
+    socket, and the checking thread, woken first, would call the link lost though nothing is
+    missing (seen on a loaded host: "lost" after 1.0 s, "back" 0.02 s later). A receiver that
+    has not looked for ``receiver_stall_s`` does not hold the verdict back any longer (a hung
+    or dead receiver loses the link as before); without ``looked``, silence runs up to ``now``.
     """
 
-    def __init__(self, link_timeout_s: float, heartbeat_timeout_s: float) -> None:
+    def __init__(
+        self, link_timeout_s: float, heartbeat_timeout_s: float, receiver_stall_s: float = 3.0
+    ) -> None:
         self.link_timeout_s = link_timeout_s
         self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.receiver_stall_s = receiver_stall_s
         self.connected = False
         self.lost = False
         self.lost_since: float | None = None
 
-    def update(self, now: float, last_rx: float | None, last_hb: float | None) -> str | None:
+    def update(
+        self,
+        now: float,
+        last_rx: float | None,
+        last_hb: float | None,
+        looked: float | None = None,
+    ) -> str | None:
         """Advance to ``now``; returns "connected", "lost", "regained" or None."""
         if last_hb is None or last_rx is None:
             return None
-        fresh = (now - last_rx <= self.link_timeout_s) and (
-            now - last_hb <= self.heartbeat_timeout_s
+        until = now
+        if looked is not None and now - looked <= self.receiver_stall_s:
+            until = min(now, looked)
+        fresh = (until - last_rx <= self.link_timeout_s) and (
+            until - last_hb <= self.heartbeat_timeout_s
         )
         if not self.connected:
             if fresh:
@@ -245,6 +265,7 @@ class AutopilotLink(ABC):
         self._modes_lock = threading.Lock()
         self._last_rx: float | None = None
         self._last_hb: float | None = None
+        self._rx_looked: float | None = None  # the receiver had handled all arrived by then
         # streaming
         self._source: SetpointSource | None = None
         self._streaming = False
@@ -390,6 +411,10 @@ class AutopilotLink(ABC):
         """A valid message from the autopilot arrived."""
         self._last_rx = now
         self._c["messages_received"] += 1
+
+    def _rx_looked_at(self, t: float) -> None:
+        """The receiver has handled every message that had arrived by ``t`` (monotonic)."""
+        self._rx_looked = t
 
     def _rx_decode_error(self) -> None:
         self._c["decode_errors"] += 1
@@ -825,7 +850,7 @@ class AutopilotLink(ABC):
         return True
 
     def _check_health(self, now: float) -> None:
-        change = self._health.update(now, self._last_rx, self._last_hb)
+        change = self._health.update(now, self._last_rx, self._last_hb, self._rx_looked)
         if change == "connected":
             log.info("%s: connected (%s)", self.name, self.transport_description)
             self._connected_evt.set()

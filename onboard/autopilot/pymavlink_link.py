@@ -191,6 +191,7 @@ class PymavlinkLink(AutopilotLink):
         transport = self._transport
         assert transport is not None
         while not self._stop.is_set():
+            began = time.monotonic()
             try:
                 chunks = transport.read(0.1)
             except LinkError:
@@ -199,6 +200,8 @@ class PymavlinkLink(AutopilotLink):
                 continue
             for data, addr in chunks:
                 self._on_chunk(data, addr, transport.datagrams)
+            if transport.drained:  # all that had arrived when the read began is handled
+                self._rx_looked_at(began)
 
     def _on_chunk(self, data: bytes, addr: Address | None, datagram: bool) -> None:
         p = self._parser

@@ -34,6 +34,10 @@ class Transport(ABC):
     datagrams: bool
     """True: every chunk ``read`` returns holds whole frames (parse each on its own)."""
 
+    drained: bool = True
+    """Whether the last ``read`` left nothing behind that had arrived before it began (a read
+    stops at a size limit; the link counts silence only up to a read that drained)."""
+
     @abstractmethod
     def read(self, timeout_s: float) -> list[tuple[bytes, Address | None]]:
         """Chunks received within ``timeout_s`` (empty on timeout or once closed)."""
@@ -105,11 +109,16 @@ class UdpTransport(Transport):
         except (OSError, ValueError):  # closed under us
             return out
         if not ready:
+            self.drained = True  # nothing came for timeout_s
             return out
+        self.drained = False
         while len(out) < 256:
             try:
                 data, addr = self._sock.recvfrom(65535)
-            except (BlockingIOError, InterruptedError):
+            except BlockingIOError:
+                self.drained = True
+                break
+            except InterruptedError:
                 break
             except OSError:  # an ICMP error surfacing, or closed
                 break
@@ -189,15 +198,18 @@ class SerialTransport(Transport):
         except (OSError, ValueError):
             return []
         if not ready:
+            self.drained = True
             return []
         try:
             data = os.read(self._fd, 65536)
         except BlockingIOError:
+            self.drained = True
             return []
         except OSError as e:
             if e.errno in (errno.EAGAIN, errno.EINTR):
                 return []
             raise LinkError(f"serial device {self.device}: {e.strerror or e}") from e
+        self.drained = len(data) < 65536
         return [(data, None)] if data else []
 
     def write(self, data: bytes) -> bool:
