@@ -426,6 +426,12 @@ def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_
     # the peers heard of the brake although the planner never came back
     _, _, _, announced, _ = h.bus.trajectories[-1]
     assert np.allclose(announced.sample(ts), flown.sample(ts))
+    # once: the planner thread, back, does not announce the brake again (it plans anew)
+    n = len(h.bus.trajectories)
+    h.step(3)
+    sent = [m[3] for m in h.bus.trajectories[n - 1 :]]
+    assert len(sent) >= 2 and h.reports, "the planner thread came back and planned"
+    assert all(b is not a for a, b in zip(sent, sent[1:], strict=False)), "announced twice"
 
 
 def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(

@@ -346,14 +346,17 @@ class FlightService:
             self._override = traj
             self.agent.reset(traj)
             self._in_control = True
-        self._announce = True
         if self._intent.state in AIRBORNE_CONTROLLED:
-            # now, from this thread: the planner thread announces too, but only once its
-            # running cycle is done, which on a starved CPU takes seconds in which the peers
-            # would plan around a trajectory this drone no longer flies
+            # now, from this thread, not by the planner thread once its running cycle is done
+            # (seconds on a starved CPU, in which the peers would plan around a trajectory this
+            # drone no longer flies); a plan that cycle publishes meanwhile is superseded and
+            # announced over again by _on_plan
             now = self.clock()
             self.agent.announce(now)
             self._last_pub_s = now
+            self.counters["announcements"] += 1
+        else:
+            self._announce = True  # by the planner thread once airborne
         self._wake.set()
 
     def flying(self, t_s: float) -> Trajectory | None:
