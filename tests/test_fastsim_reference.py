@@ -1,16 +1,20 @@
 """Seeded fast-time flights must not change when the simulator's internals are reorganised.
 
-``tests/data/fastsim_reference.npz`` holds short seeded flights recorded with the code of the
-commit named in it: the flown tracks (10 Hz), the formation metric, and the inputs of every plan
-call (which drone, when, from which state, how many peers), plus the scalar metrics. The test
-flies them again and compares: integers and statuses exactly, floats to 1e-9. They are equal to
+``tests/data/fastsim_reference*.npz`` hold short seeded flights, each file recorded on one
+platform with the code of the commit named in it: the flown tracks (10 Hz), the formation
+metric, and the inputs of every plan call (which drone, when, from which state, how many
+peers), plus the scalar metrics. The test flies them again and compares: integers and statuses
+exactly, floats to 1e-9. They are equal to
 the last bit only on the kind of machine that recorded them: numba compiles for the host CPU
 (on an AVX-512 Cascade Lake the recording of an older host diverged within seconds: other plan
-statuses, other tracks), so the file names the CPU, Python, numpy and numba it was recorded
-with, and on another platform the test is skipped, saying so, rather than compared.
+statuses, other tracks), so each file names the CPU, its vector instruction sets, Python, numpy
+and numba it was recorded with; the test compares with the file of this platform, and where
+there is none it is skipped, saying so. The CPU's name alone is not enough: the LLVM of numba
+0.61 calls an AMD Zen 4 (AVX-512) "znver3" like a Zen 3 (none), and the two fly differently.
 
-Regenerate (only when a change of results is intended, and say so in the commit):
-``.venv/bin/python tests/test_fastsim_reference.py --write``
+Regenerate (only when a change of results is intended, and say so in the commit; on every
+platform that has a file, else the stale ones must go):
+``.venv310/bin/python tests/test_fastsim_reference.py --write``
 """
 
 from __future__ import annotations
@@ -27,7 +31,9 @@ import pytest
 from gcs.fastsim import PlanCall, SimConfig, run_sim
 from onboard.config import load_formation, load_world_spec
 
-DATA = Path(__file__).parent / "data" / "fastsim_reference.npz"
+DATA_DIR = Path(__file__).parent / "data"
+# the instruction sets that change numba's code for these kernels (vector width, fused ops)
+ISA = ("avx2", "fma", "avx512f", "avx512vl", "avx512bw", "avx512dq")
 
 CASES: dict[str, dict[str, Any]] = {
     # a whole flight of three drones through the small forest
@@ -92,25 +98,57 @@ def platform() -> dict[str, str]:
     import llvmlite.binding
     import numba
 
+    features = llvmlite.binding.get_host_cpu_features()
     return {
         "cpu": str(llvmlite.binding.get_host_cpu_name()),
+        "isa": ",".join(f for f in ISA if features.get(f, False)),
         "python": f"{sys.version_info[0]}.{sys.version_info[1]}",
         "numpy": np.__version__,
         "numba": numba.__version__,
     }
 
 
-def _reference() -> dict[str, Any]:
-    with np.load(DATA, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+def _recorded_on() -> dict[str, dict[str, str]]:
+    """Each reference file's platform."""
+    out = {}
+    for path in sorted(DATA_DIR.glob("fastsim_reference*.npz")):
+        with np.load(path, allow_pickle=False) as z:
+            out[path.name] = json.loads(str(z["platform"]))
+    return out
+
+
+def _file_name(p: dict[str, str]) -> str:
+    isa = "avx512" if "avx512f" in p["isa"].split(",") else p["isa"].replace(",", "-") or "base"
+    return f"fastsim_reference_{p['cpu']}_{isa}_py{p['python']}.npz"
+
+
+def _reference() -> dict[str, Any] | None:
+    here = platform()
+    for name, p in _recorded_on().items():
+        if p == here:
+            with np.load(DATA_DIR / name, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+    return None
+
+
+def test_reference_files_name_distinct_platforms() -> None:
+    recorded = _recorded_on()
+    assert recorded, "no reference flight in tests/data"
+    keys = [json.dumps(p, sort_keys=True) for p in recorded.values()]
+    assert len(set(keys)) == len(keys), recorded
+    for name, p in recorded.items():
+        assert set(p) == {"cpu", "isa", "python", "numpy", "numba"}, (name, p)
+        assert name == _file_name(p), (name, p)
 
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_seeded_flight_is_unchanged(name: str) -> None:
     ref = _reference()
-    recorded = json.loads(str(ref["platform"]))
-    if recorded != platform():
-        pytest.skip(f"recorded on {recorded}, this is {platform()}: re-record here to compare")
+    if ref is None:
+        pytest.skip(
+            f"recorded on {list(_recorded_on().values())}, this is {platform()}: "
+            "re-record here to compare"
+        )
     got = fly(name)
     scalars = json.loads(str(ref[f"{name}/scalars"]))
     assert got["scalars"]["status_counts"] == scalars["status_counts"]
@@ -141,13 +179,15 @@ def _write() -> None:
             out[f"{name}/{k}"] = json.dumps(v) if k == "scalars" else v
         print(name, got["scalars"]["status_counts"], got["scalars"]["flight_time_s"])
     commit = subprocess.run(
-        ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=DATA.parent
+        ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=DATA_DIR
     ).stdout.strip()
     out["commit"] = commit
-    out["platform"] = json.dumps(platform())
-    DATA.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(DATA, **out)
-    print(f"wrote {DATA} ({DATA.stat().st_size} bytes) at {commit}")
+    here = platform()
+    out["platform"] = json.dumps(here)
+    path = DATA_DIR / _file_name(here)
+    DATA_DIR.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **out)
+    print(f"wrote {path} ({path.stat().st_size} bytes) at {commit}")
 
 
 if __name__ == "__main__":
