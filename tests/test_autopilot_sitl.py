@@ -256,6 +256,15 @@ def fly_offboard(rg: Rig, goal: tuple[float, float, float], yaw: float | None = 
     return ramp
 
 
+def hold_streaming(link: AutopilotLink) -> None:
+    """Once healthy, stream a hold where the vehicle is; returns once setpoints go out."""
+    link.wait_healthy(10.0)
+    here = link.state().position_enu_m
+    assert here is not None
+    link.start_streaming(lambda t: Setpoint.hold(here))
+    poll(lambda: link.counters().setpoints_sent > 5, 5.0, "streaming")
+
+
 def near(p: Any, q: Any, tol: float) -> bool:
     return math.dist(tuple(p), tuple(q)) < tol
 
@@ -414,11 +423,7 @@ def test_link_loss_stops_streaming_until_told(implementation: str) -> None:
 def test_link_loss_detected_when_the_mock_stops(implementation: str) -> None:
     with rig(implementation, speedup=1.0) as rg:
         link = rg.link
-        link.wait_healthy(10.0)
-        here = link.state().position_enu_m
-        assert here is not None
-        link.start_streaming(lambda t: Setpoint.hold(here))
-        poll(lambda: link.counters().setpoints_sent > 5, 5.0, "streaming")
+        hold_streaming(link)
         rg.fleet.stop()
         lost = rg.wait_event(LinkLost, 5.0)
         assert lost.was_streaming and not link.streaming
@@ -436,11 +441,7 @@ def test_a_stalled_receiver_is_not_a_lost_link_but_a_hung_one_is() -> None:
     stuck (3 s without a look) loses the link as a silent one would."""
     with rig("pymavlink", speedup=1.0) as rg:
         link = rg.link
-        link.wait_healthy(10.0)
-        here = link.state().position_enu_m
-        assert here is not None
-        link.start_streaming(lambda t: Setpoint.hold(here))
-        poll(lambda: link.counters().setpoints_sent > 5, 5.0, "streaming")
+        hold_streaming(link)
         handle = link._on_chunk  # type: ignore[attr-defined]
         stall_s: list[float] = []
 
