@@ -453,6 +453,47 @@ def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
     assert res.trajectory.end_position[2] == pytest.approx(0.3)
 
 
+def test_the_obstacle_horizon_judges_only_the_near_part() -> None:
+    """``check_obstacle_horizon_s``: a trunk grazed 6 s ahead (0.2 m, inside the check's 0.3)
+    refuses a plan judged to its end and not one judged over its first 4 s; grazed 2 s ahead,
+    it refuses both. Peers are judged to the end either way."""
+    z3 = np.zeros(3)
+
+    def line() -> Trajectory:  # 0.5 m/s along x at 1 m for 10 s (minimum jerk: slower ends)
+        head = np.array([[0.0, 0.0, 1.0], z3, z3])
+        tail = np.array([[5.0, 0.0, 1.0], z3, z3])
+        m = Minco(1)
+        m.set_conditions(head, tail)
+        m.set_parameters(np.zeros((0, 3)), np.array([10.0]))
+        return Trajectory(0.0, m.coeffs, np.array([10.0]))
+
+    traj = line()
+
+    def trunk_at(t_s: float) -> AnalyticField:
+        x = float(traj.sample(np.array([t_s]))[0, 0])
+        return AnalyticField(World(np.array([[x, 0.4, 0.2, 0.0, 3.0]]), np.zeros((0, 7)),
+                                   np.zeros((0, 6)), 0.0))  # fmt: skip
+
+    whole = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    near = FormationPlanner(PlannerParams(check_obstacle_horizon_s=4.0), LINE3, slot=1)
+    far, close = trunk_at(6.0), trunk_at(2.0)
+    ok, why = whole.check(traj, 0.0, far, [])
+    assert not ok and why.startswith("obstacle clearance 0.20 m at t=6.00 s"), why
+    assert near.check(traj, 0.0, far, []) == (True, "")
+    for planner in (whole, near):
+        ok, why = planner.check(traj, 0.0, close, [])
+        assert not ok and why.startswith("obstacle clearance 0.20 m at t=2.00 s"), why
+    # judged from where the check starts: from 3 s on, 6 s is within the horizon
+    assert not near.check(traj, 3.0, far, [])[0]
+    # a peer hovering on the way 8 s ahead refuses both
+    peer = PeerTrajectory(5, 0, Trajectory.hover(traj.sample(np.array([8.0]))[0], 0.0, 20.0))
+    empty = AnalyticField(World.empty())
+    assert not whole.check(traj, 0.0, empty, [peer])[0]
+    assert not near.check(traj, 0.0, empty, [peer])[0]
+    with pytest.raises(ValueError, match="check_obstacle_horizon_s"):
+        PlannerParams(check_obstacle_horizon_s=-1.0)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [

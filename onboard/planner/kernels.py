@@ -631,6 +631,7 @@ def check_trajectory(
     z_hi: float,
     fld: tuple,
     check_obstacle: float,
+    obstacle_s: float,
     peer_c: np.ndarray,
     peer_T: np.ndarray,
     peer_n: np.ndarray,
@@ -647,7 +648,8 @@ def check_trajectory(
 ) -> tuple[int, int, int, int, float, float, float, float, float, int]:
     """The safety check of ``FormationPlanner.check`` on the samples ``ts`` = every ``step``
     from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
-    starting at global time t0); the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
+    starting at global time t0), the obstacles only on those up to t_from + obstacle_s when
+    obstacle_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
     (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A trajectory that comes
     closer than the threshold to an obstacle or a peer is judged by ``_band`` with the floor
@@ -724,13 +726,19 @@ def check_trajectory(
     m_ph = -1
     m_value = nan
     m_floor = nan
-    k = _argmin(dist)
+    n_obs = n
+    if obstacle_s > 0.0:
+        n_obs = 1
+        while n_obs < n and ts[n_obs] <= t_from + obstacle_s + 1e-9:
+            n_obs += 1
+    judged = dist[:n_obs]
+    k = _argmin(judged)
     floor = math.inf
-    if dist[k] < check_obstacle:
+    if judged[k] < check_obstacle:
         ref = _positions(ref_c, ref_T, ts[:n_ref] - ref_t0)
         for i in range(n_ref):
             floor = min(floor, _dist(fld, ref[i, 0], ref[i, 1], ref[i, 2]))
-    band = _band(dist, check_obstacle, floor)
+    band = _band(judged, check_obstacle, floor)
     if band == BAND_MARGINAL:
         m_band, m_k, m_value, m_floor = band, k, dist[k], floor
     elif band != BAND_OK:

@@ -769,8 +769,9 @@ class FormationPlanner:
         """Is ``traj`` safe to fly from ``t_from_s`` on? (ok, reason when not).
 
         Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
-        back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` and of
-        every peer by ``check_drone_m`` to its end; a drone that is already closer than that
+        back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` (over its
+        first ``check_obstacle_horizon_s`` when that is > 0) and of every peer by
+        ``check_drone_m`` to its end; a drone that is already closer than that
         at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
         inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
         it starts (or than a braking stop from there would within ``BRAKE_REFERENCE_S``, if
@@ -841,6 +842,7 @@ class FormationPlanner:
             p.z_limits_m[1],
             view.fld,
             p.check_obstacle_m,
+            p.check_obstacle_horizon_s,
             pack.c,
             pack.T,
             pack.n,
