@@ -576,6 +576,16 @@ def _band(d: np.ndarray, threshold: float, floor: float) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _samples_through(ts: np.ndarray, t_end: float) -> int:
+    """How many of the increasing sample times ``ts`` lie at or before ``t_end`` (1 ns
+    tolerance), at least the first."""
+    n = 1
+    while n < ts.shape[0] and ts[n] <= t_end + 1e-9:
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
 def _argmin(d: np.ndarray) -> int:
     k = 0
     for i in range(1, d.shape[0]):
@@ -715,9 +725,7 @@ def check_trajectory(
             ahead = min(ahead, dist[i])
     # the reference's positions on the samples up to t_from + ref_s, made when a distance
     # first comes inside its threshold
-    n_ref = 1
-    while n_ref < n and ts[n_ref] <= t_from + ref_s + 1e-9:
-        n_ref += 1
+    n_ref = _samples_through(ts, t_from + ref_s)
     ref = np.empty((0, 3))
     # a way that comes inside a threshold but no closer than the braking stop: taken only
     # when nothing better is found (the first such, returned with CHECK_OK)
@@ -726,11 +734,7 @@ def check_trajectory(
     m_ph = -1
     m_value = nan
     m_floor = nan
-    n_obs = n
-    if obstacle_s > 0.0:
-        n_obs = 1
-        while n_obs < n and ts[n_obs] <= t_from + obstacle_s + 1e-9:
-            n_obs += 1
+    n_obs = _samples_through(ts, t_from + obstacle_s) if obstacle_s > 0.0 else n
     judged = dist[:n_obs]
     k = _argmin(judged)
     floor = math.inf
