@@ -351,10 +351,7 @@ class FlightService:
             # (seconds on a starved CPU, in which the peers would plan around a trajectory this
             # drone no longer flies); a plan that cycle publishes meanwhile is superseded and
             # announced over again by _on_plan
-            now = self.clock()
-            self.agent.announce(now)
-            self._last_pub_s = now
-            self.counters["announcements"] += 1
+            self._announce_now(self.clock())
         else:
             self._announce = True  # by the planner thread once airborne
         self._wake.set()
@@ -654,10 +651,14 @@ class FlightService:
             period = self.cfg.planning.replan_period_s
             if self._announce or now - self._last_pub_s >= period:
                 self._announce = False
-                self.agent.announce(now)
-                self._last_pub_s = now
-                self.counters["announcements"] += 1
+                self._announce_now(now)
         return report
+
+    def _announce_now(self, now: float) -> None:
+        """Publish the trajectory in control to the peers (any thread)."""
+        self.agent.announce(now)
+        self._last_pub_s = now
+        self.counters["announcements"] += 1
 
     def _on_plan(self, rep: PlanReport) -> None:
         """The agent's report, inside its cycle (planner thread): the new trajectory is already
