@@ -545,16 +545,37 @@ def poll_until(
     what: str,
     alive: Callable[[], bool] | None = None,
     period_s: float = 0.05,
+    describe: Callable[[], str] | None = None,
 ) -> None:
     """Wait (real time) for ``cond``; TimeoutError naming ``what``; RuntimeError when
-    ``alive()`` turns False first."""
+    ``alive()`` turns False first. ``describe()``, when given, is appended to either error
+    (what the waited-for thing looked like when the wait gave up)."""
     deadline = time.monotonic() + timeout_s
+
+    def seen() -> str:
+        return f"; last seen: {describe()}" if describe is not None else ""
+
     while not cond():
         if alive is not None and not alive():
-            raise RuntimeError(f"a process died while waiting for {what}")
+            raise RuntimeError(f"a process died while waiting for {what}{seen()}")
         if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}")
+            raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}{seen()}")
         time.sleep(period_s)
+
+
+def swarm_summary(station: Any) -> str:
+    """One line per drone of what a ``GroundStation`` last heard (state, mode, armed,
+    position, plan status, message, ages): for the error of a wait that gave up."""
+    parts = []
+    for d, v in sorted(station.views().items()):
+        pos = "-" if v.position_m is None else ",".join(f"{x:.2f}" for x in v.position_m)
+        age = "-" if v.state_age_s is None else f"{v.state_age_s:.1f}s"
+        parts.append(
+            f"[{d}: {v.flight_state} {v.autopilot_mode} armed={v.armed} at ({pos}) state {age} old,"
+            f" plan {v.plan_status} ({v.replans} replans), links {v.links_text()},"
+            f" message {v.message!r}]"
+        )
+    return " ".join(parts) or "no drone heard"
 
 
 # ---- the benchmark ------------------------------------------------------------------------------

@@ -44,6 +44,7 @@ from gcs.bench_service import (
     ServiceProcess,
     poll_until,
     service_config,
+    swarm_summary,
     write_world,
 )
 from gcs.faultproxy import CLEAN, RCVBUF_BYTES, FaultyStar, LinkFaults, UdpFaultProxy
@@ -369,7 +370,13 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
         assert gs.wait_for_drones(ids=range(N), timeout_s=20.0, with_state=True) == set(range(N))
         _ok(gs.send(wire.FormationAssignment(POINTS, 1.0, 0.0, SLOTS, 1, time.time())))
         _ok(gs.takeoff(1.0, list(range(N))))
-        poll_until(lambda: set(_states(gs).values()) == {"hover"}, 40.0, "hover", all_alive)
+        poll_until(
+            lambda: set(_states(gs).values()) == {"hover"},
+            40.0,
+            "hover",
+            all_alive,
+            describe=lambda: swarm_summary(gs),
+        )
 
         # --- the topology: the proxies are the only path between the drones ----------------
         # hovering drones announce their trajectory every replan period; with every downlink

@@ -26,6 +26,7 @@ from gcs.bench_service import (
     SetpointTap,
     poll_until,
     service_config,
+    swarm_summary,
     write_world,
 )
 from gcs.station import GroundStation, StationConfig
@@ -110,7 +111,13 @@ def test_a_killed_service_fails_safe_comes_back_out_of_control_and_rejoins(
         assert gs.wait_for_drones(ids=[0, 1], timeout_s=20.0, with_state=True) == {0, 1}
         _assign(gs, 1)
         _ok(gs.takeoff(1.0, [0, 1]))
-        poll_until(lambda: set(_states(gs).values()) == {"hover"}, 40.0, "hover", mock.alive)
+        poll_until(
+            lambda: set(_states(gs).values()) == {"hover"},
+            40.0,
+            "hover",
+            mock.alive,
+            describe=lambda: swarm_summary(gs),
+        )
         _ok(gs.goal(tuple(goal_centre), targets=[0, 1]))
         poll_until(lambda: mock.latest_truth()[2].position_m[0] > 2.5, 30.0, "drone 1 under way")
 
@@ -234,7 +241,13 @@ def test_a_cut_autopilot_link_stops_commanding_and_never_takes_the_vehicle_back(
         assert gs.wait_for_drones(ids=[0], timeout_s=20.0, with_state=True) == {0}
         _ok(gs.send(wire.FormationAssignment(POINTS, 1.0, 0.0, {0: 0}, 1, time.time())))
         _ok(gs.takeoff(1.0, [0]))
-        poll_until(lambda: _states(gs).get(0) == "hover", 40.0, "hover", svc.alive)
+        poll_until(
+            lambda: _states(gs).get(0) == "hover",
+            40.0,
+            "hover",
+            svc.alive,
+            describe=lambda: swarm_summary(gs),
+        )
         _ok(gs.goal((8.0, 0.0, 1.0), targets=[0]))
         poll_until(lambda: mock.latest_truth()[1].position_m[0] > 1.5, 30.0, "under way")
 
