@@ -462,6 +462,47 @@ def test_a_stalled_receiver_is_not_a_lost_link_but_a_hung_one_is() -> None:
         rg.wait_event(LinkRegained, 6.0)
 
 
+@pytest.mark.timeout(60)
+def test_a_command_is_not_held_back_by_the_timed_stream() -> None:
+    """While setpoints stream at their deadlines, the streamer holds the transmit lock for
+    most of every period and takes it again at once, at real-time priority (where permitted:
+    as here and in CI). A command thread on the streamer's core waited for it as long as the
+    stream went on (a take-off's DO_SET_MODE 40 s late in a fleet test); now each command goes
+    out within a period or two."""
+    with rig("pymavlink", speedup=1.0) as rg:
+        link = rg.link
+        hold_streaming(link)
+        assert link.timed_setpoints_sent > 0  # the timed path is the one under test
+        streamer = next(t for t in threading.enumerate() if t.name.startswith("autopilot-stream"))
+        assert streamer.native_id is not None
+        cpu = {min(os.sched_getaffinity(0))}
+        os.sched_setaffinity(streamer.native_id, cpu)
+        took: list[float] = []
+        errors: list[BaseException] = []
+
+        def commands() -> None:
+            os.sched_setaffinity(threading.get_native_id(), cpu)
+            try:
+                for _ in range(5):
+                    t0 = time.monotonic()
+                    link.request_message("HOME_POSITION")
+                    took.append(time.monotonic() - t0)
+                    time.sleep(0.037)
+            except BaseException as e:  # noqa: BLE001 - re-raised below, in the test's thread
+                errors.append(e)
+
+        th = threading.Thread(target=commands, daemon=True)
+        th.start()
+        th.join(10.0)
+        stuck = th.is_alive()
+        link.stop_streaming()  # the streamer lets go: a stuck command gets out, and ends
+        th.join(5.0)
+        assert not stuck, f"commands held back: {len(took)} of 5 in 10 s"
+        assert not errors, errors
+        assert len(took) == 5 and max(took) < 0.5, took
+        assert link.timed_setpoints_sent > 0
+
+
 @pytest.mark.slow
 @pytest.mark.vehicle
 @pytest.mark.timeout(90)

@@ -18,7 +18,10 @@ Threads (all daemon, all stopped and joined by ``close``):
   atomic reference, and the only lock it takes (``_send_lock``, to make ``stop_streaming``
   exact) is held by others just long enough to flip a flag; the streamer holds it while a
   timed setpoint waits for its deadline, and whoever stops the stream first cancels that wait
-  (the setpoint is then not sent).
+  (the setpoint is then not sent). Since it takes that lock again right after the setpoint
+  left, the lock is a ``StreamLock``: the streamer first lets any thread waiting for it through
+  (so does the implementation's own transmit lock), else a command could wait as long as the
+  stream lasts.
 - **receiver**: owned by the implementation (a socket reader for pymavlink, MAVSDK's own
   threads plus a byte pump for MAVSDK). It only decodes and stores telemetry, routes
   acknowledgements and detects mode changes; it never waits on anything slow.
@@ -72,6 +75,7 @@ from onboard.autopilot.model import (
     Vec3,
     VehicleState,
 )
+from onboard.autopilot.streamlock import YIELD_BEFORE_DEADLINE_S, StreamLock
 from onboard.threadname import named_thread
 
 log = logging.getLogger("onboard.autopilot")
@@ -270,7 +274,7 @@ class AutopilotLink(ABC):
         self._source: SetpointSource | None = None
         self._streaming = False
         self._stream_gen = 0
-        self._send_lock = threading.Lock()
+        self._send_lock = StreamLock()
         self._last_good: Setpoint | None = None
         self._last_sent: Setpoint | None = None
         self._last_send_t: float | None = None
@@ -818,7 +822,8 @@ class AutopilotLink(ABC):
             out.yaw_enu_rad,
             self.config.local_origin_enu_m,
         )
-        with self._send_lock:
+        until = None if deadline is None else deadline - YIELD_BEFORE_DEADLINE_S
+        with self._send_lock.after_waiters(until):
             timed = self._timed
             if deadline is not None and timed is not None:
                 timed.clear()  # a cancel after this line ends the wait below

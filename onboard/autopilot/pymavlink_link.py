@@ -26,6 +26,7 @@ from onboard.autopilot.signing import (
     load_signing_key,
     signing_timestamp_now,
 )
+from onboard.autopilot.streamlock import YIELD_BEFORE_DEADLINE_S, StreamLock
 from onboard.autopilot.timed_send import CANCELLED
 from onboard.autopilot.transport import Address, Transport, UdpTransport, open_transport
 
@@ -118,7 +119,7 @@ class PymavlinkLink(AutopilotLink):
         self._autopilot_badsig = 0
         if config.signing_key_file is not None:
             self._setup_signing(load_signing_key(config.signing_key_file))
-        self._tx_lock = threading.Lock()
+        self._tx_lock = StreamLock()  # the streamer holds it while a timed setpoint waits
         self._ack_cond = threading.Condition()
         self._pending: _Pending | None = None
         self._remote: Address | None = None
@@ -339,14 +340,14 @@ class PymavlinkLink(AutopilotLink):
     def _send_setpoint_at(self, sp: NedSetpoint, deadline_s: float) -> bool | None:
         """Encode now, send at ``deadline_s`` from the timed sender (see ``timed_send``);
         ``_tx_lock`` is held until it left, so that nothing sent by another thread (a command)
-        overtakes it: its sequence number and signing timestamp stay in order. None: cancelled
-        (nothing sent)."""
+        overtakes it: its sequence number and signing timestamp stay in order; a thread waiting
+        to send goes first. None: cancelled (nothing sent)."""
         t = self._transport
         timed = self._timed
         if not isinstance(t, UdpTransport) or timed is None:
             return self._send_setpoint(sp)
         msg = self._setpoint_message(sp)
-        with self._tx_lock:
+        with self._tx_lock.after_waiters(deadline_s - YIELD_BEFORE_DEADLINE_S):
             mav = self._mav
             if self._signing:
                 mav.signing.timestamp = max(mav.signing.timestamp, signing_timestamp_now())
