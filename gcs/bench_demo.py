@@ -31,6 +31,7 @@ import click
 import numpy as np
 
 from gcs.fastsim import FORMATION_REACHED_E_SIM
+from onboard.agent import REPLAN_PERIOD_S
 
 REACHED_WITHIN_S = 10.0
 """Issue #10: the new shape (e_sim below ``FORMATION_REACHED_E_SIM``) within this long."""
@@ -99,7 +100,7 @@ def run_fastsim_seed(
     depth_rate_hz: float,
     depth_step: int,
     planner: Any,
-    replan_period_s: float = 1.0,
+    replan_period_s: float = REPLAN_PERIOD_S,
 ) -> dict[str, Any]:
     """The fast-time flight of the demo's world for ``seed``: mapped perception at the demo's
     depth rate and step, the demo's planner parameters and replan period (the flight service's

@@ -16,6 +16,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from gcs.bench_mapping import perception_options, perception_overrides
+from onboard.agent import REPLAN_PERIOD_S
 from onboard.config import (
     ConfigError,
     load_formation,
@@ -208,7 +209,7 @@ _replan_period_opt = click.option(
     "--replan-period",
     "replan_period",
     type=click.FloatRange(0.1, 10.0),
-    default=1.0,
+    default=REPLAN_PERIOD_S,
     show_default=True,
     help="Seconds between a drone's replans (the flight service's planning.replan_period_s).",
 )

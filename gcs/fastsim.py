@@ -35,7 +35,9 @@ from onboard.agent import (
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_REPLAN_AFTER_S,
     OFFBOARD_LOSS_S,
+    PLAN_AHEAD_S,
     PX4_POSITION_GAIN,
+    REPLAN_PERIOD_S,
     DroneAgent,
     MapSource,
     PlanInputs,
@@ -70,8 +72,8 @@ class SimConfig:
     ``planner`` and a different value here is an error. After construction both agree (use
     ``with_v_max`` to change the speed of a config)."""
     sensing_radius_m: float = 5.0
-    replan_period_s: float = 1.0
-    plan_ahead_s: float = 0.1
+    replan_period_s: float = REPLAN_PERIOD_S
+    plan_ahead_s: float = PLAN_AHEAD_S
     bus_delay_s: float = 0.05
     dt_s: float = 0.01
     """Step of motion and collision checks (100 Hz)."""

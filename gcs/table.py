@@ -28,6 +28,7 @@ import numpy as np
 
 from gcs.fastsim import SimConfig, SimResult, run_sim
 from gcs.metrics import summary
+from onboard.agent import REPLAN_PERIOD_S
 from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.params import PlannerParams
 
@@ -126,7 +127,7 @@ def run_trial(
     base: PlannerParams,
     keep_result: bool,
     start_z_jitter_m: float = 0.0,
-    replan_period_s: float = 1.0,
+    replan_period_s: float = REPLAN_PERIOD_S,
 ) -> tuple[TrialResult, SimResult | None]:
     """Fly one trial with one method (speed limit: ``base.v_max_m_s``); the full SimResult only
     when ``keep_result``. ``start_z_jitter_m``, ``replan_period_s``: those of ``SimConfig``."""
@@ -230,7 +231,7 @@ def run_table(
     jobs: int = 1,
     progress: Callable[[int, int], None] | None = None,
     start_z_jitter_m: float = 0.0,
-    replan_period_s: float = 1.0,
+    replan_period_s: float = REPLAN_PERIOD_S,
 ) -> tuple[dict[str, Any], dict[tuple[str, str], SimResult]]:
     """Run every (world, method, trial) with the planner parameters ``base`` (default
     config/planner.yaml; its ``v_max_m_s`` is the speed limit of every method); returns (report,

@@ -99,6 +99,13 @@ from onboard.planner.trajectory import Trajectory, braking_distance_m
 EPS_T = 1e-9
 """Times closer than this count as equal (a trajectory starting at t is in control at t)."""
 
+REPLAN_PERIOD_S = 1.0
+"""Seconds between a drone's replans, the paper's once a second: the default of the agent, of
+the flight service (``planning.replan_period_s``) and of fast time (``SimConfig``)."""
+PLAN_AHEAD_S = 0.1
+"""A new plan starts this long after the replan that made it (its computing time): the same
+three defaults."""
+
 # The silent and stuck peer reaction as flown: the flight service's defaults
 # (``reactions.peer_lost``) and the values of the fast-time fault trials (BENCHMARKS 9b). The
 # agent's own arguments leave silence and deviation off (inf) unless they are passed.
@@ -557,8 +564,8 @@ class DroneAgent:
         map_source: MapSource,
         *,
         goal: np.ndarray | Sequence[float] | None = None,
-        replan_period_s: float = 1.0,
-        plan_ahead_s: float = 0.1,
+        replan_period_s: float = REPLAN_PERIOD_S,
+        plan_ahead_s: float = PLAN_AHEAD_S,
         first_replan_s: float | None = None,
         formation_epoch: int = 0,
         validity_s: float = math.inf,

@@ -28,6 +28,8 @@ from onboard.agent import (
     PEER_SILENCE_IN_WAY_S,
     PEER_SILENCE_MAX_S,
     PEER_SILENCE_S,
+    PLAN_AHEAD_S,
+    REPLAN_PERIOD_S,
 )
 from onboard.config import (
     ConfigError,
@@ -316,8 +318,8 @@ class MappingSection:
 class PlanningSection:
     """The replan cycle and the safety monitor."""
 
-    replan_period_s: float = 1.0
-    plan_ahead_s: float = 0.1
+    replan_period_s: float = REPLAN_PERIOD_S
+    plan_ahead_s: float = PLAN_AHEAD_S
     """A replan starts from the current trajectory's state this far ahead (its computing time)."""
     plan_budget_s: float = 0.3
     """A replan that has taken this long starts no further attempt (A* retries, rescue) while

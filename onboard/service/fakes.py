@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from onboard.agent import REPLAN_PERIOD_S
 from onboard.planner.trajectory import Trajectory
 from onboard.service.ports import (
     CommandFailed,
@@ -262,7 +263,7 @@ class SimulatedPeer:
         path: Trajectory,
         *,
         validity_s: float = 3.0,
-        replan_period_s: float = 1.0,
+        replan_period_s: float = REPLAN_PERIOD_S,
         state_period_s: float = 0.1,
         incarnation: int = 1,
     ) -> None:
