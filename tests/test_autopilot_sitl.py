@@ -462,6 +462,36 @@ def test_a_stalled_receiver_is_not_a_lost_link_but_a_hung_one_is() -> None:
         rg.wait_event(LinkRegained, 6.0)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(60)
+def test_mavsdk_a_stalled_callback_thread_is_not_a_lost_link_but_a_hung_one_is() -> None:
+    """As above, over MAVSDK, whose callbacks run on its own thread: that thread stops for
+    1.6 s inside the heartbeat callback while the pump goes on passing bytes in. The pump's
+    looks count only once the callbacks have caught up with the heartbeats pumped, so the
+    link is not lost; a thread stuck for 5 s loses it."""
+    with rig("mavsdk", speedup=1.0) as rg:
+        link = rg.link
+        hold_streaming(link)
+        handle = link._rx_heartbeat  # type: ignore[attr-defined]
+        stall_s: list[float] = []
+
+        def stalling(*a: Any) -> None:
+            if stall_s:
+                time.sleep(stall_s.pop())
+            handle(*a)
+
+        link._rx_heartbeat = stalling  # type: ignore[attr-defined]
+        stall_s.append(1.6)
+        poll(lambda: not stall_s, 2.0, "the stall")
+        time.sleep(2.0)  # the stall is over, the waiting messages are handled
+        assert not [e for e in rg.events if isinstance(e, LinkLost)]
+        assert link.streaming and not link.state().link_lost
+        stall_s.append(5.0)
+        lost = rg.wait_event(LinkLost, 6.0)
+        assert max(lost.rx_age_s, lost.heartbeat_age_s) > 2.5 and not link.streaming
+        rg.wait_event(LinkRegained, 6.0)
+
+
 @pytest.mark.timeout(60)
 def test_a_command_is_not_held_back_by_the_timed_stream() -> None:
     """While setpoints stream at their deadlines, the streamer holds the transmit lock for
