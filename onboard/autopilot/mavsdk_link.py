@@ -163,7 +163,9 @@ class MavsdkLink(AutopilotLink):
         # thread of its own, so the pump cannot tell when they have been handled. It counts the
         # autopilot's heartbeats it passes in, and the heartbeat callback those it handled; a
         # look of the pump (every byte that had arrived was passed in) counts once the
-        # callback has caught up with the heartbeats pumped by then
+        # callback has caught up with the heartbeats pumped by then. A heartbeat split between
+        # two reads (a serial port) is not counted here but is handled: the callback's count
+        # then runs ahead and every look counts at once, the rule before this one
         self._hb_pumped = 0  # the pump's thread
         self._hb_handled = 0  # MAVSDK's thread
         self._looks: deque[tuple[float, int]] = deque(maxlen=64)
