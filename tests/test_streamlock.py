@@ -4,7 +4,7 @@ The rig reproduces what held a take-off's DO_SET_MODE back for 40 s in a three-d
 a streamer at real-time priority that holds the lock for 19 of every 20 ms and takes it again
 at once, and a command thread on the same core. Where SCHED_FIFO is not permitted the streamer
 runs at normal priority, and a plain lock is then seldom starved; with it (as here), a plain
-lock was never released to the other thread in 2 s.
+lock was never released to the other thread in 2 s (the test allows 0.5 s).
 """
 
 from __future__ import annotations
@@ -92,7 +92,9 @@ def test_a_waiting_thread_gets_the_lock_within_a_period() -> None:
     lock = StreamLock()
     waits = _waits(lock.after_waiters, lambda: lock)
     assert len(waits) == 10
-    assert max(waits) < 3 * PERIOD_S, waits
+    # a plain lock: more than 2 s (the streamer never let go); the bound leaves room for a
+    # loaded machine's scheduling (the taker shares its CPU with whatever else runs there)
+    assert max(waits) < 25 * PERIOD_S, waits
     assert lock.waiting == 0
 
 
