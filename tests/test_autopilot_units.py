@@ -29,12 +29,7 @@ from onboard.autopilot.frames import (
 )
 from onboard.autopilot.guard import GuardLimits, guard_setpoint, setpoint_problem
 from onboard.autopilot.link import LinkHealth, ModeTracker, run_command
-from onboard.autopilot.mavsdk_link import (
-    _json_fields,
-    frame_crc_ok,
-    heartbeat_type,
-    split_frames,
-)
+from onboard.autopilot.mavsdk_link import _json_fields, heartbeat_type, split_frames
 from onboard.autopilot.model import (
     CommandError,
     CommandResult,
@@ -482,35 +477,6 @@ def test_split_frames_and_heartbeat_type() -> None:
     mav1.WIRE_PROTOCOL_VERSION = "1.0"
     v1 = bytes(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 3, 3).pack(mav1, force_mavlink1=True))
     assert list(split_frames(v1))[0][2:] == (2, 1, 0)
-
-
-def test_frame_crc_ok_checks_the_checksum_with_the_messages_crc_extra() -> None:
-    """The MAVSDK link counts the autopilot's heartbeats it passes in only when MAVSDK will
-    not drop them: v1 and v2, signed or not; any flipped byte, or the wrong CRC_EXTRA, fails."""
-    extra = mavlink.MAVLink_heartbeat_message.crc_extra
-    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    v2 = bytes(mav.heartbeat_encode(2, 12, 0, 0, 3).pack(mav))
-    mav1 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    mav1.WIRE_PROTOCOL_VERSION = "1.0"
-    v1 = bytes(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 3, 3).pack(mav1, force_mavlink1=True))
-    signer = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    signer.signing.secret_key = bytes(range(32))
-    signer.signing.link_id = 1
-    signer.signing.timestamp = 1
-    signer.signing.sign_outgoing = True
-    signed = bytes(signer.heartbeat_encode(2, 12, 0, 0, 3).pack(signer))
-    assert signed[2] & 0x01 and len(signed) == len(v2) + 13
-    for frame in (v2, v1, signed):
-        assert frame_crc_ok(frame, extra)
-        assert not frame_crc_ok(frame, (extra + 1) % 256)
-        body = len(frame) - (13 if frame is signed else 0)
-        for i in range(1, body):  # every byte the checksum covers, and the checksum itself
-            bad = bytearray(frame)
-            bad[i] ^= 0x10
-            if i == 1:
-                continue  # the length: split_frames would cut another frame
-            assert not frame_crc_ok(bytes(bad), extra), i
-    assert not frame_crc_ok(v2[:-1], extra)  # truncated
 
 
 def test_json_fields_send_nan_as_null() -> None:

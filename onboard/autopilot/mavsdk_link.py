@@ -16,11 +16,7 @@ it keep the contract MAVSDK alone cannot:
   sees the real MAV_RESULT and applies the same retry policy as the pymavlink link).
 
 Telemetry comes from MAVSDK's Telemetry plugin (its own decoding, independent of pymavlink's);
-mode, armed state and failsafe from the heartbeat (MavlinkDirect subscription). Those callbacks
-run on MAVSDK's thread, so the receiver's last look that the link-health rule needs
-(``LinkHealth``: silence counts up to it) is a read of the pump that drained the transport,
-taken once the heartbeat callback has handled as many of the autopilot's heartbeats (checksums
-checked) as the pump had passed in by then.
+mode, armed state and failsafe from the heartbeat (MavlinkDirect subscription).
 Differences from the pymavlink link: ``decode_errors`` stays 0 (MAVSDK drops bad frames
 silently); the per-transmission ack timeout and transmission count are MAVSDK's own;
 ``health_ok`` means MAVSDK's gyro/accelerometer/magnetometer calibration and local position
@@ -34,12 +30,10 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterator
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
-from pymavlink.generator.mavcrc import x25crc
 
 from onboard.autopilot import px4
 from onboard.autopilot.config import LinkConfig
@@ -53,7 +47,6 @@ _mavsdk_log = logging.getLogger("onboard.autopilot.mavsdk")
 
 _STX_V1, _STX_V2 = 0xFE, 0xFD
 _MSG_ID_HEARTBEAT = 0
-_HEARTBEAT_CRC_EXTRA = mavlink.MAVLink_heartbeat_message.crc_extra
 
 
 def split_frames(data: bytes) -> Iterator[tuple[int, int, int, int, int]]:
@@ -82,18 +75,6 @@ def split_frames(data: bytes) -> Iterator[tuple[int, int, int, int, int]]:
             return
         else:
             i += 1
-
-
-def frame_crc_ok(frame: bytes, crc_extra: int) -> bool:
-    """Whether a MAVLink v1/v2 frame (as ``split_frames`` cuts it) has the checksum of its
-    message, whose CRC_EXTRA is ``crc_extra`` (MAVSDK drops a frame that has not)."""
-    header = 10 if frame[0] == _STX_V2 else 6
-    end = header + frame[1]
-    if len(frame) < end + 2:
-        return False
-    crc = x25crc(frame[1:end])
-    crc.accumulate(bytes((crc_extra,)))
-    return crc.crc == frame[end] | (frame[end + 1] << 8)
 
 
 def heartbeat_type(frame: bytes) -> int:
@@ -159,16 +140,6 @@ class MavsdkLink(AutopilotLink):
         self._pending_cmd: int | None = None
         self._pending_final = False
         self._ack_lock = threading.Lock()
-        # the receiver's last look (``_rx_looked_at``): MAVSDK hands the messages back on a
-        # thread of its own, so the pump cannot tell when they have been handled. It counts the
-        # autopilot's heartbeats it passes in, and the heartbeat callback those it handled; a
-        # look of the pump (every byte that had arrived was passed in) counts once the
-        # callback has caught up with the heartbeats pumped by then. A heartbeat split between
-        # two reads (a serial port) is not counted here but is handled: the callback's count
-        # then runs ahead and every look counts at once, the rule before this one
-        self._hb_pumped = 0  # the pump's thread
-        self._hb_handled = 0  # MAVSDK's thread
-        self._looks: deque[tuple[float, int]] = deque(maxlen=64)
 
     @property
     def transport_description(self) -> str:
@@ -242,7 +213,6 @@ class MavsdkLink(AutopilotLink):
         assert transport is not None
         cfg = self.config
         while not self._stop.is_set():
-            began = time.monotonic()
             try:
                 chunks = transport.read(0.1)
             except LinkError:
@@ -252,41 +222,13 @@ class MavsdkLink(AutopilotLink):
             if md is None:
                 return
             for data, addr in chunks:
-                heartbeats = 0
-                for start, end, sysid, compid, msgid in split_frames(data):
-                    if sysid != cfg.system_id or compid != cfg.autopilot_component_id:
-                        continue
-                    if addr is not None and addr != self._remote:
-                        self._remote = addr
-                        transport.set_remote(addr)
-                    if msgid == _MSG_ID_HEARTBEAT and frame_crc_ok(
-                        data[start:end], _HEARTBEAT_CRC_EXTRA
-                    ):
-                        heartbeats += 1
-                self._hb_pumped += heartbeats
+                if addr is not None and addr != self._remote:
+                    for _, _, sysid, compid, _ in split_frames(data):
+                        if sysid == cfg.system_id and compid == cfg.autopilot_component_id:
+                            self._remote = addr
+                            transport.set_remote(addr)
+                            break
                 md.pass_received_raw_bytes(data)
-            if transport.drained:
-                self._pump_looked(began, self._hb_pumped)
-
-    def _pump_looked(self, began: float, pumped: int) -> None:
-        """Every byte that had arrived by ``began`` is in MAVSDK, ``pumped`` heartbeats with
-        them: the receiver's look once the callback has handled as many (now, or later in
-        ``_heartbeat_handled``)."""
-        if self._hb_handled < pumped:
-            self._looks.append((began, pumped))
-            if self._hb_handled < pumped:  # else the callback caught up meanwhile
-                return
-        self._rx_looked_at(max(began, self._rx_looked or began))
-
-    def _heartbeat_handled(self) -> None:
-        """One of the autopilot's heartbeats was handled (MAVSDK's thread)."""
-        self._hb_handled += 1
-        looks = self._looks
-        t = None
-        while looks and looks[0][1] <= self._hb_handled:
-            t = looks.popleft()[0]
-        if t is not None:
-            self._rx_looked_at(max(t, self._rx_looked or t))
 
     def _on_outgoing(self, data: bytes) -> None:
         """MAVSDK's outgoing bytes (on a MAVSDK thread): withhold its own heartbeats."""
@@ -315,21 +257,18 @@ class MavsdkLink(AutopilotLink):
         if msg.system_id != cfg.system_id or msg.component_id != cfg.autopilot_component_id:
             return
         try:
-            try:
-                f = json.loads(msg.fields_json)
-                custom, base, status = (
-                    int(f["custom_mode"]),
-                    int(f["base_mode"]),
-                    int(f["system_status"]),
-                )
-            except (ValueError, KeyError, TypeError):
-                self._rx_decode_error()
-                return
-            now = time.monotonic()
-            self._rx(now)
-            self._rx_heartbeat(now, custom, base, status)
-        finally:
-            self._heartbeat_handled()
+            f = json.loads(msg.fields_json)
+            custom, base, status = (
+                int(f["custom_mode"]),
+                int(f["base_mode"]),
+                int(f["system_status"]),
+            )
+        except (ValueError, KeyError, TypeError):
+            self._rx_decode_error()
+            return
+        now = time.monotonic()
+        self._rx(now)
+        self._rx_heartbeat(now, custom, base, status)
 
     def _on_ack_msg(self, msg: Any, _user: Any) -> None:
         cfg = self.config
