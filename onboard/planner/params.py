@@ -117,14 +117,13 @@ class PlannerParams:
     its window, is not yet formed, so a plan clear on one frame's map grazes a trunk mapped on
     the next, far ahead; refusing it costs retries that leave the formation out, although the
     next replans (every second) see that trunk long before it is near. Mapped fast time,
-    forest-medium seeds 1-6 with the change to rectangle-7, at 4 s: refused attempts 670 -> 233,
-    mean e_sim 0.043 -> 0.036, new shape within 10 s 0 -> 3 of 6, closest trunk 0.335 m
-    (BENCHMARKS.md section 8, eighth session of 2026-11-29). A plan kept by a later replan is
-    checked again from that replan's start, so the far part is judged once it is within this
-    horizon. On exact fields (the table) it loosened the shape (0.0078 -> 0.0119): off by
-    default. Meant for the flight service's map (``config/onboard.yaml``), where it is not yet
-    set: with it, two multi-drone tests of CI timed out waiting for the swarm to hover after
-    take-off (3 of 9 runs here), cause not found."""
+    forest-medium seeds 1-12 with the change to rectangle-7, at 4 s: refused attempts about
+    halved, new shape within 10 s in 3 of 12 against 1, mean e_sim 0.050 against 0.047 (no
+    better), closest trunk 0.315 m against 0.288 m (BENCHMARKS.md section 8, ninth session of
+    2026-11-29). A plan kept by a later replan is checked again from that replan's start, so
+    the far part is judged once it is within this horizon. On exact fields (the table) it
+    loosened the shape (0.0078 -> 0.0119): off by default, set for the flight service's map
+    (``config/onboard.yaml``)."""
     check_drone_m: float = 0.45
     """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
     check_step_s: float = 0.05
