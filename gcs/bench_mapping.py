@@ -127,6 +127,10 @@ class MappingBenchConfig:
     """The service's ``mapping.window_band_margin_m`` default."""
     occluded_fill_m: float | None = None
     """``OccupancyParams.occluded_fill_m`` (None: its default)."""
+    occluded_fill_behind_hits: bool | None = None
+    """``OccupancyParams.occluded_fill_behind_hits`` (None: its default)."""
+    occluded_fill_chord_m: float | None = None
+    """``OccupancyParams.occluded_fill_chord_m`` (None: its default)."""
 
 
 def flight_path(
@@ -214,15 +218,22 @@ def near_overestimate(
 
 
 def _overestimate_stats(e: np.ndarray) -> dict[str, float | None]:
+    """Both tails: above 0 the map has an obstacle short (``over_0.1``: beyond the drone's
+    radius), below 0 it has one too wide (``under_0.05`` / ``under_0.1``: by more than that)."""
+    keys = ("p1", "p5", "p50", "p95", "p99", "max", "over_0.1", "under_0.05", "under_0.1")
     if e.size == 0:
-        return {"n": 0, "p50": None, "p95": None, "p99": None, "max": None, "over_0.1": None}
+        return {"n": 0, **{k: None for k in keys}}
     return {
         "n": int(e.size),
+        "p1": float(np.percentile(e, 1)),
+        "p5": float(np.percentile(e, 5)),
         "p50": float(np.percentile(e, 50)),
         "p95": float(np.percentile(e, 95)),
         "p99": float(np.percentile(e, 99)),
         "max": float(np.max(e)),
         "over_0.1": float(np.mean(e > 0.1)),
+        "under_0.05": float(np.mean(e < -0.05)),
+        "under_0.1": float(np.mean(e < -0.1)),
     }
 
 
@@ -239,6 +250,10 @@ def window_params(cfg: MappingBenchConfig, window: str | None = None) -> Any:
         occ = dataclasses.replace(occ, no_return_m=cfg.no_return_m)
     if cfg.occluded_fill_m is not None:
         occ = dataclasses.replace(occ, occluded_fill_m=cfg.occluded_fill_m)
+    if cfg.occluded_fill_behind_hits is not None:
+        occ = dataclasses.replace(occ, occluded_fill_behind_hits=cfg.occluded_fill_behind_hits)
+    if cfg.occluded_fill_chord_m is not None:
+        occ = dataclasses.replace(occ, occluded_fill_chord_m=cfg.occluded_fill_chord_m)
     w = cfg.window if window is None else window
     if w == "band":
         return occ.for_band(cfg.band_m[0], cfg.band_m[1], cfg.band_margin_m)
@@ -545,6 +560,8 @@ def run_mapping_bench(
             "resolution_m": occ.resolution_m,
             "no_return_m": occ.no_return_m,
             "occluded_fill_m": occ.occluded_fill_m,
+            "occluded_fill_behind_hits": occ.occluded_fill_behind_hits,
+            "occluded_fill_chord_m": occ.occluded_fill_chord_m,
         },
         "render_ms": _stats(render_ms),
         "ingest_ms": _stats(ingest_ms),
@@ -645,7 +662,22 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     default=None,
     type=click.FloatRange(0.0, 1.0),
     help="Never-observed cells this close to an obstacle count as occupied [m] (0: none) "
-    "[default: the mapper's, 0.2].",
+    "[default: the mapper's].",
+)
+@click.option(
+    "--fill-behind-hits/--fill-square",
+    "occluded_fill_behind_hits",
+    default=None,
+    help="Fill only never-observed cells behind a hit along its ray, or every one near an "
+    "obstacle in its layer [default: the mapper's].",
+)
+@click.option(
+    "--fill-chord",
+    "occluded_fill_chord_m",
+    default=None,
+    type=click.FloatRange(0.0, 5.0),
+    help="Behind hits: a ray's fill reaches at most this times the cosine of its incidence "
+    "[m] (0: the whole --occluded-fill) [default: the mapper's].",
 )
 @click.option(
     "--esdf-every",
@@ -719,6 +751,8 @@ def bench_mapping(
     holes: int,
     rate_hz: float,
     occluded_fill_m: float | None,
+    occluded_fill_behind_hits: bool | None,
+    occluded_fill_chord_m: float | None,
     esdf_every: int,
     no_return_m: float | None,
     max_frames: int,
@@ -746,6 +780,8 @@ def bench_mapping(
         holes=holes,
         rate_hz=rate_hz,
         occluded_fill_m=occluded_fill_m,
+        occluded_fill_behind_hits=occluded_fill_behind_hits,
+        occluded_fill_chord_m=occluded_fill_chord_m,
         esdf_every=esdf_every,
         no_return_m=no_return_m,
         max_frames=max_frames,
@@ -833,8 +869,17 @@ def bench_mapping(
         f"{NEAR_PROBE_RADIUS_M} m around it; {ov['n']}): the planning field reads the obstacle "
         f"further than it is by p50 {_fmt(ov['p50'], '+.3f')}, p95 {_fmt(ov['p95'], '+.3f')}, "
         f"p99 {_fmt(ov['p99'], '+.3f')} m; more than the inflation at "
-        f"{_fmt(None if ov['over_0.1'] is None else 100 * ov['over_0.1'], '.1f')} % "
-        f"(occluded fill {sc['occluded_fill_m']:g} m)"
+        f"{_fmt(None if ov['over_0.1'] is None else 100 * ov['over_0.1'], '.1f')} %; nearer "
+        f"than it is by p5 {_fmt(ov['p5'], '+.3f')}, p1 {_fmt(ov['p1'], '+.3f')} m, by more "
+        f"than 0.05 / 0.1 m at "
+        f"{_fmt(None if ov['under_0.05'] is None else 100 * ov['under_0.05'], '.1f')} / "
+        f"{_fmt(None if ov['under_0.1'] is None else 100 * ov['under_0.1'], '.1f')} % "
+        f"(occluded fill {sc['occluded_fill_m']:g} m, "
+        + (
+            f"behind hits, chord {sc['occluded_fill_chord_m']:g} m)"
+            if sc["occluded_fill_behind_hits"]
+            else "square)"
+        )
     )
     tg = report["targets"]["esdf_error_m.p95"]
     console.print(

@@ -247,13 +247,18 @@ def test_esdf_kernel_equals_the_plain_passes_on_a_mapped_forest() -> None:
     for sub_cell in (True, False):
         _assert_same(om, sub_cell)
     # and through the builder the service uses: the transform of the map with the shadows of
-    # its obstacles filled (OccupancyParams.occluded_fill_m), the filled cells still unknown
-    assert om.params.occluded_fill_cells == 2
+    # its obstacles filled (OccupancyParams.occluded_fill_m, behind hits: the cells that hold
+    # the points their rays marked, whose mean is the filled cell's surface point), the filled
+    # cells still unknown
+    prm = om.params
+    assert prm.occluded_fill_cells == 4 and prm.occluded_fill_behind_hits
     f = EsdfBuilder().build(om, inflate_m=0.1)
     filled = copy.copy(om)
     filled.logodds = np.empty_like(om.logodds)
     queue = np.empty(om.logodds.size, dtype=np.int64)
-    n_occ, n_all = fill_occluded(om.logodds, om.lo, om.params.l_occ, 2, filled.logodds, queue)
+    n_occ, n_all = fill_occluded(
+        om.logodds, om.lo, prm.l_occ, 4, filled.logodds, queue, om.surf, True
+    )
     assert n_all - n_occ > 100
     ref = _reference(filled, True, 0.1)
     assert f.values.tobytes() == ref[1].tobytes()

@@ -8,9 +8,10 @@ occupied cell to the nearest non-occupied cell (inside); signed distance = outsi
 Unknown cells count as free here, so the optimiser sees the distance to the nearest *known*
 obstacle everywhere (unknown space is free for it); the field's ``known`` mask tells the
 collision check which cells were observed. The exception is the shadow of an obstacle: unknown
-cells within ``OccupancyParams.occluded_fill_m`` of an occupied cell of their layer count as
-occupied (``fill_occluded``; still unknown in ``known``), so that the side of a trunk the
-camera never faced is not free space right beside the side it saw.
+cells within ``OccupancyParams.occluded_fill_m`` of an occupied cell of their layer, behind a
+hit along its ray by default, count as occupied (``fill_occluded``; still unknown in
+``known``), so that the side of a trunk the camera never faced is not free space right beside
+the side it saw.
 
 Values sit at cell centres and are refined below the cell size (``sub_cell``, the default):
 every occupied cell remembers the mean of the measured surface points that fell into it, so a
@@ -500,16 +501,21 @@ def fill_occluded(
     cells: int,
     out: np.ndarray,
     queue: np.ndarray,
+    surf: np.ndarray,
+    behind_hits: bool,
 ) -> tuple[int, int]:
     """``out`` = ``logodds`` (the ring buffer, same storage order) with every never-observed
     cell within ``cells`` cells of an occupied cell in the same layer (Chebyshev distance in x
     and y, in the window: never across its edges) set to ``l_occ``: occupied for the ESDF
-    (``OccupancyParams.occluded_fill_m``). Only sideways: the shadows of a level camera lie
-    behind what it saw, not above or below it, and each layer's fill depends on that layer
-    alone (a band window's layers get what a taller window's get). ``queue`` (int64, at least one
-    slot per cell) receives window-order flat indices ``(wi * ny + wj) * nz + wk``: the
-    occupied cells, then the filled ones. Returns (occupied, occupied + filled): the filled
-    cells are ``queue[occupied:occupied + filled]``."""
+    (``OccupancyParams.occluded_fill_m``); with ``behind_hits``, only those whose row of
+    ``surf`` (the map's surface accumulators) holds points, which in a never-observed cell are
+    the points a hit's ray marked behind it (``OccupancyParams.occluded_fill_behind_hits``;
+    their mean is then the filled cell's surface point for the ESDF). Only sideways: the
+    shadows of a level camera lie behind what it saw, not above or below it, and each layer's
+    fill depends on that layer alone (a band window's layers get what a taller window's get).
+    ``queue`` (int64, at least one slot per cell) receives window-order flat indices
+    ``(wi * ny + wj) * nz + wk``: the occupied cells, then the filled ones. Returns (occupied,
+    occupied + filled): the filled cells are ``queue[occupied:occupied + filled]``."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
@@ -544,7 +550,9 @@ def fill_occluded(
             si = sx[ai]
             for aj in range(max(wj - cells, 0), min(wj + cells + 1, ny)):
                 sj = sy[aj]
-                if out[si, sj, sk] < _UNKNOWN_BELOW:
+                if out[si, sj, sk] < _UNKNOWN_BELOW and (
+                    not behind_hits or surf[(si * ny + sj) * nz + sk, 3] > 0.0
+                ):
                     out[si, sj, sk] = l_occ
                     queue[m] = (ai * ny + aj) * nz + wk
                     m += 1
@@ -857,7 +865,14 @@ class EsdfBuilder:
                 )
             logodds, queue = self._fill_bufs
             n_occ, n_all = fill_occluded(
-                omap.logodds, omap.lo, omap.params.l_occ, fill, logodds, queue
+                omap.logodds,
+                omap.lo,
+                omap.params.l_occ,
+                fill,
+                logodds,
+                queue,
+                omap.surf,
+                omap.params.occluded_fill_behind_hits,
             )
         _n_occ, bad = esdf_kernel(
             logodds,
