@@ -138,19 +138,20 @@ class OccupancyParams:
     turned away from the camera, which leaves the view before that side faces it) is free
     space to the planner while the space in front of it is observed: on the mapping bench
     (forest-medium seed 1, 3 frames/s, ``bench mapping``'s ``near_overestimate``) 15 % of the
-    points near trunks read more than the inflation too far, 0.4 % with the default fill.
+    points near trunks read more than the inflation too far, 0.7 % with the default fill.
     0: off."""
     occluded_fill_behind_hits: bool = True
     """Fill only the never-observed cells that a hit's ray went on into (up to
     ``occluded_fill_m`` behind the hit, at most ``occluded_fill_chord_m`` times the cosine of
-    its incidence): the hidden side of what was seen. False: every never-observed cell near an
-    occupied one, the square rule, which also takes cells beside a trunk that no ray passed
-    behind it and reads trunks up to 0.3 m wider where the drone flies past them. On the
-    mapping bench (as above), at equal cover of the hidden side (0.3-0.4 % of the near points
-    more than the inflation too far), the default reads 3.0 % of them more than 0.1 m too near
-    against 5.2 % for the square rule at 0.2 m; in mapped fast time (12 seeds, formation change)
-    the shape held better (mean e_sim 0.037 against 0.050) and the closest trunk was further
-    (0.355 m against 0.315 m) (BENCHMARKS.md section 4, tenth session)."""
+    its incidence; one ray per end cell and frame): the hidden side of what was seen. False:
+    every never-observed cell near an occupied one, the square rule, which also takes cells
+    beside a trunk that no ray passed behind it and reads trunks up to 0.3 m wider where the
+    drone flies past them. On the mapping bench (as above) the default reads 2.9 % of the near
+    points more than 0.1 m too near against 5.1 % for the square rule at 0.2 m (0.67 against
+    0.36 % more than the inflation too far), and the filled field's error is 0.086 against
+    0.233 m p95; in mapped fast time (12 seeds, formation change) the shape held better (mean
+    e_sim 0.033 against 0.050), re-formed sooner and kept the trunks further (closest 0.324
+    against 0.315 m) (BENCHMARKS.md sections 4 and 8, 2026-11-30)."""
     occluded_fill_chord_m: float = 0.7
     """A depth pixel's fill behind its hit reaches at most this times the cosine of its ray's
     incidence on the surface (a cylinder of diameter D is D cos(i) deep along a ray at incidence
@@ -349,9 +350,10 @@ def _mark_shadow(
 ) -> None:
     """The points p + u * t, t = h, 2h, ... <= length (h half a cell, u the unit ray direction
     from o through p) that lie in the window, in never-observed cells this frame has not
-    touched: added to their cells' surface accumulators as hits are (to known cells they
-    would be). A never-observed cell with points is in the shadow of a surface right in front
-    of it (``OccupancyParams.occluded_fill_behind_hits``); its first update forgets them."""
+    touched: added to their cells' surface accumulators as a hit's point is added to its cell's.
+    A never-observed cell with points lies in the shadow right behind a surface that was hit
+    (``OccupancyParams.occluded_fill_behind_hits``); its first hit forgets them, its first
+    miss clears them with the rest of its accumulator."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
@@ -419,12 +421,12 @@ def _cast_ray(
     shadow_len: float,
 ) -> int:
     """One ray from camera centre o to end point p (both inside the window); returns
-    n_touched. A hit with ``shadow_len`` > 0 also marks the never-observed cells up to
-    ``shadow_len`` behind it along the ray (``_mark_shadow``). The end cell gets a hit (or a
-    miss when ``hit`` is False), the cells between it
+    n_touched. The end cell gets a hit (or a miss when ``hit`` is False), the cells between it
     and the camera a miss; nothing more when a ray of this frame already ended in the same
-    cell. A hit adds the end point, relative to its cell's
-    centre, to the cell's surface accumulator surf (N, 4): sum of offsets and count."""
+    cell. A hit adds the end point, relative to its cell's centre, to the cell's surface
+    accumulator surf (N, 4): sum of offsets and count. A hit with ``shadow_len`` > 0 also marks
+    the never-observed cells up to ``shadow_len`` behind it along the ray (``_mark_shadow``),
+    unless a ray of this frame that ended in the same cell did."""
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
