@@ -335,6 +335,22 @@ def _touch(
 
 
 @njit(cache=True, nogil=True)
+def _add_point(
+    surf: np.ndarray, idx: int, x: float, y: float, z: float, gx: int, gy: int, gz: int, res: float
+) -> None:
+    """Add point (x, y, z) of global cell (gx, gy, gz), relative to the cell's centre, to the
+    cell's surface accumulator (row idx of surf: sum of offsets and count), halved first when
+    its count has reached ``_SURF_MAX_COUNT`` (it forgets slowly: it follows a moving surface)."""
+    if surf[idx, 3] >= _SURF_MAX_COUNT:
+        for a in range(4):
+            surf[idx, a] *= 0.5
+    surf[idx, 0] += x - (gx + 0.5) * res
+    surf[idx, 1] += y - (gy + 0.5) * res
+    surf[idx, 2] += z - (gz + 0.5) * res
+    surf[idx, 3] += 1.0
+
+
+@njit(cache=True, nogil=True)
 def _mark_shadow(
     logodds: np.ndarray,
     surf: np.ndarray,
@@ -394,13 +410,7 @@ def _mark_shadow(
         idx = (sx * ny + sy) * nz + sz
         if flat[idx] >= _UNKNOWN_BELOW or touch[idx] != 0:
             continue
-        if surf[idx, 3] >= _SURF_MAX_COUNT:
-            for a in range(4):
-                surf[idx, a] *= 0.5
-        surf[idx, 0] += qx - (gx + 0.5) * res
-        surf[idx, 1] += qy - (gy + 0.5) * res
-        surf[idx, 2] += qz - (gz + 0.5) * res
-        surf[idx, 3] += 1.0
+        _add_point(surf, idx, qx, qy, qz, gx, gy, gz, res)
 
 
 @njit(cache=True, nogil=True)
@@ -453,13 +463,7 @@ def _cast_ray(
             # forget the shadow points it may hold
             for a in range(4):
                 surf[idx, a] = 0.0
-        if surf[idx, 3] >= _SURF_MAX_COUNT:  # forget slowly: keep following the surface
-            for a in range(4):
-                surf[idx, a] *= 0.5
-        surf[idx, 0] += px - (gx + 0.5) * res
-        surf[idx, 1] += py - (gy + 0.5) * res
-        surf[idx, 2] += pz - (gz + 0.5) * res
-        surf[idx, 3] += 1.0
+        _add_point(surf, idx, px, py, pz, gx, gy, gz, res)
     bits = _BIT_END | (_BIT_HIT if hit else _BIT_FREE)
     prev, n_touched = _touch(touch, touched, n_touched, idx, bits)
     if hit and shadow_len > 0.0 and not (touch[idx] & _BIT_SHADOW):
