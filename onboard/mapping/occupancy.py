@@ -319,6 +319,14 @@ def _wrap(g: int, n: int) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _slot(w: int, s0: int, n: int) -> int:
+    """Storage slot of window index w in [0, n) on an axis of n cells whose window starts at
+    slot s0 (lo mod n), without a modulo."""
+    s = w + s0
+    return s - n if s >= n else s
+
+
+@njit(cache=True, nogil=True)
 def _touch(
     touch: np.ndarray, touched: np.ndarray, n_touched: int, idx: int, bits: int
 ) -> tuple[int, int]:
@@ -384,7 +392,6 @@ def _mark_shadow(
     uz /= n
     h = 0.5 * res
     steps = int(math.floor(length / h + 1e-9))
-    flat = logodds.reshape(-1)
     for k in range(1, steps + 1):
         t = k * h
         qx = px + ux * t
@@ -398,17 +405,11 @@ def _mark_shadow(
         wz = gz - lo[2]
         if not (0 <= wx < nx and 0 <= wy < ny and 0 <= wz < nz):
             return
-        sx = wx + lo_s[0]
-        if sx >= nx:
-            sx -= nx
-        sy = wy + lo_s[1]
-        if sy >= ny:
-            sy -= ny
-        sz = wz + lo_s[2]
-        if sz >= nz:
-            sz -= nz
+        sx = _slot(wx, lo_s[0], nx)
+        sy = _slot(wy, lo_s[1], ny)
+        sz = _slot(wz, lo_s[2], nz)
         idx = (sx * ny + sy) * nz + sz
-        if flat[idx] >= _UNKNOWN_BELOW or touch[idx] != 0:
+        if logodds[sx, sy, sz] >= _UNKNOWN_BELOW or touch[idx] != 0:
             continue
         _add_point(surf, idx, qx, qy, qz, gx, gy, gz, res)
 
@@ -446,19 +447,12 @@ def _cast_ray(
     gx = min(max(gx, lo[0]), lo[0] + nx - 1)
     gy = min(max(gy, lo[1]), lo[1] + ny - 1)
     gz = min(max(gz, lo[2]), lo[2] + nz - 1)
-    # storage slots without a modulo: gx - lo in [0, n), lo_s = lo mod n
-    sx = gx - lo[0] + lo_s[0]
-    if sx >= nx:
-        sx -= nx
-    sy = gy - lo[1] + lo_s[1]
-    if sy >= ny:
-        sy -= ny
-    sz = gz - lo[2] + lo_s[2]
-    if sz >= nz:
-        sz -= nz
+    sx = _slot(gx - lo[0], lo_s[0], nx)
+    sy = _slot(gy - lo[1], lo_s[1], ny)
+    sz = _slot(gz - lo[2], lo_s[2], nz)
     idx = (sx * ny + sy) * nz + sz
     if hit:
-        if (touch[idx] & _BIT_HIT) == 0 and logodds.reshape(-1)[idx] < _UNKNOWN_BELOW:
+        if (touch[idx] & _BIT_HIT) == 0 and logodds[sx, sy, sz] < _UNKNOWN_BELOW:
             # a never-observed cell's first hit (a ray of this frame may have crossed it):
             # forget the shadow points it may hold
             for a in range(4):
