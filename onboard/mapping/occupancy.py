@@ -415,6 +415,28 @@ def _mark_shadow(
 
 
 @njit(cache=True, nogil=True)
+def _end_cell(
+    shape: tuple[int, int, int],
+    lo: np.ndarray,
+    lo_s: np.ndarray,
+    res: float,
+    px: float,
+    py: float,
+    pz: float,
+) -> tuple[int, int, int, int, int, int, int]:
+    """The cell a ray ends in at (px, py, pz) (inside the window, clamped to it): its global
+    grid index (gx, gy, gz), storage slots (sx, sy, sz) and flat storage index."""
+    nx, ny, nz = shape
+    gx = min(max(int(math.floor(px / res)), lo[0]), lo[0] + nx - 1)
+    gy = min(max(int(math.floor(py / res)), lo[1]), lo[1] + ny - 1)
+    gz = min(max(int(math.floor(pz / res)), lo[2]), lo[2] + nz - 1)
+    sx = _slot(gx - lo[0], lo_s[0], nx)
+    sy = _slot(gy - lo[1], lo_s[1], ny)
+    sz = _slot(gz - lo[2], lo_s[2], nz)
+    return gx, gy, gz, sx, sy, sz, (sx * ny + sy) * nz + sz
+
+
+@njit(cache=True, nogil=True)
 def _cast_ray(
     logodds: np.ndarray,
     surf: np.ndarray,
@@ -441,16 +463,7 @@ def _cast_ray(
     nx = logodds.shape[0]
     ny = logodds.shape[1]
     nz = logodds.shape[2]
-    gx = int(math.floor(px / res))
-    gy = int(math.floor(py / res))
-    gz = int(math.floor(pz / res))
-    gx = min(max(gx, lo[0]), lo[0] + nx - 1)
-    gy = min(max(gy, lo[1]), lo[1] + ny - 1)
-    gz = min(max(gz, lo[2]), lo[2] + nz - 1)
-    sx = _slot(gx - lo[0], lo_s[0], nx)
-    sy = _slot(gy - lo[1], lo_s[1], ny)
-    sz = _slot(gz - lo[2], lo_s[2], nz)
-    idx = (sx * ny + sy) * nz + sz
+    gx, gy, gz, sx, sy, sz, idx = _end_cell(logodds.shape, lo, lo_s, res, px, py, pz)
     if hit:
         if (touch[idx] & _BIT_HIT) == 0 and logodds[sx, sy, sz] < _UNKNOWN_BELOW:
             # a never-observed cell's first hit (a ray of this frame may have crossed it):
@@ -927,25 +940,19 @@ def ingest_depth_kernel(
             dz = R[2, 0] * xc + R[2, 1] * yc + R[2, 2] * z
             length = math.sqrt(dx * dx + dy * dy + dz * dz)
             hit = z <= max_depth
-            sl = shadow_len
-            if sl > 0.0 and shadow_chord > 0.0:
-                sl = min(sl, shadow_chord * _incidence_cos(depth, u, v, 2 * step, xn, yn))
             s, hit = _clip_ray(o, dx, dy, dz, length, max_ray, box_lo, box_hi, eps, hit)
+            px = o[0] + s * dx
+            py = o[1] + s * dy
+            pz = o[2] + s * dz
+            sl = shadow_len
+            if hit and sl > 0.0 and shadow_chord > 0.0:
+                # the incidence cuts the shadow only of the ray that marks it, the first hit in
+                # its end cell this frame (_cast_ray); the others would compute it for nothing
+                end = _end_cell(logodds.shape, lo, lo_s, res, px, py, pz)[6]
+                if not (touch[end] & _BIT_SHADOW):
+                    sl = min(sl, shadow_chord * _incidence_cos(depth, u, v, 2 * step, xn, yn))
             n_touched = _cast_ray(
-                logodds,
-                surf,
-                touch,
-                touched,
-                n_touched,
-                lo,
-                lo_s,
-                res,
-                o,
-                o[0] + s * dx,
-                o[1] + s * dy,
-                o[2] + s * dz,
-                hit,
-                sl,
+                logodds, surf, touch, touched, n_touched, lo, lo_s, res, o, px, py, pz, hit, sl
             )
     clear = 0
     if track and rays > 0 and rays >= nr_min_valid * (rays + masked):
