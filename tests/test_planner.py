@@ -5,6 +5,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from gcs.fastsim import REFUSAL_KEYS, count_refusals
 from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.minco import Minco
@@ -571,7 +572,13 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     assert before.message.startswith("formation: obstacle clearance")
     params = PlannerParams(w_formation=w_formation, refine_kappa_factor=2, refine_penalty_scale=100)
     res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
-    assert res.status == PlanStatus.OK and res.message == ""
+    assert res.status == PlanStatus.OK, res.message
+    # the plan flown is the refinement: the first solution's refusal is on record, and is not
+    # counted as a refused attempt
+    assert res.message.startswith("refined formation: obstacle clearance"), res.message
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    count_refusals(res.message, counts)
+    assert counts["attempts"] == 0, counts
     tr = res.trajectory
     pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 4000))
     assert float(field.distance(pts)[0].min()) >= params.check_obstacle_m

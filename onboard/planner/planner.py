@@ -1053,6 +1053,11 @@ class FormationPlanner:
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
                     if refined[0] is not None and (not safe or (refined[1] and not refined[2])):
+                        if refined[1] and not refined[2]:
+                            # flown as refined: the first solution's refusal stays on record
+                            # (not counted as a refused attempt: it names no attempt first)
+                            wf = "" if use_formation else " without formation"
+                            messages.append(f"refined {what}{wf}: {why}")
                         x, last_status = x2, st2
                         traj, safe, why, clearance, ahead = refined
             if safe and why:  # a last resort
