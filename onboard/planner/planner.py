@@ -1032,6 +1032,7 @@ class FormationPlanner:
             only as a last resort (``MARGINAL``) is kept in ``last_resort`` (the first one)
             and the attempt counts as refused."""
             nonlocal last_status, last_resort
+            label = what if use_formation else f"{what} without formation"
             problem, x, last_status = solve(use_formation, force_astar, ladder=ladder)
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
@@ -1056,15 +1057,14 @@ class FormationPlanner:
                         if refined[1] and not refined[2]:
                             # flown as refined: the first solution's refusal stays on record
                             # (not counted as a refused attempt: it names no attempt first)
-                            wf = "" if use_formation else " without formation"
-                            messages.append(f"refined {what}{wf}: {why}")
+                            messages.append(f"refined {label}: {why}")
                         x, last_status = x2, st2
                         traj, safe, why, clearance, ahead = refined
             if safe and why:  # a last resort
                 assert traj is not None
                 if last_resort is None:
                     last_resort = (ok_status, traj, last_status, problem, x)
-                messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
+                messages.append(f"{label}: {why}")
                 return None, problem, False
             if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
@@ -1099,7 +1099,7 @@ class FormationPlanner:
                 return result, problem, False
             assert traj is not None
             refused.append((ok_status, traj, last_status, problem, x))
-            messages.append(f"{what}{'' if use_formation else ' without formation'}: {why}")
+            messages.append(f"{label}: {why}")
             return None, problem, False
 
         def flown(
