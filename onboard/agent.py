@@ -85,7 +85,7 @@ import numpy as np
 from onboard.comm.bus import PeerBus
 from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
-from onboard.planner.formation import complete_mask
+from onboard.planner.formation import complete_mask, similarity
 from onboard.planner.kernels import BAND_MARGINAL, BAND_OK, band_state
 from onboard.planner.params import PlannerParams, reform_params
 from onboard.planner.planner import (
@@ -258,6 +258,9 @@ class PlanReport:
     reforming: bool = False
     """Planned within ``PlannerParams.reform_s`` of a formation change: with
     ``params.reform_params`` (the lead slow-down from the centroid, a stronger formation term)."""
+    recovering: bool = False
+    """Planned while recovering the shape (``PlannerParams.recover_e_sim``): with
+    ``reform_params`` at ``recover_formation_scale``."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -282,6 +285,27 @@ class PeerView:
     quiet: tuple[int, ...] = ()
     """Peers quiet but not (yet) silent: avoided at their ghosts too, still in the formation
     (``PlanReport.quiet_peers``)."""
+
+
+_REFORM = "reform"
+"""``DroneAgent._planner``'s mode within ``reform_s`` of a formation change."""
+_RECOVER = "recover"
+"""... and while recovering the shape (``PlannerParams.recover_e_sim``)."""
+
+
+def _shape_error(
+    start_p: np.ndarray, a: _Assignment, formed: Sequence[TrajectoryMsg], t_s: float
+) -> float:
+    """The swarm's shape as a drone sees it at a replan: the similarity metric (e_sim) of its
+    own start ``start_p`` and its formation peers' broadcast plans at ``t_s`` against their
+    slots' points of the template."""
+    pts = np.empty((len(formed) + 1, 3))
+    pts[0] = start_p
+    slots = [a.slot]
+    for k, m in enumerate(formed):
+        pts[k + 1] = m.trajectory.sample(t_s)
+        slots.append(m.slot)
+    return similarity(pts, a.formation[slots])[0]
 
 
 def same_peers(a: PeerView, b: PeerView) -> bool:
@@ -661,11 +685,13 @@ class DroneAgent:
             frozenset(),
             frozenset(),
         )
-        self._planners: dict[tuple[int, bytes, int, bool], FormationPlanner] = {}
+        self._planners: dict[tuple[int, bytes, int, str], FormationPlanner] = {}
         # (epoch, slot, template) of the last replan, and when the re-forming after a change
         # ends (``PlannerParams.reform_s``)
         self._shape_seen: tuple[int, int, bytes] | None = None
         self._reform_until_s = -math.inf
+        # shape recovery (``PlannerParams.recover_e_sim``) lasts until then
+        self._recover_until_s = -math.inf
         self._active: FormationPlanner | None = None
         self._next_replan_s = float(initial.t0_s if first_replan_s is None else first_replan_s)
         if not math.isfinite(self._next_replan_s):
@@ -1162,7 +1188,15 @@ class DroneAgent:
             self._reform_until_s = now + self.params.reform_s
         self._shape_seen = shape
         reforming = now < self._reform_until_s and self.params.lead_slowdown_m > 0.0
-        planner = self._planner(a.formation, a.slot, n_av + len(ghosts), reforming)
+        recovering = False
+        if not reforming and self.params.recover_e_sim > 0.0 and self.params.lead_slowdown_m > 0.0:
+            if len(formed) >= 2 and (
+                _shape_error(sp, a, formed, t_start) > self.params.recover_e_sim
+            ):
+                self._recover_until_s = now + self.params.recover_hold_s
+            recovering = now < self._recover_until_s
+        mode = _REFORM if reforming else _RECOVER if recovering else ""
+        planner = self._planner(a.formation, a.slot, n_av + len(ghosts), mode)
         if self.on_inputs is not None:
             self.on_inputs(
                 PlanInputs(
@@ -1211,7 +1245,7 @@ class DroneAgent:
                 self.request_replan()  # the attempts it gave up, from a newer start
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
-        if reforming and self.params.reform_replan_period_s > 0.0:
+        if (reforming or recovering) and self.params.reform_replan_period_s > 0.0:
             # the peers' re-shaping moves, each the answer to the others' last plans,
             # converge in replans, not in seconds
             self.request_replan(now + self.params.reform_replan_period_s)
@@ -1246,6 +1280,7 @@ class DroneAgent:
             deviating_peers=tuple(sorted(deviating)),
             quiet_peers=tuple(sorted(quiet - silent)),
             reforming=reforming,
+            recovering=recovering,
         )
         self._last = report
         if self.on_plan is not None:
@@ -1481,19 +1516,22 @@ class DroneAgent:
         return formed, avoided
 
     def _planner(
-        self, formation: np.ndarray, slot: int, n_avoided: int, reforming: bool = False
+        self, formation: np.ndarray, slot: int, n_avoided: int, mode: str = ""
     ) -> FormationPlanner:
         """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached);
-        ``reforming``: with ``reform_params`` (``PlannerParams.reform_s``)."""
-        key = (slot, formation.tobytes(), n_avoided, reforming)
+        ``mode`` ``_REFORM``: with ``reform_params`` (``PlannerParams.reform_s``);
+        ``_RECOVER``: with them at ``recover_formation_scale`` (``recover_e_sim``)."""
+        key = (slot, formation.tobytes(), n_avoided, mode)
         hit = self._planners.get(key)
         if hit is not None:
             return hit
         if len(self._planners) > 16:
             self._planners.clear()
         params = self.params
-        if reforming:
+        if mode == _REFORM:
             params = reform_params(params)
+        elif mode == _RECOVER:
+            params = reform_params(params, params.recover_formation_scale)
         if n_avoided == 0:
             planner = FormationPlanner(params, formation, slot)
         else:

@@ -136,6 +136,11 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                     "type": "boolean",
                     "description": "within reform_s of a formation change (with reform_params)",
                 },
+                "recovering": {
+                    "type": "boolean",
+                    "description": "recovering the shape (recover_e_sim; reform_params at "
+                    "recover_formation_scale)",
+                },
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},
                 "coeffs": {

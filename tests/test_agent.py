@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 
@@ -11,6 +12,7 @@ import pytest
 from onboard.agent import DroneAgent, PlanInputs, PlanReport, StaticMap, monitor_action
 from onboard.comm import InMemoryBus, TrajectoryMsg
 from onboard.planner.field import AnalyticField
+from onboard.planner.formation import similarity
 from onboard.planner.params import PlannerParams
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanResult, PlanStatus
 from onboard.planner.trajectory import Trajectory
@@ -106,6 +108,62 @@ def test_replans_faster_while_reforming(period: float) -> None:
         expect = [(0.05, True), (1.0, True), (2.0, True), (3.0, False), (4.0, False)]
         expect += [(5.0, False), (6.0, False)]
     assert times == expect, times
+
+
+def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
+    """A replan that finds the swarm's shape (its start and its formation peers' broadcast
+    plans, scored against their slots' template points) further than recover_e_sim from the
+    template plans with the re-forming parameters at recover_formation_scale and replans every
+    reform_replan_period_s, until recover_hold_s after the last such replan; in shape, or with
+    recover_e_sim 0, on the grid with the plain parameters."""
+    me = np.array([0.0, 0, 1])
+    goal = me  # the drone holds still: only the peers' plans move the shape
+
+    def run(params: PlannerParams, peers: dict[int, np.ndarray], switch_s: float | None = None):
+        bus = InMemoryBus()
+        for pid, p in peers.items():
+            bus.publish(_hover_msg(pid, p, pid), 0.0)
+        a = DroneAgent(
+            0, params, TRIANGLE, 0, Trajectory.hover(me, 0.0), bus, EMPTY, goal=goal,
+            first_replan_s=0.0,
+        )  # fmt: skip
+        times = []
+        t = 0.0
+        while t < 5.0:
+            if switch_s is not None and t >= switch_s:  # the peers back in their slots
+                for pid in peers:
+                    bus.publish(_hover_msg(pid, me + TRIANGLE[pid], pid), t)
+                switch_s = None
+            rep = a.step(t)
+            if rep is not None:
+                times.append((t, rep.recovering))
+            t = round(t + 0.05, 2)
+        return a, times
+
+    base = PlannerParams(v_max_m_s=1.0, recover_e_sim=0.005, recover_hold_s=1.0)
+    # the peers in a line with the drone: far from the triangle (e_sim about 0.2)
+    line = {1: me + np.array([-1.0, 1.5, 0.0]) * 2.0, 2: me + np.array([-4.0, 0.0, 0.0])}
+    assert similarity(np.vstack([me, line[1], line[2]]), TRIANGLE)[0] > 0.1
+    a, times = run(base, line, switch_s=2.0)
+    # off the shape until 2.0: every 0.25 s; the replan at 2.0 finds it in shape and the
+    # recovery lasts until 1.0 s after the last replan that found it off (1.75 + 1.0)
+    expect = [(t, True) for t in (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5)]
+    expect += [(2.75, False), (3.0, False), (4.0, False)]  # then on the grid
+    assert times == expect, times
+    # the recovery's planner pulls the shape recover_formation_scale times harder, with the
+    # lead measured from the centroid (reform_params); the plain one is the plain params
+    weights = sorted(p.params.w_formation for p in a._planners.values())
+    assert weights == [base.w_formation, base.w_formation * base.recover_formation_scale]
+    assert base.recover_formation_scale != base.reform_formation_scale
+    # in shape: the grid alone; recovery off: the same with the peers off the shape
+    _, times = run(base, {k: me + TRIANGLE[k] for k in (1, 2)})
+    assert times == [(float(t), False) for t in range(5)]
+    _, times = run(dataclasses.replace(base, recover_e_sim=0.0), line)
+    assert times == [(float(t), False) for t in range(5)]
+    with pytest.raises(ValueError, match="recover_e_sim"):
+        PlannerParams(recover_e_sim=-0.1)
+    with pytest.raises(ValueError, match="recover_formation_scale"):
+        PlannerParams(recover_formation_scale=0.0)
 
 
 def test_trajectory_queue() -> None:

@@ -52,6 +52,7 @@ def _write_flight(path: Path) -> None:
             slot=3,
             formation_epoch=2,
             reforming=True,
+            recovering=False,
             t0_s=1000.6,
             durations_s=np.array([1.0, 2.0]),
             coeffs=np.zeros((2, 6, 3)).ravel(),
@@ -90,6 +91,7 @@ def test_record_round_trip(tmp_path: Path) -> None:
     assert len(plan["coeffs"]) == 36
     assert plan["formation_peers"] == [1, 4] and plan["avoided_peers"] == [6]
     assert (plan["slot"], plan["formation_epoch"], plan["reforming"]) == (3, 2, True)
+    assert plan["recovering"] is False
     (m,) = rec.messages("/map")
     assert m["occupied_cells"] == 345 and m["nearest_obstacle_enu_m"] == [1.75, 0.0, 1.1]
     assert rec.messages("/counters")[0]["counters"]["traj_rx"] == 10

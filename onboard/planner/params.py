@@ -205,6 +205,25 @@ class PlannerParams:
     ``target_speed_frac`` 0.5; BENCHMARKS.md section 10).
     The agent's own parameter, kept here beside ``reform_s``; the planner has no notion of
     it."""
+    recover_e_sim: float = 0.005
+    """Shape recovery: when the swarm's shape as this drone sees it at a replan (its own start
+    and its formation peers' broadcast plans at that time, scored with the similarity metric
+    against their slots' points of the template) is further than this from the template, the
+    drone plans for the next ``recover_hold_s`` as while re-forming (``reform_params``, with
+    ``recover_formation_scale`` for the formation weight's factor), replanning every
+    ``reform_replan_period_s``. After trunks split the formation, the shape otherwise comes back
+    only 8-10 s after the last one (section 8 of BENCHMARKS.md, 2026-11-30). Not while
+    re-forming (that has its own parameters) nor without the lead slow-down. 0: off.
+    Measured (``bench table``, 20 worlds a density, and the reference forests, BENCHMARKS.md
+    section 8, 2026-11-30 third session): mean e_sim 0.0038 / 0.0081 / 0.0137 / 0.0032 (sparse /
+    medium / dense / reference) off, 0.0028 / 0.0055 / 0.0128 / 0.0024 at 0.005."""
+    recover_hold_s: float = 2.0
+    """Shape recovery (``recover_e_sim``) lasts this long after the last replan that found the
+    shape off."""
+    recover_formation_scale: float = 3.0
+    """While recovering the shape (``recover_e_sim``), ``w_formation`` is multiplied by this
+    (in place of ``reform_formation_scale``): 2, 3 and 4 measured alike on sparse and medium
+    forests; 3 kept the dense ones best."""
     reform_formation_scale: float = 6.0
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
@@ -383,6 +402,8 @@ class PlannerParams:
             "lead_deadband_m",
             "reform_s",
             "reform_replan_period_s",
+            "recover_e_sim",
+            "recover_hold_s",
             "w_altitude",
             "w_altitude_hold",
             "altitude_margin_m",
@@ -398,6 +419,11 @@ class PlannerParams:
         if not (np.isfinite(self.refine_penalty_scale) and self.refine_penalty_scale >= 1.0):
             raise ValueError(
                 f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"
+            )
+        if not (np.isfinite(self.recover_formation_scale) and self.recover_formation_scale > 0):
+            raise ValueError(
+                "recover_formation_scale must be a positive number, "
+                f"got {self.recover_formation_scale!r}"
             )
         if not (np.isfinite(self.reform_formation_scale) and self.reform_formation_scale > 0):
             raise ValueError(
@@ -469,15 +495,19 @@ class PlannerParams:
         return lo + self.altitude_margin_m, hi - self.altitude_margin_m
 
 
-def reform_params(params: PlannerParams) -> PlannerParams:
+def reform_params(params: PlannerParams, scale: float | None = None) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
-    the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
-    the centroid reference (``reform_lead_from_centroid``), else off."""
+    the formation weight scaled by ``reform_formation_scale`` (``scale`` when given: shape
+    recovery's ``recover_formation_scale``); the lead slow-down measured from the centroid
+    reference (``reform_lead_from_centroid``), else off."""
     lead = (
         {"lead_from_slowest": False}
         if params.reform_lead_from_centroid
         else {"lead_slowdown_m": 0.0}
     )
     return dataclasses.replace(
-        params, w_formation=params.w_formation * params.reform_formation_scale, **lead
+        params,
+        w_formation=params.w_formation
+        * (params.reform_formation_scale if scale is None else scale),
+        **lead,
     )

@@ -703,6 +703,7 @@ class FlightService:
                 slot=rep.slot,
                 formation_epoch=rep.formation_epoch,
                 reforming=rep.reforming,
+                recovering=rep.recovering,
                 t0_s=traj.t0_s,
                 durations_s=traj.durations_s,
                 coeffs=traj.coeffs.ravel(),
