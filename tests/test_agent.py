@@ -155,6 +155,9 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
     weights = sorted(p.params.w_formation for p in a._planners.values())
     assert weights == [base.w_formation, base.w_formation * base.recover_formation_scale]
     assert base.recover_formation_scale != base.reform_formation_scale
+    # ... and holds the altitude as much harder (the pull alone dipped a drone 0.19 m)
+    holds = sorted(p.params.w_altitude_hold for p in a._planners.values())
+    assert holds == [base.w_altitude_hold, base.w_altitude_hold * base.recover_formation_scale]
     # in shape: the grid alone; recovery off: the same with the peers off the shape
     _, times = run(base, {k: me + TRIANGLE[k] for k in (1, 2)})
     assert times == [(float(t), False) for t in range(5)]

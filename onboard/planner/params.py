@@ -216,14 +216,16 @@ class PlannerParams:
     re-forming (that has its own parameters) nor without the lead slow-down. 0: off.
     Measured (``bench table``, 20 worlds a density, and the reference forests, BENCHMARKS.md
     section 8, 2026-11-30 third session): mean e_sim 0.0038 / 0.0081 / 0.0137 / 0.0032 (sparse /
-    medium / dense / reference) off, 0.0028 / 0.0055 / 0.0128 / 0.0024 at 0.005."""
+    medium / dense / reference) off, 0.0028 / 0.0056 / 0.0122 / 0.0023 at 0.005."""
     recover_hold_s: float = 2.0
     """Shape recovery (``recover_e_sim``) lasts this long after the last replan that found the
     shape off."""
     recover_formation_scale: float = 3.0
     """While recovering the shape (``recover_e_sim``), ``w_formation`` is multiplied by this
-    (in place of ``reform_formation_scale``): 2, 3 and 4 measured alike on sparse and medium
-    forests; 3 kept the dense ones best."""
+    (in place of ``reform_formation_scale``), and so is ``w_altitude_hold`` (without it the
+    stronger pull dipped a drone of ``tests/test_altitude_hold.py``'s triangle 0.19 m, against
+    0.05 m): 2, 3 and 4 measured alike on sparse and medium forests; 3 kept the dense ones
+    best."""
     reform_formation_scale: float = 6.0
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
@@ -498,16 +500,17 @@ class PlannerParams:
 def reform_params(params: PlannerParams, scale: float | None = None) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
     the formation weight scaled by ``reform_formation_scale`` (``scale`` when given: shape
-    recovery's ``recover_formation_scale``); the lead slow-down measured from the centroid
-    reference (``reform_lead_from_centroid``), else off."""
+    recovery's ``recover_formation_scale``, which scales the altitude hold too); the lead
+    slow-down measured from the centroid reference (``reform_lead_from_centroid``), else off."""
     lead = (
         {"lead_from_slowest": False}
         if params.reform_lead_from_centroid
         else {"lead_slowdown_m": 0.0}
     )
+    if scale is None:
+        k, hold = params.reform_formation_scale, params.w_altitude_hold
+    else:
+        k, hold = scale, params.w_altitude_hold * scale
     return dataclasses.replace(
-        params,
-        w_formation=params.w_formation
-        * (params.reform_formation_scale if scale is None else scale),
-        **lead,
+        params, w_formation=params.w_formation * k, w_altitude_hold=hold, **lead
     )
