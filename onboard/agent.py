@@ -87,7 +87,7 @@ from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask, similarity
 from onboard.planner.kernels import BAND_MARGINAL, BAND_OK, band_state
-from onboard.planner.params import PlannerParams, reform_params
+from onboard.planner.params import PlannerParams, recover_params, reform_params
 from onboard.planner.planner import (
     BRAKE_REFERENCE_S,
     FormationPlanner,
@@ -260,7 +260,7 @@ class PlanReport:
     ``params.reform_params`` (the lead slow-down from the centroid, a stronger formation term)."""
     recovering: bool = False
     """Planned while recovering the shape (``PlannerParams.recover_e_sim``): with
-    ``reform_params`` at ``recover_formation_scale``."""
+    ``params.recover_params``."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -1520,7 +1520,7 @@ class DroneAgent:
     ) -> FormationPlanner:
         """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached);
         ``mode`` ``_REFORM``: with ``reform_params`` (``PlannerParams.reform_s``);
-        ``_RECOVER``: with them at ``recover_formation_scale`` (``recover_e_sim``)."""
+        ``_RECOVER``: with ``recover_params`` (``PlannerParams.recover_e_sim``)."""
         key = (slot, formation.tobytes(), n_avoided, mode)
         hit = self._planners.get(key)
         if hit is not None:
@@ -1531,7 +1531,7 @@ class DroneAgent:
         if mode == _REFORM:
             params = reform_params(params)
         elif mode == _RECOVER:
-            params = reform_params(params, params.recover_formation_scale)
+            params = recover_params(params)
         if n_avoided == 0:
             planner = FormationPlanner(params, formation, slot)
         else:

@@ -209,7 +209,7 @@ class PlannerParams:
     """Shape recovery: when the swarm's shape as this drone sees it at a replan (its own start
     and its formation peers' broadcast plans at that time, scored with the similarity metric
     against their slots' points of the template) is further than this from the template, the
-    drone plans for the next ``recover_hold_s`` as while re-forming (``reform_params``, with
+    drone plans for the next ``recover_hold_s`` as while re-forming (``recover_params``: with
     ``recover_formation_scale`` for the formation weight's factor), replanning every
     ``reform_replan_period_s``. After trunks split the formation, the shape otherwise comes back
     only 8-10 s after the last one (section 8 of BENCHMARKS.md, 2026-11-30). Not while
@@ -497,20 +497,27 @@ class PlannerParams:
         return lo + self.altitude_margin_m, hi - self.altitude_margin_m
 
 
-def reform_params(params: PlannerParams, scale: float | None = None) -> PlannerParams:
+def reform_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
-    the formation weight scaled by ``reform_formation_scale`` (``scale`` when given: shape
-    recovery's ``recover_formation_scale``, which scales the altitude hold too); the lead
-    slow-down measured from the centroid reference (``reform_lead_from_centroid``), else off."""
+    the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
+    the centroid reference (``reform_lead_from_centroid``), else off."""
     lead = (
         {"lead_from_slowest": False}
         if params.reform_lead_from_centroid
         else {"lead_slowdown_m": 0.0}
     )
-    if scale is None:
-        k, hold = params.reform_formation_scale, params.w_altitude_hold
-    else:
-        k, hold = scale, params.w_altitude_hold * scale
     return dataclasses.replace(
-        params, w_formation=params.w_formation * k, w_altitude_hold=hold, **lead
+        params, w_formation=params.w_formation * params.reform_formation_scale, **lead
+    )
+
+
+def recover_params(params: PlannerParams) -> PlannerParams:
+    """The parameters a drone plans with while recovering the shape (``recover_e_sim``): those
+    of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
+    ``recover_formation_scale``."""
+    k = params.recover_formation_scale
+    return dataclasses.replace(
+        reform_params(params),
+        w_formation=params.w_formation * k,
+        w_altitude_hold=params.w_altitude_hold * k,
     )
