@@ -495,7 +495,7 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
     print("distance to the slot goals at the arrival, m:", slot_error)
     assert sitl.get("collisions") == [], sitl.get("collisions")
     # contact is 2 body radii between centres; the planner accepts no plan closer than
-    # check_drone_m (0.45 m) to a peer's trajectory
+    # check_drone_m (0.5 m) to a peer's trajectory
     assert sitl["min_vehicle_distance_m"] > 2 * BODY_RADIUS_M + 0.05, sitl
 
     # --- stale trajectories: refused at the gate, never in the formation term ---------------

@@ -201,17 +201,19 @@ def test_a_start_inside_the_check_distance_backs_out() -> None:
     assert d2.min() >= 0.15 - 1e-3
 
 
-@pytest.mark.parametrize("gap_m", [0.441, 0.455])
-def test_a_peer_coming_on_is_escaped_no_closer_than_a_stop(gap_m: float) -> None:
+@pytest.mark.parametrize("gap_from_check_m", [-0.009, 0.005])
+def test_a_peer_coming_on_is_escaped_no_closer_than_a_stop(gap_from_check_m: float) -> None:
     """CI's bus-faults flight (2026-11-29): drone 1, not hearing drone 2 (its uplink held),
     backed toward it and stopped 0.32 m from it. Drone 2, 0.45 m away, refused every plan
     away ('started inside at 0.45 m and comes closer': from rest, any way out dips while the
     peer comes on), stayed, and was touched. A way out is judged against the stop flown
     instead: inside the check distance it may dip as far as the stop would; from outside it
-    (0.455 m) it is flown only as a last resort, when no attempt stays outside."""
+    (0.455 m, the check distance then 0.45 m) it is flown only as a last resort, when no
+    attempt stays outside. The gaps here are taken from the check distance."""
     from onboard.service.ports import braking_trajectory
 
     params = PlannerParams()
+    gap_m = params.check_drone_m + gap_from_check_m
     me = np.array([5.57, 0.18, 1.0])
     start = me + (np.array([5.82, -0.20, 1.0]) - me) * gap_m / 0.4548626
     toward = (me - start) / np.linalg.norm(me - start)

@@ -1147,7 +1147,7 @@ def test_the_monitor_lets_a_drone_inside_a_peers_check_distance_back_out(tmp_pat
     # from outside the limit, a peer that runs through where any stop would leave us (it does
     # not hear us): a plan that comes inside, but less close than a stop, is a conflict that
     # is not braked (a replan is asked for)
-    charging = moving(here + [0.0, 0.5, 0.0], here - [0.0, 0.6, 0.0], t, speed=1.5)
+    charging = moving(here + [0.0, limit + 0.05, 0.0], here - [0.0, 0.6, 0.0], t, speed=1.5)
     sideways = moving(here, here + [1.0, 0.0, 0.0], t, speed=0.2)
     what = look(sideways, charging)
     assert what.startswith("no better stop: drone 5"), what

@@ -124,8 +124,17 @@ class PlannerParams:
     the far part is judged once it is within this horizon. On exact fields (the table) it
     loosened the shape (0.0078 -> 0.0119): off by default, set for the flight service's map
     (``config/onboard.yaml``)."""
-    check_drone_m: float = 0.45
-    """A trajectory is unsafe where it comes closer than this to a peer (same global time)."""
+    check_drone_m: float = 0.5
+    """A trajectory is unsafe where it comes closer than this to a peer (same global time).
+    Two bodies of 0.2 m touch at 0.4 m; the check leaves 0.1 m for both vehicles' tracking and
+    the age of the peer's plan, as ``check_obstacle_m`` leaves 0.1 m to a trunk. It was 0.45:
+    drones that cross pass at the check distance (fault trials: closest pair 0.456-0.47 m in
+    several trials; unseen table worlds: 0.463 m), and in CI's bus-faults flight (a drone the
+    others could not hear, crossing a peer at 1.7 m/s closing speed) that left 0.3997 m, twice.
+    At 0.5: ``bench faults --seed 1000`` closest pair 0.458 -> 0.509 m with every healthy drone
+    arrived and e_sim 0.0083 -> 0.0084; the table 0.0028 / 0.0056 / 0.0122 -> 0.0029 / 0.0061 /
+    0.0133, unseen worlds 0.0034 / 0.0076 / 0.0153 -> 0.0038 / 0.0069 / 0.0153 (closest pair
+    0.463 -> 0.528 m); BENCHMARKS.md section 9b, fourth session of 2026-11-30."""
     check_step_s: float = 0.05
     """Time step of the safety check of a new trajectory."""
     check_known_s: float = 1.0
