@@ -138,8 +138,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 },
                 "recovering": {
                     "type": "boolean",
-                    "description": "recovering the shape (recover_e_sim; reform_params at "
-                    "recover_formation_scale)",
+                    "description": "recovering the shape (recover_e_sim; with recover_params)",
                 },
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},
