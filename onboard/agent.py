@@ -87,7 +87,7 @@ from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask, similarity
 from onboard.planner.kernels import BAND_MARGINAL, BAND_OK, band_state
-from onboard.planner.params import PlannerParams, recover_params, reform_params
+from onboard.planner.params import PlannerParams, recover_params, reform_params, unheard_params
 from onboard.planner.planner import (
     BRAKE_REFERENCE_S,
     FormationPlanner,
@@ -261,6 +261,9 @@ class PlanReport:
     recovering: bool = False
     """Planned while recovering the shape (``PlannerParams.recover_e_sim``): with
     ``params.recover_params``."""
+    unheard_by: tuple[int, ...] = ()
+    """Peers that reported they did not hear us (``DroneAgent.set_unheard``): planned with
+    ``params.unheard_params`` (a wider berth to every peer)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -685,7 +688,11 @@ class DroneAgent:
             frozenset(),
             frozenset(),
         )
-        self._planners: dict[tuple[int, bytes, int, str], FormationPlanner] = {}
+        self._planners: dict[tuple[int, bytes, int, str, bool], FormationPlanner] = {}
+        # peers that report they do not hear us (``set_unheard``)
+        self._unheard: frozenset[int] = frozenset()
+        self.first_published_s = math.inf
+        """When this agent published its first trajectory (inf: not yet)."""
         # (epoch, slot, template) of the last replan, and when the re-forming after a change
         # ends (``PlannerParams.reform_s``)
         self._shape_seen: tuple[int, int, bytes] | None = None
@@ -868,6 +875,27 @@ class DroneAgent:
                 avoid_only=frozenset(int(i) for i in avoid_only),
                 ignore=frozenset(int(i) for i in ignore),
             )
+
+    def set_unheard(self, peers: Iterable[int]) -> None:
+        """Peers (drone ids) that report they do not hear us (the flight service reads it from
+        their statuses). While any does, plans keep ``PlannerParams.unheard_margin_m`` more from
+        every peer (``unheard_params``; ``check_drone_m`` says what the safety monitor should
+        keep). Replaces the previous set."""
+        got = frozenset(int(i) for i in peers)
+        with self._cfg_lock:
+            self._unheard = got - {self.drone_id}
+
+    @property
+    def unheard_by(self) -> frozenset[int]:
+        """The peers that last reported they do not hear us (``set_unheard``)."""
+        return self._unheard
+
+    @property
+    def check_drone_m(self) -> float:
+        """The distance to peers a plan keeps now: ``PlannerParams.check_drone_m``, plus
+        ``unheard_margin_m`` while a peer does not hear us."""
+        p = self.params
+        return p.check_drone_m + (p.unheard_margin_m if self._unheard else 0.0)
 
     @staticmethod
     def _check_slot(slot: int, formation: np.ndarray) -> int:
@@ -1196,7 +1224,8 @@ class DroneAgent:
                 self._recover_until_s = now + self.params.recover_hold_s
             recovering = now < self._recover_until_s
         mode = _REFORM if reforming else _RECOVER if recovering else ""
-        planner = self._planner(a.formation, a.slot, n_av + len(ghosts), mode)
+        unheard = self._unheard
+        planner = self._planner(a.formation, a.slot, n_av + len(ghosts), mode, bool(unheard))
         if self.on_inputs is not None:
             self.on_inputs(
                 PlanInputs(
@@ -1281,6 +1310,7 @@ class DroneAgent:
             quiet_peers=tuple(sorted(quiet - silent)),
             reforming=reforming,
             recovering=recovering,
+            unheard_by=tuple(sorted(unheard)),
         )
         self._last = report
         if self.on_plan is not None:
@@ -1308,6 +1338,8 @@ class DroneAgent:
         with self._pub_lock:
             seq = self._seq
             self._seq += 1
+            if seq == 0:
+                self.first_published_s = now
             msg = TrajectoryMsg(
                 self.drone_id,
                 seq,
@@ -1516,12 +1548,18 @@ class DroneAgent:
         return formed, avoided
 
     def _planner(
-        self, formation: np.ndarray, slot: int, n_avoided: int, mode: str = ""
+        self,
+        formation: np.ndarray,
+        slot: int,
+        n_avoided: int,
+        mode: str = "",
+        unheard: bool = False,
     ) -> FormationPlanner:
         """The planner of a template and slot with ``n_avoided`` isolated extra rows (cached);
         ``mode`` ``_REFORM``: with ``reform_params`` (``PlannerParams.reform_s``);
-        ``_RECOVER``: with ``recover_params`` (``PlannerParams.recover_e_sim``)."""
-        key = (slot, formation.tobytes(), n_avoided, mode)
+        ``_RECOVER``: with ``recover_params`` (``PlannerParams.recover_e_sim``); ``unheard``:
+        with ``unheard_params`` on top (a peer does not hear us)."""
+        key = (slot, formation.tobytes(), n_avoided, mode, unheard)
         hit = self._planners.get(key)
         if hit is not None:
             return hit
@@ -1532,6 +1570,8 @@ class DroneAgent:
             params = reform_params(params)
         elif mode == _RECOVER:
             params = recover_params(params)
+        if unheard:
+            params = unheard_params(params)
         if n_avoided == 0:
             planner = FormationPlanner(params, formation, slot)
         else:

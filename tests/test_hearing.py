@@ -1,0 +1,149 @@
+"""Whether the peers hear this drone (``onboard.comm.hearing``): the rules, the statuses that
+carry it over Zenoh, and the planner's wider berth while a peer does not hear us."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from onboard.agent import DroneAgent, StaticMap
+from onboard.comm import InMemoryBus, TrajectoryMsg
+from onboard.comm.hearing import (
+    REPORT_FRESH_S,
+    UNHEARD_AGE_S,
+    UNLISTED_GRACE_S,
+    HearingReport,
+    not_hearing,
+    report_from_links,
+)
+from onboard.planner.field import AnalyticField
+from onboard.planner.params import PlannerParams, unheard_params
+from onboard.planner.trajectory import Trajectory
+from onboard.world import World
+
+NOW = 1000.0
+
+
+def test_the_rules_of_not_hearing() -> None:
+    first = NOW - 60.0  # we have published for a minute
+    up = HearingReport(0, NOW - 0.5, True, True, 0.2)
+    assert not_hearing([up], NOW, first) == frozenset()
+    # our link down (we are silent to it), or too long quiet, or never heard
+    assert not_hearing([HearingReport(0, NOW, True, False, 0.3)], NOW, first) == {0}
+    old = HearingReport(0, NOW, True, True, UNHEARD_AGE_S)
+    assert not_hearing([old], NOW, first) == {0}
+    assert not_hearing([HearingReport(0, NOW, True, True, None)], NOW, first) == {0}
+    # not listed: it forgot us or never heard us, once we have published long enough
+    unlisted = HearingReport(3, NOW, False)
+    assert not_hearing([unlisted], NOW, first) == {3}
+    assert not_hearing([unlisted], NOW, NOW - UNLISTED_GRACE_S + 0.1) == frozenset()
+    assert not_hearing([unlisted], NOW, math.inf) == frozenset()  # we never published
+    # a stale report says nothing; the newest report of a peer wins, whatever the order
+    stale = HearingReport(0, NOW - REPORT_FRESH_S - 0.01, True, False, 5.0)
+    assert not_hearing([stale], NOW, first) == frozenset()
+    down = HearingReport(0, NOW - 1.0, True, False, 1.2)
+    assert not_hearing([up, down], NOW, first) == frozenset()
+    assert not_hearing([down, up], NOW, first) == frozenset()
+    assert not_hearing([down, unlisted, up], NOW, first) == {3}
+
+
+def test_a_report_is_read_from_the_status_links() -> None:
+    links = [("autopilot", True, 0.01), ("peer/2", True, 0.1), ("peer/12", False, 2.5)]
+    assert report_from_links(4, NOW, 12, links) == HearingReport(4, NOW, True, False, 2.5)
+    assert report_from_links(4, NOW, 2, links) == HearingReport(4, NOW, True, True, 0.1)
+    assert report_from_links(4, NOW, 1, links) == HearingReport(4, NOW, False)
+    inf = report_from_links(4, NOW, 2, [("peer/2", True, math.inf)])
+    assert inf.listed and inf.age_s is None
+
+
+def test_the_bus_adapter_reads_what_a_peers_status_says_about_us_over_zenoh() -> None:
+    """Two services' bus adapters on loopback Zenoh: drone 0's status lists drone 1's link
+    down; drone 1 reads that drone 0 does not hear it."""
+    from onboard.comm.zenoh_session import peer_mesh
+    from onboard.service.adapters import open_bus
+    from onboard.service.config import default_config_path, load_onboard_config
+
+    eps = peer_mesh(2)
+    buses = []
+    try:
+        for i in (0, 1):
+            zen = {"listen": list(eps[i].listen), "connect": list(eps[i].connect)}
+            cfg = load_onboard_config(default_config_path(), i, overrides={"zenoh": zen})
+            buses.append(open_bus(cfg))
+        b0, b1 = buses
+        status = {
+            "flight_state": "formation-flight",
+            "plan_status": "ok",
+            "plan_stamp_s": time.time(),
+            "plan_ms_last": 1.0,
+            "plan_ms_max": 2.0,
+            "replans": 3,
+            "links": [("autopilot", True, 0.02), ("peer/1", False, 2.4)],
+            "counters": {},
+        }
+        deadline = time.monotonic() + 10.0
+        while 0 not in b1.hearing_reports():
+            assert time.monotonic() < deadline, "no status from drone 0 over Zenoh"
+            b0.publish_status(status)
+            time.sleep(0.05)
+        rep = b1.hearing_reports()[0]
+        assert rep.peer == 0 and rep.listed and not rep.up and rep.age_s == pytest.approx(2.4)
+        assert not_hearing([rep], time.time(), time.time() - 60.0) == {0}
+        assert 1 not in b1.hearing_reports()  # not its own
+    finally:
+        for b in buses:
+            b.close()
+
+
+def test_the_planner_keeps_a_wider_berth_from_peers_while_one_does_not_hear_us() -> None:
+    """A peer hovers 0.6 m beside our goal: the plan goes there (the check's 0.5 m kept)
+    while every peer hears us; once one does not, the plan flown keeps the check distance
+    plus ``unheard_margin_m`` (0.7 m) from it."""
+    params = PlannerParams(v_max_m_s=1.0)
+    wide = unheard_params(params)
+    assert wide.check_drone_m == pytest.approx(params.check_drone_m + params.unheard_margin_m)
+    assert wide.swarm_clearance_m == pytest.approx(
+        params.swarm_clearance_m + params.unheard_margin_m
+    )
+    assert unheard_params(PlannerParams(unheard_margin_m=0.0)) == PlannerParams(
+        unheard_margin_m=0.0
+    )
+    with pytest.raises(ValueError, match="unheard_margin_m"):
+        PlannerParams(unheard_margin_m=-0.1)
+    me = np.array([0.0, 0.0, 1.0])
+    goal = me + np.array([4.0, 0.0, 0.0])
+    peer = Trajectory.hover(goal + np.array([0.0, 0.6, 0.0]), 0.0, 60.0)
+    gaps = {}
+    for deaf in (False, True):
+        bus = InMemoryBus()
+        agent = DroneAgent(
+            0,
+            params,
+            np.zeros((1, 3)),
+            0,
+            Trajectory.hover(me, 0.0),
+            bus,
+            StaticMap(AnalyticField(World.empty(0.0))),
+            goal=goal,
+        )
+        bus.publish(TrajectoryMsg(1, 0, 0, peer), 0.0)  # another slot claim: avoided only
+        if deaf:
+            agent.set_unheard([1, 0])  # our own id is never a peer
+        assert agent.unheard_by == ({1} if deaf else set())
+        assert agent.check_drone_m == pytest.approx(wide.check_drone_m if deaf else 0.5)
+        flown = []
+        reports = []
+        for k in range(150):  # 15 s, replans on the agent's grid
+            t = 0.1 * k
+            rep = agent.step(t)
+            if rep is not None:
+                reports.append(rep)
+            flown.append(agent.current.sample(t))
+        assert {r.unheard_by for r in reports} == {(1,) if deaf else ()}
+        ts = 0.1 * np.arange(150)
+        gaps[deaf] = float(np.linalg.norm(np.array(flown) - peer.sample(ts), axis=1).min())
+    assert params.check_drone_m <= gaps[False] < wide.check_drone_m
+    assert gaps[True] >= wide.check_drone_m
