@@ -140,6 +140,12 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                     "type": "boolean",
                     "description": "recovering the shape (recover_e_sim; with recover_params)",
                 },
+                "unheard_by": {
+                    "type": "array",
+                    "items": {"type": "integer"},
+                    "description": "peers that reported they did not hear this drone "
+                    "(planned with unheard_params: unheard_margin_m more from every peer)",
+                },
                 "t0_s": _NUM,
                 "durations_s": {"type": "array", "items": _NUM},
                 "coeffs": {

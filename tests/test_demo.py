@@ -292,6 +292,10 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
         assert max(m["occupied_cells"] for m in rec.messages("/map")) > 100, rec_path
         # ... and flew with its peers: some plans had both others in the formation
         assert max(p["n_peers"] for p in rec.messages("/plan")) == 2, rec_path
+        # ... on a healthy bus: no peer ever reported that it did not hear this drone
+        last = rec.messages("/counters")[-1]["counters"]
+        assert last["service.peers_stopped_hearing_us"] == 0, rec_path
+        assert not [p for p in rec.messages("/plan") if p["unheard_by"]], rec_path
     for name in ("top_view.png", "formation_error.png", "summary.json"):
         assert (out / "report" / name).is_file()
     summary = json.loads((out / "report" / "summary.json").read_text())

@@ -1228,3 +1228,62 @@ def test_the_setpoint_yaw_looks_where_the_drone_will_be_in_a_second(tmp_path: Pa
         yaws.append(sp.yaw_rad)
     assert max(yaws) == pytest.approx(SWEEP_RAD, abs=0.01)
     assert min(yaws) == pytest.approx(-SWEEP_RAD, abs=0.01)
+
+
+def test_a_drone_its_peers_do_not_hear_keeps_a_wider_berth(tmp_path: Path) -> None:
+    """CI's bus-faults flights (2026-11-29 and -30): a drone whose uplink was held flew hidden
+    from its peers, kept them apart alone at the check distance, and came 0.3997 m from one.
+    Once a peer's status says it does not hear us, the service plans and monitors with
+    ``unheard_margin_m`` more (the planner side: ``tests/test_hearing.py``), says so, and
+    goes back when the peer hears us again."""
+    from onboard.agent import PeerView
+    from onboard.comm.hearing import HearingReport
+    from onboard.planner.planner import PeerTrajectory
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    p = h.cfg.planner
+    wide = p.check_drone_m + p.unheard_margin_m
+    t = h.clock.t
+    passing = moving(here, here + [2.0, 0.0, 0.0], t, speed=0.5)
+    # a peer 0.6 m beside where we will be in 1.5 s (within the monitor's horizon)
+    peer = Trajectory.hover(passing.sample(t + 1.5) + [0.0, 0.6, 0.0], t - 1.0, 60.0)
+    view = PeerView(t, (PeerTrajectory(5, 1, peer),), (), np.zeros((0, 3)), (), (), ())
+    h.svc.peers_now = lambda now, fresh=False: view  # type: ignore[method-assign]
+    ts = np.linspace(t, passing.t_end_s, 200)
+    gap = np.linalg.norm(passing.sample(ts) - peer.sample(ts), axis=1).min()
+    assert p.check_drone_m < gap < wide
+
+    def look() -> str:
+        h.svc.agent.reset(passing)
+        h.svc._monitor_key = ()  # a new look, not the cached one
+        h.svc._monitor_brake_at = -math.inf
+        return h.svc.monitor_step()
+
+    assert look() == ""
+    # drone 5's status: its link to us is down (it took us for silent)
+    h.bus.hearing_in[5] = HearingReport(5, h.clock.t, True, False, 2.0)
+    h.step()
+    assert h.svc.agent.unheard_by == {5}
+    assert h.svc.agent.check_drone_m == pytest.approx(wide)
+    assert h.svc.counters["peers_not_hearing_us"] == 1
+    assert h.svc.counters["peers_stopped_hearing_us"] == 1
+    what = look()
+    assert what.startswith(("replan: drone 5", "brake: drone 5", "no better stop: drone 5")), what
+    # the same report again changes nothing; a newer one that hears us ends it
+    h.step(3)
+    assert h.svc.counters["peers_stopped_hearing_us"] == 1
+    h.bus.hearing_in[5] = HearingReport(5, h.clock.t, True, True, 0.1)
+    h.step()
+    assert h.svc.agent.unheard_by == frozenset()
+    assert h.svc.counters["peers_not_hearing_us"] == 0
+    assert look() == ""
+    # a report that is not renewed says nothing after REPORT_FRESH_S
+    h.bus.hearing_in[5] = HearingReport(5, h.clock.t, True, False, 2.0)
+    h.step()
+    assert h.svc.agent.unheard_by == {5}
+    h.step(70)  # 3.5 s
+    assert h.svc.agent.unheard_by == frozenset()
+    assert h.svc.counters["peers_stopped_hearing_us"] == 2
+    assert h.bus.statuses[-1]["counters"]["service.peers_stopped_hearing_us"] == 2

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from onboard.comm.hearing import HearingReport, report_from_links
 from onboard.comm.latency import BIN_KEY, LatencyFigures, LatencyRecorder
 from onboard.service.config import OnboardConfig
 from onboard.service.ports import (
@@ -257,11 +258,13 @@ class SwarmBusAdapter:
         self._peers: dict[int, PeerInfo] = {}
         self._latency = LatencyRecorder()
         self._states: dict[int, PeerState] = {}
+        self._hearing: dict[int, HearingReport] = {}
         self._commands: list[IncomingCommand] = []
         self._last_cmd_s: float | None = None
         self._bad_commands = 0
         node.on_trajectory(self._on_traj)
         node.on_state(self._on_state)
+        node.on_status(self._on_status)
         node.on_command(self._on_command)
 
     def _on_traj(self, env: Any, receive_s: float) -> None:
@@ -303,6 +306,20 @@ class SwarmBusAdapter:
             old = self._states.get(pid)
             if old is None or stamp > old.stamp_s:
                 self._states[pid] = st
+
+    def _on_status(self, env: Any, receive_s: float) -> None:
+        """A peer's 1 Hz status: what it says about its link to us (``onboard.comm.hearing``);
+        its newest by stamp is kept."""
+        pid = int(env.sender)
+        me = self.node.drone_id
+        if pid == me or me is None:
+            return
+        links = [(str(x.name), bool(x.up), x.age_s) for x in env.body.links]
+        rep = report_from_links(pid, float(env.stamp_s), me, links)
+        with self._lock:
+            old = self._hearing.get(pid)
+            if old is None or rep.stamp_s > old.stamp_s:
+                self._hearing[pid] = rep
 
     def _on_command(self, env: Any, receive_s: float) -> None:
         body = env.body
@@ -372,6 +389,10 @@ class SwarmBusAdapter:
     def peer_states(self) -> dict[int, PeerState]:
         with self._lock:
             return dict(self._states)
+
+    def hearing_reports(self) -> dict[int, HearingReport]:
+        with self._lock:
+            return dict(self._hearing)
 
     def poll_commands(self) -> list[IncomingCommand]:
         with self._lock:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from onboard.agent import REPLAN_PERIOD_S
+from onboard.comm.hearing import HearingReport
 from onboard.planner.trajectory import Trajectory
 from onboard.service.ports import (
     CommandFailed,
@@ -126,7 +127,8 @@ class FakeAutopilot:
 
 class FakeBus:
     """The swarm bus in memory: what the service publishes is kept in lists; tests set
-    ``peer_infos`` (trajectories) and ``peer_states_in`` (states; or fly ``SimulatedPeer``s),
+    ``peer_infos`` (trajectories), ``hearing_in`` (what the peers' statuses say about their
+    link to us) and ``peer_states_in`` (states; or fly ``SimulatedPeer``s),
     queue ``commands`` and set ``gcs_heard``."""
 
     def __init__(self) -> None:
@@ -136,6 +138,7 @@ class FakeBus:
         self.acks: list[tuple[int, bool, str]] = []
         self.peer_infos: dict[int, PeerInfo] = {}
         self.peer_states_in: dict[int, PeerState] = {}
+        self.hearing_in: dict[int, HearingReport] = {}
         self.commands: list[IncomingCommand] = []
         self.gcs_heard: float | None = None
         self.clock_offsets_exceeded: dict[int, float] = {}
@@ -179,6 +182,9 @@ class FakeBus:
 
     def peer_states(self) -> dict[int, PeerState]:
         return dict(self.peer_states_in)
+
+    def hearing_reports(self) -> dict[int, HearingReport]:
+        return dict(self.hearing_in)
 
     def poll_commands(self) -> list[IncomingCommand]:
         out, self.commands = self.commands, []

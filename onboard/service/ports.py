@@ -11,6 +11,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from onboard.comm.hearing import HearingReport
 from onboard.planner.trajectory import Trajectory
 from onboard.service.state import Command
 
@@ -146,6 +147,11 @@ class SwarmBusPort(Protocol):
 
     def peer_states(self) -> dict[int, PeerState]:
         """The newest state (by its stamp) of every peer heard."""
+        ...
+
+    def hearing_reports(self) -> dict[int, HearingReport]:
+        """The newest (by its stamp) of what each peer's status says about its link to us
+        (``onboard.comm.hearing``)."""
         ...
 
     def poll_commands(self) -> list[IncomingCommand]:

@@ -64,6 +64,7 @@ from onboard.agent import (
     replan_asked_s,
     same_peers,
 )
+from onboard.comm.hearing import not_hearing
 from onboard.planner.planner import APPROACH, LAST_RESORT, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
@@ -287,9 +288,11 @@ class FlightService:
             "peers_silent": 0,
             "peers_deviating": 0,
             "peer_ghosts": 0,
+            "peers_not_hearing_us": 0,  # their statuses say they do not hear us (a gauge)
             # peers that fell silent / left their trajectory so far
             "peers_fell_silent": 0,
             "peers_left_trajectory": 0,
+            "peers_stopped_hearing_us": 0,
             "plans_superseded": 0,
             "announcements": 0,
             "map_occupied_cells": 0,
@@ -704,6 +707,7 @@ class FlightService:
                 formation_epoch=rep.formation_epoch,
                 reforming=rep.reforming,
                 recovering=rep.recovering,
+                unheard_by=list(rep.unheard_by),
                 t0_s=traj.t0_s,
                 durations_s=traj.durations_s,
                 coeffs=traj.coeffs.ravel(),
@@ -746,8 +750,9 @@ class FlightService:
                 problem, at, helps = obstacle_conflict(
                     d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :]
                 )
+            # the check the plans keep (wider while a peer does not hear us)
             peer, peer_at, peer_helps = peer_conflict(
-                view, now, ts, pos, p.check_drone_m, brake_pos
+                view, now, ts, pos, self.agent.check_drone_m, brake_pos
             )
             if peer_at < at:
                 problem, at, helps = peer, peer_at, peer_helps
@@ -860,12 +865,40 @@ class FlightService:
                     pid,
                     f"drone {pid} reported off its trajectory: avoided where it reported itself",
                 )
+        self._update_hearing(now)
         self.counters["peers_silent"] = len(view.silent)
         self.counters["peers_deviating"] = len(view.deviating)
         self.counters["peer_ghosts"] = len(view.hover_ids) - len(view.deviating)
 
+    def _update_hearing(self, now: float) -> None:
+        """Which peers report that they do not hear us (``onboard.comm.hearing``), to the agent
+        (it then plans with a wider berth), counted and logged as it changes."""
+        deaf = not_hearing(
+            list(self.bus.hearing_reports().values()), now, self.agent.first_published_s
+        )
+        old = self.agent.unheard_by
+        if deaf == old:
+            return
+        self.agent.set_unheard(deaf)
+        self.counters["peers_not_hearing_us"] = len(deaf)
+        for pid in sorted(deaf - old):
+            self.counters["peers_stopped_hearing_us"] += 1
+            self._peer_event(
+                now,
+                "peer_not_hearing_us",
+                pid,
+                f"drone {pid} reports it does not hear us: every peer kept "
+                f"{self.cfg.planner.unheard_margin_m:.2f} m further off",
+            )
+        for pid in sorted(old - deaf):
+            self._peer_event(now, "peer_hears_us_again", pid, f"drone {pid} hears us again")
+        if deaf and not old:
+            self.agent.request_replan()  # with the wider berth, now
+            self._wake.set()
+
     def _peer_event(self, now: float, name: str, pid: int, text: str, **fields: Any) -> None:
-        level = logging.INFO if name in ("peer_heard_again", "peer_forgotten") else logging.WARNING
+        quiet_news = ("peer_heard_again", "peer_forgotten", "peer_hears_us_again")
+        level = logging.INFO if name in quiet_news else logging.WARNING
         event(log, name, level, peer=pid, **fields)
         if self.recorder is not None:
             self.recorder.event(now, text, "info" if level == logging.INFO else "warning")
