@@ -516,6 +516,23 @@ def test_bus_faults_between_drones_on_the_real_zenoh_path(tmp_path: Path) -> Non
             assert 2 not in p["formation_peers"], (d, p["formation_peers"])
             assert 2 in p["avoided_peers"], (d, p["avoided_peers"])
         assert any(2 in p["formation_peers"] for p in after), f"drone {d} never took 2 back"
+    # --- drone 2, hidden: it learns from its peers' statuses that they do not hear it ------
+    # (their links to it down or quiet for a second: onboard.comm.hearing) and plans with the
+    # wider berth (unheard_margin_m) until they hear it again
+    plans2 = _plans(tmp_path / "d2" / "records")
+    late = [p for t, p in plans2 if t_hold + VALIDITY_S < t < t_hold + HOLD_S - 0.1]
+    assert late, "drone 2 made no plan in the second half of its outage"
+    assert all(p["unheard_by"] for p in late), [(p["t_s"], p["unheard_by"]) for p in late]
+    logs2 = [
+        (t, m["message"])
+        for f in sorted((tmp_path / "d2" / "records").glob("*.mcap"))
+        for t, m in read_record(f).topics.get("/log", [])
+    ]
+    for peer in (0, 1):
+        said = [t for t, m in logs2 if m.startswith(f"drone {peer} reports it does not hear us")]
+        again = [t for t, m in logs2 if m == f"drone {peer} hears us again"]
+        assert any(t_hold < t < t_hold + HOLD_S for t in said), (peer, logs2)
+        assert any(t > t_hold + HOLD_S for t in again), (peer, logs2)
     # how the formation degraded: plans made under the faults in which a peer was only avoided
     for d in range(N):
         made = [p for t, p in _plans(tmp_path / f"d{d}" / "records") if faults_on < t < faults_off]
