@@ -153,6 +153,24 @@ def _sim_table(r: SimResult) -> Table:
     return t
 
 
+def _radio_outages(specs: Sequence[str]) -> dict[int, tuple[float, float]]:
+    """``--radio-outage DRONE@FROM-TO`` values (one span per drone)."""
+    out: dict[int, tuple[float, float]] = {}
+    for spec in specs:
+        drone, sep, span = spec.partition("@")
+        a, dash, b = span.partition("-")
+        try:
+            i, t0, t1 = int(drone), float(a), float(b)
+        except ValueError:
+            raise ValueError(f"expected DRONE@FROM-TO (e.g. 2@20-27.5), got {spec!r}") from None
+        if not (sep and dash):
+            raise ValueError(f"expected DRONE@FROM-TO (e.g. 2@20-27.5), got {spec!r}")
+        if i in out:
+            raise ValueError(f"drone {i} is given two outages")
+        out[i] = (t0, t1)
+    return out
+
+
 def _sim_config(
     formation: str,
     world: str,
@@ -257,6 +275,14 @@ _set_opt = click.option(
     help="Drone whose broadcasts are lost (repeatable): a failed radio.",
 )
 @click.option(
+    "--radio-outage",
+    "outages",
+    multiple=True,
+    metavar="DRONE@FROM-TO",
+    help="Drone whose uplink is out from FROM to TO simulated seconds (repeatable): nothing it "
+    "sends then reaches anyone, it still hears its peers.",
+)
+@click.option(
     "--formation-change",
     "change",
     default=None,
@@ -291,6 +317,7 @@ def sim(
     sets: tuple[str, ...],
     time_limit: float | None,
     silent: tuple[int, ...],
+    outages: tuple[str, ...],
     change: str | None,
     json_path: Path | None,
     tracks_path: Path | None,
@@ -330,6 +357,11 @@ def sim(
             replan_period_s=replan_period,
             **perception_overrides(perception, camera_rate_hz, camera_skip_pixel),
         )
+        if outages:
+            try:
+                cfg = dataclasses.replace(cfg, radio_outages=_radio_outages(outages))
+            except ValueError as e:
+                raise click.BadParameter(str(e), param_hint="--radio-outage") from e
         if change is not None:
             cfg = dataclasses.replace(cfg, formation_change=_formation_change(change))
     except ConfigError as e:

@@ -41,9 +41,11 @@ from onboard.agent import (
     DroneAgent,
     MapSource,
     PlanInputs,
+    peer_links,
 )
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults, FaultyBus
+from onboard.comm.hearing import HearingReport, not_hearing, report_from_links
 from onboard.comm.messages import TrajectoryMsg
 from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.field import AnalyticField, DistanceField
@@ -92,6 +94,12 @@ class SimConfig:
     set after construction (``params``)."""
     silent_drones: tuple[int, ...] = ()
     """Drones whose broadcasts never reach anyone (a failed radio)."""
+    radio_outages: dict[int, tuple[float, float]] = field(default_factory=dict)
+    """Drone id -> (from, to) simulated seconds: nothing it sends in between (trajectories,
+    states, statuses) reaches anyone; it still hears its peers (an uplink that fails for a
+    while). Every drone's 1 Hz status tells the others whether it hears them
+    (``onboard.comm.hearing``, as the flight service reads it): a drone that learns a peer does
+    not hear it plans with ``PlannerParams.unheard_margin_m`` more."""
     formation_change: tuple[Formation, float] | None = None
     """(new template, simulated time): at that time every drone is given the new formation at
     once (the ground station's common effective time), its slot by minimum total distance from
@@ -230,6 +238,15 @@ class SimConfig:
         if not self.ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {self.ghost_forget_s!r}")
         n = self.formation.n
+        outages = {}
+        for i, span in dict(self.radio_outages).items():
+            if int(i) != i or not 0 <= int(i) < n:
+                raise ValueError(f"radio_outages: drone {i!r} is not in the formation of {n}")
+            a, b = (float(x) for x in span)
+            if not (math.isfinite(a) and a >= 0.0 and b > a):
+                raise ValueError(f"radio_outages[{i}]: expected 0 <= from < to, got {span!r}")
+            outages[int(i)] = (a, b)
+        object.__setattr__(self, "radio_outages", outages)
         for name in ("stuck_drones", "killed_drones"):
             faults = dict(getattr(self, name))
             for i, at in faults.items():
@@ -579,6 +596,37 @@ class StateMsg:
     position: np.ndarray
 
 
+STATUS_PERIOD_S = 1.0
+"""Every drone's status (what it says about its links to its peers) goes out this often, as
+the flight service's does."""
+
+
+def _radio_out(outages: dict[int, tuple[float, float]], drone: int, t: float) -> bool:
+    """Is ``drone``'s uplink out at ``t`` (``SimConfig.radio_outages``)?"""
+    span = outages.get(drone)
+    return span is not None and span[0] <= t < span[1]
+
+
+class _Uplinks:
+    """The trajectory bus as the agents see it: what a drone publishes while its uplink is out
+    (``SimConfig.radio_outages``) reaches nobody."""
+
+    def __init__(self, inner: Any, outages: dict[int, tuple[float, float]]) -> None:
+        self.inner = inner
+        self.outages = outages
+        self.dropped = 0
+
+    def publish(self, msg: TrajectoryMsg, now_s: float) -> None:
+        if _radio_out(self.outages, msg.drone_id, now_s):
+            self.dropped += 1
+            return
+        self.inner.publish(msg, now_s)
+
+    def receive(self, drone_id: int, now_s: float) -> dict[int, TrajectoryMsg]:
+        out: dict[int, TrajectoryMsg] = self.inner.receive(drone_id, now_s)
+        return out
+
+
 class StateChannel:
     """Where the simulator's state messages travel: each becomes visible ``delay_s`` after it
     is handed over, and a receiver gets the newest (by stamp) of every sender that has arrived,
@@ -823,6 +871,8 @@ def run_sim(
         else None
     )
     bus = PeerAudit(plain if faulty is None else faulty)
+    outages = dict(cfg.radio_outages)
+    uplinks = _Uplinks(bus, outages)
     # states travel the same way, their faults drawn from their own generator
     state_plain = StateChannel(cfg.bus_delay_s, silent)
     state_faulty = (
@@ -867,7 +917,7 @@ def run_sim(
             cfg.formation.points,
             i,
             Trajectory.hover(starts[i], 0.0),
-            bus,
+            uplinks,
             maps[i],
             goal=goals[i],
             replan_period_s=cfg.replan_period_s,
@@ -895,6 +945,10 @@ def run_sim(
     next_frame_s = 0.0
     next_state_s = 0.0
     state_seq = 0
+    next_status_s = 0.0
+    # what each drone's peers' statuses last said about their link to it
+    hearing: list[dict[int, HearingReport]] = [{} for _ in range(n)]
+    unheard_plans = 0
 
     replan_ms: list[float] = []
     iterations: list[float] = []
@@ -907,7 +961,9 @@ def run_sim(
         # come; between the 10 Hz looks a peer would seem up to 0.1 s quieter than it is)
         for sender, sm in state_bus.receive(ag.drone_id, t).items():
             ag.heard(sender, sm.stamp_s, sm.position)
+        nonlocal unheard_plans
         rep = ag.replan(t, p_now)
+        unheard_plans += bool(rep.unheard_by)
         replan_ms.append(rep.plan_ms)
         iterations.append(float(rep.iterations))
         evaluations.append(float(rep.evaluations))
@@ -983,7 +1039,8 @@ def run_sim(
                 stuck_next[i] += cfg.replan_period_s
         if t >= next_state_s - EPS_T:
             for i in range(n):
-                if i not in killed or i not in stopped:  # a dead process sends nothing
+                # a dead process sends nothing, nor does a radio that is out
+                if (i not in killed or i not in stopped) and not _radio_out(outages, i, t):
                     state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy()), t)
                     state_seq += 1
             for i, ag in enumerate(agents):
@@ -991,7 +1048,18 @@ def run_sim(
                     continue
                 for sender, sm in state_bus.receive(i, t).items():
                     ag.heard(sender, sm.stamp_s, sm.position)
+                # the statuses that have arrived (one state period after they were sent)
+                ag.set_unheard(not_hearing(list(hearing[i].values()), t, ag.first_published_s))
                 ag.watch(t)
+            if t >= next_status_s - EPS_T:
+                for j, ag in enumerate(agents):
+                    if j in silent or (j in killed and j in stopped) or _radio_out(outages, j, t):
+                        continue
+                    links = peer_links(ag.peer_view(t), ag.heard_s, t)
+                    for i in range(n):
+                        if i != j:
+                            hearing[i][j] = report_from_links(j, t, i, links)
+                next_status_s += STATUS_PERIOD_S
             next_state_s += cfg.state_period_s
         if eyes is not None and t >= next_frame_s - EPS_T:
             for i, ag in enumerate(agents):
@@ -1051,6 +1119,8 @@ def run_sim(
             "monitor_replans": sum(m.replans for m in monitors),
             "monitor_brakes": sum(m.brakes for m in monitors),
             "monitor_no_better_stop": sum(m.no_better_stop for m in monitors),
+            "radio_dropped": uplinks.dropped,
+            "unheard_plans": unheard_plans,
             "bus": {} if faulty is None else dict(faulty.counters),
             "state_bus": {} if state_faulty is None else dict(state_faulty.counters),
             "agents": {

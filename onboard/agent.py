@@ -353,6 +353,23 @@ def _brake_samples(ts: np.ndarray) -> int:
     return max(1, int(np.searchsorted(ts, ts[0] + BRAKE_REFERENCE_S + 1e-9, side="right")))
 
 
+def peer_links(
+    view: PeerView, heard_s: Callable[[int], float], now_s: float, limit: int = 60
+) -> list[tuple[str, bool, float | None]]:
+    """A drone's ``peer/<id>`` links as its status reports them: one per peer in ``view``
+    (flown, silent or deviating), up unless silent, with the age of its newest sign of life
+    (``heard_s``; None: never heard); at most ``limit`` (the status's bound). What the peers
+    read to know whether this drone hears them (``onboard.comm.hearing``)."""
+    ids = sorted({pt.drone_id for pt in view.trajectories} | set(view.silent) | set(view.deviating))
+    out: list[tuple[str, bool, float | None]] = []
+    for pid in ids[:limit]:
+        age = now_s - heard_s(pid)
+        out.append(
+            (f"peer/{pid}", pid not in view.silent, max(age, 0.0) if math.isfinite(age) else None)
+        )
+    return out
+
+
 def peer_conflict(
     view: PeerView,
     now_s: float,

@@ -44,6 +44,17 @@ def test_sim_quiet_and_config_errors(tmp_path: Path) -> None:
     assert out.exit_code != 0 and "no file named 'no-such-formation'" in out.output
     out = CliRunner().invoke(main, ["sim", *SMALL, "--quiet", "--time-limit", "1"])
     assert out.exit_code == 0 and out.output == ""
+    for bad, why in (
+        ("1@5", "expected DRONE@FROM-TO"),
+        ("x@1-2", "expected DRONE@FROM-TO"),
+        ("7@1-2", "drone 7 is not in the formation of 3"),
+        ("1@3-2", "expected 0 <= from < to"),
+    ):
+        out = CliRunner().invoke(main, ["sim", *SMALL, "-q", "--radio-outage", bad])
+        assert out.exit_code != 0 and why in out.output, (bad, out.output)
+    twice = ["--radio-outage", "1@1-2", "--radio-outage", "1@3-4"]
+    out = CliRunner().invoke(main, ["sim", *SMALL, "-q", *twice])
+    assert out.exit_code != 0 and "drone 1 is given two outages" in out.output
 
 
 def test_one_owner_of_the_speed_limit(tmp_path: Path) -> None:

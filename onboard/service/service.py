@@ -61,6 +61,7 @@ from onboard.agent import (
     monitor_times,
     obstacle_conflict,
     peer_conflict,
+    peer_links,
     replan_asked_s,
     same_peers,
 )
@@ -904,19 +905,11 @@ class FlightService:
             self.recorder.event(now, text, "info" if level == logging.INFO else "warning")
 
     def _peer_links(self, now: float) -> list[tuple[str, bool, float | None]]:
-        """``peer/<id>`` links for the status: up unless silent, the age of its newest sign of
-        life."""
+        """``peer/<id>`` links for the status (``onboard.agent.peer_links``)."""
         view = self.peer_view
         if view is None:
             return []
-        ids = sorted(
-            {pt.drone_id for pt in view.trajectories} | set(view.silent) | set(view.deviating)
-        )
-        out: list[tuple[str, bool, float | None]] = []
-        for pid in ids[:60]:  # the status carries at most 64 links
-            age = now - self.agent.heard_s(pid)
-            out.append((f"peer/{pid}", pid not in view.silent, max(age, 0.0)))
-        return out
+        return peer_links(view, self.agent.heard_s, now)
 
     # ---- the main loop -----------------------------------------------------------------------
     def _handle_command(self, inc: IncomingCommand) -> CommandResult:
