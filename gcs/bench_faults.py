@@ -254,6 +254,7 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
         "refused_older": int(f["refused_older"]) + int(f.get("agents", {}).get("refused_older", 0)),
         "monitor_replans": int(f.get("monitor_replans", 0)),
         "monitor_brakes": int(f.get("monitor_brakes", 0)),
+        "unheard_plans": int(f.get("unheard_plans", 0)),
         "peer_uses_audited": int(f["peer_uses_audited"]),
         "bus_counters": dict(f.get("bus", {})),
         "state_bus_counters": dict(f.get("state_bus", {})),
@@ -487,6 +488,7 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "refused_older": int(sum(r.get("refused_older", 0) for r in rows)),
         "monitor_replans": int(sum(r.get("monitor_replans", 0) for r in rows)),
         "monitor_brakes": int(sum(r.get("monitor_brakes", 0) for r in rows)),
+        "unheard_plans": int(sum(r.get("unheard_plans", 0) for r in rows)),
         "silent_replans_no_kill": int(
             sum(r.get("silent_replans", 0) for r in rows if not r["killed"])
         ),
@@ -690,7 +692,8 @@ def bench_faults(
         f"{rep['trials_no_kill_with_silent']} trials; bus faults only "
         f"{rep['silent_replans_bus_only']}), plans avoiding a healthy drone as a hover "
         f"{rep['healthy_hover_plans']}, plans leaving a healthy drone out of the formation "
-        f"{rep['healthy_dropped_plans']}; replans {rep['replans']} (bus faults only "
+        f"{rep['healthy_dropped_plans']}, plans told a peer did not hear them "
+        f"{rep['unheard_plans']}; replans {rep['replans']} (bus faults only "
         f"{rep['replans_bus_only']})"
     )
     for kind in ("killed", "stuck"):

@@ -879,6 +879,7 @@ def _register_bench_plugins() -> None:
     from gcs.bench_demo import bench_demo
     from gcs.bench_faults import bench_faults
     from gcs.bench_fuzz import fuzz_command
+    from gcs.bench_hidden import bench_hidden
     from gcs.bench_mapping import bench_mapping
     from gcs.bench_service import bench_service
     from gcs.bench_sitl import sitl
@@ -889,6 +890,7 @@ def _register_bench_plugins() -> None:
     bench.add_command(fuzz_command)
     bench.add_command(bench_service)
     bench.add_command(bench_faults)
+    bench.add_command(bench_hidden)
     bench.add_command(bench_demo)
 
 

@@ -1044,10 +1044,12 @@ def run_sim(
                     state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy()), t)
                     state_seq += 1
             for i, ag in enumerate(agents):
-                if i in stopped:
-                    continue
+                if i in stopped and i not in stuck:
+                    continue  # a dead process
                 for sender, sm in state_bus.receive(i, t).items():
                     ag.heard(sender, sm.stamp_s, sm.position)
+                if i in stopped:
+                    continue  # a stuck airframe: its service hears on (its statuses say so)
                 # the statuses that have arrived (one state period after they were sent)
                 ag.set_unheard(not_hearing(list(hearing[i].values()), t, ag.first_published_s))
                 ag.watch(t)

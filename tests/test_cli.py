@@ -304,3 +304,17 @@ def test_replan_period_is_checked_and_flown(tmp_path: Path) -> None:
     out = CliRunner().invoke(main, [*args, "--json", str(js), "-q"])
     assert out.exit_code == 0, out.output
     assert json.loads(js.read_text())["replan_period_s"] == 0.5
+
+
+def test_bench_hidden_small(tmp_path: Path) -> None:
+    js = tmp_path / "hidden.json"
+    args = ["bench", "hidden", "--seeds", "1", "--jobs", "1", "--json", str(js), "-q"]
+    out = CliRunner().invoke(main, [*args, "--set", "unheard_margin_m=0"])
+    assert out.exit_code == 0, out.output
+    assert "unheard_margin_m 0:" in out.output and "success 1" in out.output
+    data = json.loads(js.read_text())
+    assert data["unheard_margin_m"] == 0.0 and len(data["flights"]) == 1
+    assert data["total"]["collisions"] == 0 and data["total"]["unheard_plans"] > 0
+    out = CliRunner().invoke(main, ["bench", "hidden", "--seeds", "0"])
+    assert out.exit_code != 0 and "--seeds" in out.output
+

@@ -1237,7 +1237,7 @@ def test_a_drone_its_peers_do_not_hear_keeps_a_wider_berth(tmp_path: Path) -> No
     ``unheard_margin_m`` more (the planner side: ``tests/test_hearing.py``), says so, and
     goes back when the peer hears us again."""
     from onboard.agent import PeerView
-    from onboard.comm.hearing import HearingReport
+    from onboard.comm.hearing import REPORT_FRESH_S, HearingReport
     from onboard.planner.planner import PeerTrajectory
 
     h = Harness(tmp_path, depth=False)
@@ -1283,7 +1283,9 @@ def test_a_drone_its_peers_do_not_hear_keeps_a_wider_berth(tmp_path: Path) -> No
     h.bus.hearing_in[5] = HearingReport(5, h.clock.t, True, False, 2.0)
     h.step()
     assert h.svc.agent.unheard_by == {5}
-    h.step(70)  # 3.5 s
+    h.step(int(REPORT_FRESH_S / 0.05) - 20)
+    assert h.svc.agent.unheard_by == {5}
+    h.step(40)
     assert h.svc.agent.unheard_by == frozenset()
     assert h.svc.counters["peers_stopped_hearing_us"] == 2
     assert h.bus.statuses[-1]["counters"]["service.peers_stopped_hearing_us"] == 2

@@ -20,8 +20,11 @@ from dataclasses import dataclass
 UNHEARD_AGE_S = 1.0
 """A peer whose newest sign of life from us is this old does not hear us: ten 10 Hz states in
 a row lost (20 % loss: p = 1e-7) or a second of trajectories and states delayed."""
-REPORT_FRESH_S = 3.0
-"""A status older than this (by its stamp) says nothing any more: three status periods."""
+REPORT_FRESH_S = 10.0
+"""A status older than this (by its stamp) says nothing any more: ten status periods. Shorter
+(3 s) let three statuses lost in a row on a lossy bus end a drone's wider berth in the middle of
+its outage (the bus-faults flight, 2026-11-30); a peer that stops sending statuses for good
+has died or cannot reach us, and is avoided as silent anyway."""
 UNLISTED_GRACE_S = 3.0
 """A peer's status that lists no link to us means it does not hear us once we have published
 trajectories for this long before the status was sent (it forgot us, or never heard us)."""
