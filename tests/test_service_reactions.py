@@ -4,7 +4,8 @@ every reaction, each tested by cutting its input."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from onboard.planner.planner import FormationPlanner, PlanResult, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import read_record
 from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
+from onboard.service.adapters import SwarmBusAdapter
 from onboard.service.config import default_config_path, load_onboard_config
 from onboard.service.fakes import (
     FakeAutopilot,
@@ -1009,12 +1011,10 @@ def test_peer_states_reach_the_agent_as_signs_of_life(tmp_path: Path) -> None:
     assert setpoints_clear(h, p, 0.0) >= h.cfg.planner.check_drone_m
 
 
-def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() -> None:
-    """Two services' bus adapters on loopback Zenoh (``open_bus``, which subscribes to the
-    peers' states): drone 1 gets drone 0's newest state (its autopilot sample's stamp, never
-    later than the message's) and its trajectories with their own ids and incarnation."""
-    import time
-
+@contextmanager
+def _two_bus_adapters() -> Iterator[tuple[SwarmBusAdapter, SwarmBusAdapter]]:
+    """Two services' bus adapters (drones 0 and 1) on loopback Zenoh, as ``open_bus`` opens
+    them (subscribed to the peers' states and statuses); closed on the way out."""
     from onboard.comm.zenoh_session import peer_mesh
     from onboard.service.adapters import open_bus
 
@@ -1025,7 +1025,19 @@ def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() 
             zen = {"listen": list(eps[i].listen), "connect": list(eps[i].connect)}
             cfg = load_onboard_config(default_config_path(), i, overrides={"zenoh": zen})
             buses.append(open_bus(cfg))
-        b0, b1 = buses
+        yield buses[0], buses[1]
+    finally:
+        for b in buses:
+            b.close()
+
+
+def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() -> None:
+    """Two services' bus adapters on loopback Zenoh (``open_bus``, which subscribes to the
+    peers' states): drone 1 gets drone 0's newest state (its autopilot sample's stamp, never
+    later than the message's) and its trajectories with their own ids and incarnation."""
+    import time
+
+    with _two_bus_adapters() as (b0, b1):
         traj = Trajectory.hover(np.array([1.0, 2.0, 1.0]), time.time(), 5.0)
 
         def state(measured_s: float, x: float) -> dict[str, Any]:
@@ -1060,9 +1072,35 @@ def test_the_bus_adapter_hands_over_peer_states_and_trajectory_ids_over_zenoh() 
         assert b1.peer_states()[0].stamp_s == newest
         assert b1.peer_states()[0].position_m[0] == 1.0  # type: ignore[index]
         assert 1 not in b1.peer_states()  # not its own
-    finally:
-        for b in buses:
-            b.close()
+
+
+def test_the_bus_adapter_reads_what_a_peers_status_says_about_us_over_zenoh() -> None:
+    """Two services' bus adapters on loopback Zenoh: drone 0's status lists drone 1's link
+    down; drone 1 reads that drone 0 does not hear it."""
+    import time
+
+    from onboard.comm.hearing import not_hearing
+
+    with _two_bus_adapters() as (b0, b1):
+        status = {
+            "flight_state": "formation-flight",
+            "plan_status": "ok",
+            "plan_stamp_s": time.time(),
+            "plan_ms_last": 1.0,
+            "plan_ms_max": 2.0,
+            "replans": 3,
+            "links": [("autopilot", True, 0.02), ("peer/1", False, 2.4)],
+            "counters": {},
+        }
+        deadline = time.monotonic() + 10.0
+        while 0 not in b1.hearing_reports():
+            assert time.monotonic() < deadline, "no status from drone 0 over Zenoh"
+            b0.publish_status(status)
+            time.sleep(0.05)
+        rep = b1.hearing_reports()[0]
+        assert rep.peer == 0 and rep.listed and not rep.up and rep.age_s == pytest.approx(2.4)
+        assert not_hearing([rep], time.time(), time.time() - 60.0) == {0}
+        assert 1 not in b1.hearing_reports()  # not its own
 
 
 def test_the_monitor_lets_a_drone_inside_the_check_distance_back_out(tmp_path: Path) -> None:
