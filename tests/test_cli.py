@@ -317,4 +317,3 @@ def test_bench_hidden_small(tmp_path: Path) -> None:
     assert data["total"]["collisions"] == 0 and data["total"]["unheard_plans"] > 0
     out = CliRunner().invoke(main, ["bench", "hidden", "--seeds", "0"])
     assert out.exit_code != 0 and "--seeds" in out.output
-
