@@ -1051,7 +1051,8 @@ def run_sim(
                 if i in stopped:
                     continue  # a stuck airframe: its service hears on (its statuses say so)
                 # the statuses that have arrived (one state period after they were sent)
-                ag.set_unheard(not_hearing(list(hearing[i].values()), t, ag.first_published_s))
+                heard_of = list(hearing[i].values())
+                ag.set_unheard(not_hearing(heard_of, t, ag.first_published_s, ag.last_published_s))
                 ag.watch(t)
             if t >= next_status_s - EPS_T:
                 for j, ag in enumerate(agents):

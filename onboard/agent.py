@@ -710,6 +710,8 @@ class DroneAgent:
         self._unheard: frozenset[int] = frozenset()
         self.first_published_s = math.inf
         """When this agent published its first trajectory (inf: not yet)."""
+        self.last_published_s = -math.inf
+        """When this agent published its newest trajectory (-inf: not yet)."""
         # (epoch, slot, template) of the last replan, and when the re-forming after a change
         # ends (``PlannerParams.reform_s``)
         self._shape_seen: tuple[int, int, bytes] | None = None
@@ -1357,6 +1359,7 @@ class DroneAgent:
             self._seq += 1
             if seq == 0:
                 self.first_published_s = now
+            self.last_published_s = now
             msg = TrajectoryMsg(
                 self.drone_id,
                 seq,

@@ -14,6 +14,7 @@ from onboard.comm.hearing import (
     REPORT_FRESH_S,
     UNHEARD_AGE_S,
     UNLISTED_GRACE_S,
+    UNLISTED_RECENT_S,
     HearingReport,
     not_hearing,
     report_from_links,
@@ -27,26 +28,29 @@ NOW = 1000.0
 
 
 def test_the_rules_of_not_hearing() -> None:
-    first = NOW - 60.0  # we have published for a minute
+    first, last = NOW - 60.0, NOW - 0.5  # we have published for a minute, the last just now
     up = HearingReport(0, NOW - 0.5, True, True, 0.2)
-    assert not_hearing([up], NOW, first) == frozenset()
+    assert not_hearing([up], NOW, first, last) == frozenset()
     # our link down (we are silent to it), or too long quiet, or never heard
-    assert not_hearing([HearingReport(0, NOW, True, False, 0.3)], NOW, first) == {0}
+    assert not_hearing([HearingReport(0, NOW, True, False, 0.3)], NOW, first, last) == {0}
     old = HearingReport(0, NOW, True, True, UNHEARD_AGE_S)
-    assert not_hearing([old], NOW, first) == {0}
-    assert not_hearing([HearingReport(0, NOW, True, True, None)], NOW, first) == {0}
-    # not listed: it forgot us or never heard us, once we have published long enough
+    assert not_hearing([old], NOW, first, last) == {0}
+    assert not_hearing([HearingReport(0, NOW, True, True, None)], NOW, first, last) == {0}
+    # not listed: it forgot us or never heard us, once we have published long enough and lately
     unlisted = HearingReport(3, NOW, False)
-    assert not_hearing([unlisted], NOW, first) == {3}
-    assert not_hearing([unlisted], NOW, NOW - UNLISTED_GRACE_S + 0.1) == frozenset()
-    assert not_hearing([unlisted], NOW, math.inf) == frozenset()  # we never published
+    assert not_hearing([unlisted], NOW, first, last) == {3}
+    assert not_hearing([unlisted], NOW, NOW - UNLISTED_GRACE_S + 0.1, last) == frozenset()
+    assert not_hearing([unlisted], NOW, math.inf, -math.inf) == frozenset()  # never published
+    # landed: no trajectory for longer than UNLISTED_RECENT_S, forgotten, nothing wrong
+    landed = NOW - UNLISTED_RECENT_S - 0.1
+    assert not_hearing([unlisted], NOW, first, landed) == frozenset()
     # a stale report says nothing; the newest report of a peer wins, whatever the order
     stale = HearingReport(0, NOW - REPORT_FRESH_S - 0.01, True, False, 5.0)
-    assert not_hearing([stale], NOW, first) == frozenset()
+    assert not_hearing([stale], NOW, first, last) == frozenset()
     down = HearingReport(0, NOW - 1.0, True, False, 1.2)
-    assert not_hearing([up, down], NOW, first) == frozenset()
-    assert not_hearing([down, up], NOW, first) == frozenset()
-    assert not_hearing([down, unlisted, up], NOW, first) == {3}
+    assert not_hearing([up, down], NOW, first, last) == frozenset()
+    assert not_hearing([down, up], NOW, first, last) == frozenset()
+    assert not_hearing([down, unlisted, up], NOW, first, last) == {3}
 
 
 def test_a_report_is_read_from_the_status_links() -> None:

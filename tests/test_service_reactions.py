@@ -1099,7 +1099,7 @@ def test_the_bus_adapter_reads_what_a_peers_status_says_about_us_over_zenoh() ->
             time.sleep(0.05)
         rep = b1.hearing_reports()[0]
         assert rep.peer == 0 and rep.listed and not rep.up and rep.age_s == pytest.approx(2.4)
-        assert not_hearing([rep], time.time(), time.time() - 60.0) == {0}
+        assert not_hearing([rep], time.time(), time.time() - 60.0, time.time()) == {0}
         assert 1 not in b1.hearing_reports()  # not its own
 
 

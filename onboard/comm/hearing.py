@@ -27,7 +27,12 @@ its outage (the bus-faults flight, 2026-11-30); a peer that stops sending status
 has died or cannot reach us, and is avoided as silent anyway."""
 UNLISTED_GRACE_S = 3.0
 """A peer's status that lists no link to us means it does not hear us once we have published
-trajectories for this long before the status was sent (it forgot us, or never heard us)."""
+trajectories for this long before the status was sent (it forgot us, or never heard us) ...
+"""
+UNLISTED_RECENT_S = 3.0
+"""... and published one at most this long before it (a trajectory's validity): a landed
+drone, which publishes none, is forgotten by its peers and not listed, and hears nothing wrong
+in that."""
 
 
 @dataclass(frozen=True)
@@ -59,14 +64,18 @@ def not_hearing(
     reports: Sequence[HearingReport],
     now_s: float,
     first_published_s: float,
+    last_published_s: float,
     *,
     age_limit_s: float = UNHEARD_AGE_S,
     fresh_s: float = REPORT_FRESH_S,
     grace_s: float = UNLISTED_GRACE_S,
+    recent_s: float = UNLISTED_RECENT_S,
 ) -> frozenset[int]:
     """The peers whose newest report (at most ``fresh_s`` old at ``now_s``) says they do not
     hear us: our link down (silent) or its age ``age_limit_s`` or more, never heard, or not
-    listed although we have published since ``grace_s`` before the report."""
+    listed although we have published trajectories since ``grace_s`` before the report, the
+    last at most ``recent_s`` before it (``first_published_s`` / ``last_published_s``: when we
+    published our first and our newest trajectory; inf / -inf: none)."""
     newest: dict[int, HearingReport] = {}
     for r in reports:
         old = newest.get(r.peer)
@@ -79,6 +88,8 @@ def not_hearing(
         if r.listed:
             if not r.up or r.age_s is None or r.age_s >= age_limit_s:
                 out.add(pid)
-        elif r.stamp_s - first_published_s >= grace_s:
+        elif r.stamp_s - first_published_s >= grace_s and (
+            r.stamp_s - last_published_s <= recent_s
+        ):
             out.add(pid)
     return frozenset(out)

@@ -874,9 +874,9 @@ class FlightService:
     def _update_hearing(self, now: float) -> None:
         """Which peers report that they do not hear us (``onboard.comm.hearing``), to the agent
         (it then plans with a wider berth), counted and logged as it changes."""
-        deaf = not_hearing(
-            list(self.bus.hearing_reports().values()), now, self.agent.first_published_s
-        )
+        ag = self.agent
+        reports = list(self.bus.hearing_reports().values())
+        deaf = not_hearing(reports, now, ag.first_published_s, ag.last_published_s)
         old = self.agent.unheard_by
         if deaf == old:
             return
