@@ -877,10 +877,10 @@ class FlightService:
         ag = self.agent
         reports = list(self.bus.hearing_reports().values())
         deaf = not_hearing(reports, now, ag.first_published_s, ag.last_published_s)
-        old = self.agent.unheard_by
+        old = ag.unheard_by
         if deaf == old:
             return
-        self.agent.set_unheard(deaf)
+        ag.set_unheard(deaf)
         self.counters["peers_not_hearing_us"] = len(deaf)
         for pid in sorted(deaf - old):
             self.counters["peers_stopped_hearing_us"] += 1
@@ -888,13 +888,13 @@ class FlightService:
                 now,
                 "peer_not_hearing_us",
                 pid,
-                f"drone {pid} reports it does not hear us: every peer kept "
-                f"{self.cfg.planner.unheard_margin_m:.2f} m further off",
+                f"drone {pid} reports it does not hear us: planning "
+                f"{self.cfg.planner.unheard_margin_m:.2f} m further from every peer",
             )
         for pid in sorted(old - deaf):
             self._peer_event(now, "peer_hears_us_again", pid, f"drone {pid} hears us again")
         if deaf and not old:
-            self.agent.request_replan()  # with the wider berth, now
+            ag.request_replan()  # with the wider berth, now
             self._wake.set()
 
     def _peer_event(self, now: float, name: str, pid: int, text: str, **fields: Any) -> None:
