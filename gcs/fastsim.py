@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -98,8 +99,9 @@ class SimConfig:
     """Drone id -> (from, to) simulated seconds: nothing it sends in between (trajectories,
     states, statuses) reaches anyone; it still hears its peers (an uplink that fails for a
     while). Every drone's 1 Hz status tells the others whether it hears them
-    (``onboard.comm.hearing``, as the flight service reads it): a drone that learns a peer does
-    not hear it plans with ``PlannerParams.unheard_margin_m`` more."""
+    (``onboard.comm.hearing``, as the flight service reads it; with ``bus_faults`` each copy is
+    lost and delayed as a state would be): a drone that learns a peer does not hear it plans
+    with ``PlannerParams.unheard_margin_m`` more."""
     formation_change: tuple[Formation, float] | None = None
     """(new template, simulated time): at that time every drone is given the new formation at
     once (the ground station's common effective time), its slot by minimum total distance from
@@ -948,6 +950,13 @@ def run_sim(
     next_status_s = 0.0
     # what each drone's peers' statuses last said about their link to it
     hearing: list[dict[int, HearingReport]] = [{} for _ in range(n)]
+    # statuses on their way: (arrival, seq, receiver, report); with bus faults each copy to
+    # each receiver is lost and delayed as a state would be (its own generator)
+    status_mail: list[tuple[float, int, int, HearingReport]] = []
+    status_n = itertools.count()
+    status_rng = (
+        np.random.default_rng(cfg.fault_seed + 104729) if cfg.bus_faults is not None else None
+    )
     unheard_plans = 0
 
     replan_ms: list[float] = []
@@ -1050,7 +1059,7 @@ def run_sim(
                     ag.heard(sender, sm.stamp_s, sm.position)
                 if i in stopped:
                     continue  # a stuck airframe: its service hears on (its statuses say so)
-                # the statuses that have arrived (one state period after they were sent)
+                # the statuses that have arrived (the newest of each peer by its stamp)
                 heard_of = list(hearing[i].values())
                 ag.set_unheard(not_hearing(heard_of, t, ag.first_published_s, ag.last_published_s))
                 ag.watch(t)
@@ -1060,9 +1069,27 @@ def run_sim(
                         continue
                     links = peer_links(ag.peer_view(t), ag.heard_s, t)
                     for i in range(n):
-                        if i != j:
-                            hearing[i][j] = report_from_links(j, t, i, links)
+                        if i == j:
+                            continue
+                        arrive = t + cfg.state_period_s  # at the next look on a clean bus
+                        if status_rng is not None and cfg.bus_faults is not None:
+                            bf = cfg.bus_faults
+                            lost = status_rng.random() < bf.loss
+                            lag = bf.delay_min_s + (bf.delay_max_s - bf.delay_min_s) * (
+                                status_rng.random()
+                            )
+                            if lost:
+                                continue
+                            arrive = t + lag
+                        report = report_from_links(j, t, i, links)
+                        heapq.heappush(status_mail, (arrive, next(status_n), i, report))
                 next_status_s += STATUS_PERIOD_S
+            # what arrives by the next look is read there
+            while status_mail and status_mail[0][0] <= t + cfg.state_period_s + EPS_T:
+                _, _, i, rep_ = heapq.heappop(status_mail)
+                old = hearing[i].get(rep_.peer)
+                if old is None or rep_.stamp_s > old.stamp_s:
+                    hearing[i][rep_.peer] = rep_
             next_state_s += cfg.state_period_s
         if eyes is not None and t >= next_frame_s - EPS_T:
             for i, ag in enumerate(agents):
