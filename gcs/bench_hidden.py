@@ -179,13 +179,14 @@ def bench_hidden(
     ]
     rows: list[dict[str, Any]] = []
     if jobs == 1:
-        results = map(fly_hidden, trials)
-        for row in results:
+        for row in map(fly_hidden, trials):
             rows.append(row)
             _echo_row(row, quiet)
     else:
+        from gcs.bench_faults import _sigterm_interrupts
+
         ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(jobs) as pool:
+        with _sigterm_interrupts(), ctx.Pool(jobs) as pool:
             for row in pool.imap(fly_hidden, trials):
                 rows.append(row)
                 _echo_row(row, quiet)

@@ -950,13 +950,23 @@ def run_sim(
     next_status_s = 0.0
     # what each drone's peers' statuses last said about their link to it
     hearing: list[dict[int, HearingReport]] = [{} for _ in range(n)]
-    # statuses on their way: (arrival, seq, receiver, report); with bus faults each copy to
-    # each receiver is lost and delayed as a state would be (its own generator)
+    # statuses on their way: (arrival, seq, receiver, report)
     status_mail: list[tuple[float, int, int, HearingReport]] = []
     status_n = itertools.count()
-    status_rng = (
-        np.random.default_rng(cfg.fault_seed + 104729) if cfg.bus_faults is not None else None
-    )
+    status_faults = cfg.bus_faults
+    status_rng = np.random.default_rng(cfg.fault_seed + 104729)
+
+    def status_lag() -> float | None:
+        """How long a copy of a status takes to one receiver (None: lost): by the next look on
+        a clean bus; with bus faults, lost and delayed as a state would be (its own
+        generator, two draws a copy)."""
+        f = status_faults
+        if f is None:
+            return cfg.state_period_s
+        lost = status_rng.random() < f.loss
+        lag = f.delay_min_s + (f.delay_max_s - f.delay_min_s) * status_rng.random()
+        return None if lost else lag
+
     unheard_plans = 0
 
     replan_ms: list[float] = []
@@ -1071,18 +1081,11 @@ def run_sim(
                     for i in range(n):
                         if i == j:
                             continue
-                        arrive = t + cfg.state_period_s  # at the next look on a clean bus
-                        if status_rng is not None and cfg.bus_faults is not None:
-                            bf = cfg.bus_faults
-                            lost = status_rng.random() < bf.loss
-                            lag = bf.delay_min_s + (bf.delay_max_s - bf.delay_min_s) * (
-                                status_rng.random()
-                            )
-                            if lost:
-                                continue
-                            arrive = t + lag
+                        lag = status_lag()
+                        if lag is None:
+                            continue
                         report = report_from_links(j, t, i, links)
-                        heapq.heappush(status_mail, (arrive, next(status_n), i, report))
+                        heapq.heappush(status_mail, (t + lag, next(status_n), i, report))
                 next_status_s += STATUS_PERIOD_S
             # what arrives by the next look is read there
             while status_mail and status_mail[0][0] <= t + cfg.state_period_s + EPS_T:
