@@ -39,6 +39,7 @@ from onboard.agent import (
     PLAN_AHEAD_S,
     PX4_POSITION_GAIN,
     REPLAN_PERIOD_S,
+    RESEND_S,
     DroneAgent,
     MapSource,
     PlanInputs,
@@ -163,6 +164,9 @@ class SimConfig:
     monitor_brake_within_s: float = MONITOR_BRAKE_WITHIN_S
     """A conflict further ahead than this that a fresh plan did not clear is left to the next
     replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
+    resend_s: tuple[float, ...] = RESEND_S
+    """Every published trajectory goes out again this long after it unless a newer one went
+    out first (``DroneAgent.resend``; the flight service's ``planning.resend_s``); () once."""
     validity_s: float = math.inf
     """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
@@ -237,6 +241,8 @@ class SimConfig:
             raise ValueError(f"ghost_window_s must be >= 0, got {self.ghost_window_s!r}")
         if not self.peer_deviation_m > 0.0:
             raise ValueError(f"peer_deviation_m must be > 0, got {self.peer_deviation_m!r}")
+        if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
+            raise ValueError(f"resend_s must hold delays > 0, got {self.resend_s!r}")
         if not self.ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {self.ghost_forget_s!r}")
         n = self.formation.n
@@ -932,6 +938,7 @@ def run_sim(
             ghost_window_s=cfg.ghost_window_s,
             peer_deviation_m=cfg.peer_deviation_m,
             on_inputs=record,
+            resend_s=cfg.resend_s,
         )
         for i in range(n)
     ]
@@ -1110,6 +1117,9 @@ def run_sim(
                 if monitors:
                     monitors[i].last_plan_s = t
                 pos[i] = ag.advance(t).sample(t)
+        for i, ag in enumerate(agents):
+            if i not in killed or i not in stopped:  # a dead process sends nothing
+                ag.resend(t)
         done = mon.step(k, t, pos, velocities)
         if (
             change_record is not None
@@ -1151,6 +1161,7 @@ def run_sim(
             "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
             "monitor_replans": sum(m.replans for m in monitors),
             "monitor_brakes": sum(m.brakes for m in monitors),
+            "resent": sum(ag.resent for ag in agents),
             "monitor_no_better_stop": sum(m.no_better_stop for m in monitors),
             "radio_dropped": uplinks.dropped,
             "unheard_plans": unheard_plans,

@@ -171,6 +171,14 @@ milliseconds; on a starved CPU they took 1-2 s, and a drone flew into a hovering
 its monitor asked for replan after replan: bench demo seed 3, 2026-11-28)."""
 HOVER_S = 3600.0
 """Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
+RESEND_S = (0.05, 0.15)
+"""Every published trajectory (a plan, a braking stop, a hover) goes out again this long after
+it, unless a newer one went out first (``DroneAgent.resend``; the flight service's and fast
+time's default). On a bus that loses messages one lost copy left the peers planning along a
+trajectory the drone no longer flew until its next publication, up to a replan period later:
+two drones 0.07 m apart (``bench hidden --outage-from 3`` seed 271, a plan that slowed lost)
+and 0.33 m (seed 7, a brake lost); the 10 Hz states moved less than ``PEER_DEVIATION_M`` off
+the lost trajectory before it was too late."""
 
 
 class MapSource(Protocol):
@@ -594,7 +602,9 @@ class DroneAgent:
     has taken this long by ``timer`` (the flight service; inf: no budget, the fast-time
     simulator, whose results must not depend on the host's speed), it starts no further
     attempt while the trajectory in control is safe and moves on (``PlanStatus.OVER_BUDGET``:
-    that trajectory flies on and a replan follows at once).
+    that trajectory flies on and a replan follows at once); resend_s: each published
+    trajectory goes out again this long after it unless a newer one went out first, as
+    ``resend`` is called (``RESEND_S`` in the flight service and fast time; () none).
     """
 
     def __init__(
@@ -631,7 +641,11 @@ class DroneAgent:
         clock: Callable[[], float] | None = None,
         late_jump_m: float = LATE_JUMP_M,
         plan_budget_s: float = math.inf,
+        resend_s: Sequence[float] = (),
     ) -> None:
+        self.resend_s = tuple(float(d) for d in resend_s)
+        if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
+            raise ValueError(f"resend_s must hold delays > 0, got {tuple(resend_s)!r}")
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
             raise ValueError(f"replan_period_s must be > 0, got {replan_period_s!r}")
         if not (math.isfinite(plan_ahead_s) and plan_ahead_s >= 0.0):
@@ -725,6 +739,11 @@ class DroneAgent:
         self._demand_s = math.inf
         self._seq = 0
         self._pub_lock = threading.Lock()
+        # the last trajectory published (and its assignment), and when to send it again
+        self._last_sent: tuple[Trajectory, _Assignment] | None = None
+        self._resend_at: list[float] = []
+        self.resent = 0
+        """Copies sent by ``resend``."""
         self._last: PlanReport | None = None
         self.status_counts: dict[str, int] = {}
         """Replans by plan status value (``PlanStatus.value``); other threads: ``counters()``."""
@@ -1353,23 +1372,48 @@ class DroneAgent:
 
     def _publish(self, traj: Trajectory, a: _Assignment, now: float) -> int:
         """Any thread (a flight service announces its brakes from the thread that made them):
-        the numbers go out in the order they are taken."""
+        the numbers go out in the order they are taken. Copies follow ``resend_s`` later."""
         with self._pub_lock:
-            seq = self._seq
-            self._seq += 1
-            if seq == 0:
-                self.first_published_s = now
-            self.last_published_s = now
-            msg = TrajectoryMsg(
-                self.drone_id,
-                seq,
-                a.slot,
-                traj,
-                formation_epoch=a.epoch,
-                valid_until_s=now + self.validity_s,
-            )
-            self.bus.publish(msg, now)
+            self._last_sent = (traj, a)
+            self._resend_at = [now + d for d in self.resend_s]
+            return self._send(traj, a, now)
+
+    def _send(self, traj: Trajectory, a: _Assignment, now: float) -> int:
+        """Under ``_pub_lock``."""
+        seq = self._seq
+        self._seq += 1
+        if seq == 0:
+            self.first_published_s = now
+        self.last_published_s = now
+        msg = TrajectoryMsg(
+            self.drone_id,
+            seq,
+            a.slot,
+            traj,
+            formation_epoch=a.epoch,
+            valid_until_s=now + self.validity_s,
+        )
+        self.bus.publish(msg, now)
         return seq
+
+    def resend(self, now_s: float) -> bool:
+        """Any thread, called often (a flight service's monitor, fast time's every step): when
+        a copy of the last published trajectory is due (``resend_s`` after it; none once a
+        newer one went out), send it (a new number, the same trajectory and assignment).
+        Whether one went out: a look that comes late sends one copy for all that are due."""
+        at = self._resend_at
+        if not at or now_s < at[0] - EPS_T:
+            return False
+        with self._pub_lock:
+            at = self._resend_at
+            last = self._last_sent
+            if not at or now_s < at[0] - EPS_T or last is None:
+                return False
+            while at and now_s >= at[0] - EPS_T:
+                at.pop(0)
+            self._send(last[0], last[1], now_s)
+            self.resent += 1
+        return True
 
     def _take(self, msgs: dict[int, TrajectoryMsg], now: float) -> None:
         """Keep the newest trajectory of each peer from ``msgs``: an older one (lower

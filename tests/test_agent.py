@@ -670,3 +670,38 @@ def test_the_plan_budget_is_measured_by_the_timer_and_an_over_budget_plan_flies_
     for bad in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match="plan_budget_s"):
             _agent(0, bus, start, None, plan_budget_s=bad)
+
+
+def test_a_published_trajectory_goes_out_again_on_time_until_a_newer_one_does() -> None:
+    bus = InMemoryBus(0.0)
+    a = _agent(0, bus, np.zeros(3), None, resend_s=(0.05, 0.15))
+
+    def newest() -> TrajectoryMsg:
+        return bus.receive(1, 1e9)[0]
+
+    assert not a.resend(0.0)  # nothing published yet
+    a.announce(10.0)
+    first = newest()
+    assert not a.resend(10.04)
+    assert a.resend(10.05)  # the first copy: a new number, the same trajectory
+    copy = newest()
+    assert copy.traj_id == first.traj_id + 1 and copy.trajectory is first.trajectory
+    assert copy.slot == first.slot and copy.formation_epoch == first.formation_epoch
+    assert not a.resend(10.06)
+    assert a.resend(10.2) and not a.resend(10.5) and a.resent == 2  # a late look: one copy
+    # a newer trajectory cancels the copies still due of the older one; only its own follow
+    a.announce(20.0)
+    a.reset(Trajectory.hover(np.ones(3), 20.01))
+    a.announce(20.02)
+    newer = newest()
+    assert a.resend(20.07) and newest().trajectory is newer.trajectory
+    assert not a.resend(20.1) and a.resend(20.17) and a.resent == 4
+    assert newest().trajectory is newer.trajectory
+    # off by default
+    b = _agent(1, InMemoryBus(0.0), np.zeros(3), None)
+    b.announce(0.0)
+    assert not b.resend(1.0) and b.resent == 0
+    with pytest.raises(ValueError, match="resend_s"):
+        _agent(2, InMemoryBus(0.0), np.zeros(3), None, resend_s=(0.05, -1.0))
+    with pytest.raises(ValueError, match="resend_s"):
+        _agent(2, InMemoryBus(0.0), np.zeros(3), None, resend_s=(math.nan,))

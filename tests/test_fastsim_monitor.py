@@ -182,6 +182,8 @@ def test_sim_config_refuses_bad_fault_models() -> None:
     for name in ("offboard_loss_s", "px4_position_gain", "monitor_horizon_s"):
         with pytest.raises(ValueError, match=name):
             dataclasses.replace(base, **{name: 0.0})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="resend_s"):
+        dataclasses.replace(base, resend_s=(0.05, 0.0))
     for name in ("monitor_rate_hz", "monitor_brake_after_s"):
         with pytest.raises(ValueError, match=name):
             dataclasses.replace(base, **{name: -1.0})  # type: ignore[arg-type]

@@ -171,6 +171,7 @@ def test_bus_faults_loss_delay_duplication_reordering_no_collision() -> None:
     assert r.faults["refused_older"] > 0  # late copies never replaced a newer trajectory
     assert r.faults["stale_formation_uses"] == 0
     assert r.faults["unknown_uses"] == 0
+    assert r.faults["resent"] > 0  # every trajectory goes out again (RESEND_S)
     # no healthy drone taken for silent (dropped from the formation): the quiet ones are only
     # avoided where they may have stopped (a fixed 0.5 s silence: 12 replans with one silent)
     assert r.faults["agents"]["silent"] == 0

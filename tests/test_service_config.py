@@ -55,6 +55,8 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
         ("autopilot:\n  url: tcp://x:1\n", "url", "udp://HOST:PORT"),
         ("depth:\n  source: kinect\n", "depth.source", "zenoh-sim"),
         ("planning:\n  replan_period_s: 0\n", "replan_period_s", "[0.1, 10]"),
+        ("planning:\n  resend_s: [0.05, 5]\n", "resend_s[1]", "[0.01, 2]"),
+        ("planning:\n  resend_s: 0.05\n", "planning.resend_s", "list"),
         ("reactions:\n  gcs_lost: {action: rtl}\n", "reactions.gcs_lost.action", "land"),
         ("reactions:\n  depth_lost: {timeout_s: -1}\n", "timeout_s", "[0.05, 10]"),
         ("geofence:\n  min_enu_m: [0, 0, 0]\n  max_enu_m: [1, -1, 3]\n", "geofence", "min"),

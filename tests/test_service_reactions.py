@@ -15,6 +15,7 @@ import pytest
 from onboard.agent import (
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_PLAN_WAIT_S,
+    RESEND_S,
     DroneAgent,
     PlanInputs,
     PlanReport,
@@ -426,14 +427,27 @@ def test_monitor_brakes_for_a_conflict_close_ahead_when_the_replan_it_asked_for_
     d = np.linalg.norm(flown.sample(ts) - block, axis=1)
     assert d.min() > keep
     # the peers heard of the brake although the planner never came back
+    n = len(h.bus.trajectories)
     _, _, _, announced, _ = h.bus.trajectories[-1]
     assert np.allclose(announced.sample(ts), flown.sample(ts))
-    # once: the planner thread, back, does not announce the brake again (it plans anew)
-    n = len(h.bus.trajectories)
-    h.step(3)
+    # and again RESEND_S later (a lost copy would leave them planning along the plan it no
+    # longer flies), from the monitor while the planner is still away; the hover the state
+    # machine takes over with next is announced too, and its copies replace the brake's
+    h.step(int(round(max(RESEND_S) / 0.05)) + 2, plan=False)
+    ctl = h.svc.flying(h.clock.t)
     sent = [m[3] for m in h.bus.trajectories[n - 1 :]]
-    assert len(sent) >= 2 and h.reports, "the planner thread came back and planned"
-    assert all(b is not a for a, b in zip(sent, sent[1:], strict=False)), "announced twice"
+    assert sent[0] is announced
+    assert sum(c is ctl for c in sent) == 1 + len(RESEND_S)
+    assert all(c is ctl or c is announced for c in sent)
+    assert h.svc.counters["resent"] >= len(RESEND_S)
+    # the planner thread, back, plans anew: the stop is not announced again after its plan
+    n = len(h.bus.trajectories)
+    h.step(30)  # the hover's retry comes after planning.retry_after_s
+    assert h.reports, "the planner thread came back and planned"
+    planned = {id(r.trajectory) for r in h.reports}
+    sent = [m[3] for m in h.bus.trajectories[n:]]
+    k = next(i for i, c in enumerate(sent) if id(c) in planned)
+    assert all(c is not ctl and c is not announced for c in sent[k:]), "the stop announced again"
 
 
 def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(
@@ -684,7 +698,8 @@ def test_hovering_drone_keeps_announcing_its_trajectory(tmp_path: Path) -> None:
     assert not h.reports
     sent = h.bus.trajectories[n:]
     period = h.cfg.planning.replan_period_s
-    assert len(sent) == pytest.approx(5.0 / period, abs=1)
+    copies = 1 + len(h.cfg.planning.resend_s)  # each announcement, then its copies
+    assert len(sent) == pytest.approx(copies * 5.0 / period, abs=copies)
     for _, slot, epoch, traj, valid_for in sent:
         assert (slot, epoch) == (1, 1)
         assert valid_for == pytest.approx(h.cfg.reactions.peer_lost.validity_s)

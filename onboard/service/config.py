@@ -30,6 +30,7 @@ from onboard.agent import (
     PEER_SILENCE_S,
     PLAN_AHEAD_S,
     REPLAN_PERIOD_S,
+    RESEND_S,
 )
 from onboard.config import (
     ConfigError,
@@ -329,6 +330,10 @@ class PlanningSection:
     monitor_rate_hz: float = 100.0
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
+    resend_s: tuple[float, ...] = RESEND_S
+    """Every trajectory published (a plan, a braking stop, a hover) goes out again this long
+    after it unless a newer one went out first (``onboard.agent.RESEND_S``): one lost copy
+    leaves the peers planning along a trajectory the drone no longer flies ([]: once)."""
     retry_after_s: float = 1.0
     """After an 'emergency' plan the drone hovers, then retries this late (after a
     'kept-previous' one the kept trajectory flies on and the next replan comes on its grid)."""
@@ -346,6 +351,8 @@ class PlanningSection:
         _in_range("plan_budget_s", self.plan_budget_s, 0.01, 60.0)
         _in_range("monitor_rate_hz", self.monitor_rate_hz, 10.0, 500.0)
         _in_range("monitor_horizon_s", self.monitor_horizon_s, 0.1, 10.0)
+        for i, after in enumerate(self.resend_s):
+            _in_range(f"resend_s[{i}]", after, 0.01, 2.0)
         _in_range("retry_after_s", self.retry_after_s, 0.05, 30.0)
         _in_range("max_failed_s", self.max_failed_s, 1.0, 300.0)
         _in_range("goal_tolerance_m", self.goal_tolerance_m, 0.05, 5.0)

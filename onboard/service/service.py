@@ -209,6 +209,7 @@ class FlightService:
             on_plan=self._on_plan,
             clock=clock,  # a plan that comes back after its start may not be flown
             plan_budget_s=pc.plan_budget_s,
+            resend_s=pc.resend_s,
         )
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
@@ -296,6 +297,7 @@ class FlightService:
             "peers_stopped_hearing_us": 0,
             "plans_superseded": 0,
             "announcements": 0,
+            "resent": 0,
             "map_occupied_cells": 0,
             # CPU time of each worker thread, microseconds (time.thread_time)
             "cpu_us.depth_ingest": 0,
@@ -718,7 +720,10 @@ class FlightService:
     # ---- the safety monitor (the monitor thread) ---------------------------------------------
     def monitor_step(self) -> str:
         """Check the plan in flight (the trajectory in control, then the queued ones) over the
-        horizon; '' when clear, else what was done ('replan' or 'brake') and why."""
+        horizon; '' when clear, else what was done ('replan' or 'brake') and why. First, a copy
+        of the last published trajectory goes out if one is due (``planning.resend_s``)."""
+        if self.agent.resend(self.clock()):
+            self.counters["resent"] += 1
         it = self._intent
         if it.state not in (S.FORMATION_FLIGHT, S.HOVER, S.EMERGENCY):
             return ""
