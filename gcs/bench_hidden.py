@@ -29,6 +29,7 @@ from typing import Any
 import click
 import numpy as np
 
+from onboard.agent import PEER_DEVIATION_AHEAD_S, RESEND_S
 from onboard.planner.params import PlannerParams
 
 POINTS = ((0.0, 1.5, 0.0), (0.0, 0.0, 0.0), (0.0, -1.5, 0.0))
@@ -48,6 +49,8 @@ class HiddenTrial:
     outage_s: float
     params: PlannerParams
     time_limit_s: float
+    resend_s: tuple[float, ...] = RESEND_S
+    deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
 
 
 def fly_hidden(trial: HiddenTrial) -> dict[str, Any]:
@@ -77,6 +80,8 @@ def fly_hidden(trial: HiddenTrial) -> dict[str, Any]:
         radio_outages=outages,
         monitor_rate_hz=100.0,
         time_limit_s=trial.time_limit_s,
+        resend_s=trial.resend_s,
+        peer_deviation_ahead_s=trial.deviation_ahead_s,
     )
     r = run_sim(cfg)
     pos = r.tracks.pos
@@ -97,6 +102,7 @@ def fly_hidden(trial: HiddenTrial) -> dict[str, Any]:
         "unheard_plans": int(f["unheard_plans"]),
         "radio_dropped": int(f["radio_dropped"]),
         "monitor_brakes": int(f["monitor_brakes"]),
+        "resent": int(f["resent"]),
     }
 
 
@@ -109,6 +115,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "flights": len(rows),
         "success": sum(r["success"] for r in rows),
         "collisions": sum(r["collisions"] for r in rows),
+        "collision_seeds": [r["seed"] for r in rows if r["collisions"]],
         "hidden_closest_m": {
             "min": float(hid.min()),
             "p10": float(np.percentile(hid, 10)),
@@ -117,6 +124,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "hidden_under_0_5_m": int((hid < 0.5).sum()),
         "hidden_under_0_6_m": int((hid < 0.6).sum()),
         "others_closest_m": float(oth.min()),
+        "others_under_0_5_m": int((oth < 0.5).sum()),
         "flight_time_s": {"median": float(np.median(t)), "max": float(t.max())},
         "unheard_plans": sum(r["unheard_plans"] for r in rows),
         "monitor_brakes": sum(r["monitor_brakes"] for r in rows),
@@ -138,6 +146,19 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     metavar="KEY=VALUE",
     help="Override a planner parameter, e.g. --set unheard_margin_m=0 (repeatable).",
 )
+@click.option(
+    "--resend-s",
+    default=",".join(f"{d:g}" for d in RESEND_S),
+    show_default=True,
+    help="Every trajectory goes out again this long after it, comma-separated [s] ('' once).",
+)
+@click.option(
+    "--deviation-ahead-s",
+    default=PEER_DEVIATION_AHEAD_S,
+    show_default=True,
+    help="A peer whose reported velocity takes it off its trajectory within this is avoided "
+    "where it reported itself [s] (0: positions only).",
+)
 @click.option("--time-limit", "time_limit_s", default=80.0, show_default=True, help="[s]")
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write JSON."
@@ -150,6 +171,8 @@ def bench_hidden(
     outage_s: float,
     jobs: int,
     sets: tuple[str, ...],
+    resend_s: str,
+    deviation_ahead_s: float,
     time_limit_s: float,
     json_path: Path | None,
     quiet: bool,
@@ -166,6 +189,14 @@ def bench_hidden(
         raise click.BadParameter("must be >= 0", param_hint="--outage-s")
     if not (math.isfinite(time_limit_s) and time_limit_s > 0.0):
         raise click.BadParameter("must be > 0", param_hint="--time-limit")
+    try:
+        resends = tuple(float(x) for x in resend_s.split(",") if x.strip())
+    except ValueError:
+        raise click.BadParameter(f"not numbers: {resend_s!r}", param_hint="--resend-s") from None
+    if any(not (math.isfinite(d) and d > 0.0) for d in resends):
+        raise click.BadParameter("delays must be > 0", param_hint="--resend-s")
+    if not (math.isfinite(deviation_ahead_s) and 0.0 <= deviation_ahead_s <= 5.0):
+        raise click.BadParameter("must be in [0, 5]", param_hint="--deviation-ahead-s")
     from gcs.cli import _planner_params, _sets_v_max
     from onboard.config import ConfigError
 
@@ -174,7 +205,7 @@ def bench_hidden(
     except ConfigError as exc:
         raise click.ClickException(str(exc)) from exc
     trials = [
-        HiddenTrial(s, outage_from, outage_s, params, time_limit_s)
+        HiddenTrial(s, outage_from, outage_s, params, time_limit_s, resends, deviation_ahead_s)
         for s in range(first, first + seeds)
     ]
     rows: list[dict[str, Any]] = []
@@ -194,11 +225,14 @@ def bench_hidden(
     h = total["hidden_closest_m"]
     click.echo(
         f"{total['flights']} flights, uplink of drone {HIDDEN} out {outage_s:g} s from "
-        f"{outage_from:g} s, unheard_margin_m {params.unheard_margin_m:g}: success "
-        f"{total['success']}, collisions {total['collisions']}; the hidden drone's closest "
+        f"{outage_from:g} s, unheard_margin_m {params.unheard_margin_m:g}, resends "
+        f"{resend_s or 'none'} s, deviation ahead {deviation_ahead_s:g} s: success "
+        f"{total['success']}, collisions {total['collisions']} (seeds "
+        f"{', '.join(map(str, total['collision_seeds'])) or '-'}); the hidden drone's closest "
         f"peer min {h['min']:.3f} / p10 {h['p10']:.3f} / median {h['median']:.3f} m, flights "
         f"under 0.5 / 0.6 m {total['hidden_under_0_5_m']} / {total['hidden_under_0_6_m']}; "
-        f"the others' closest {total['others_closest_m']:.3f} m; flight median "
+        f"the others' closest {total['others_closest_m']:.3f} m (under 0.5 m in "
+        f"{total['others_under_0_5_m']}); flight median "
         f"{total['flight_time_s']['median']:.1f} s, max {total['flight_time_s']['max']:.1f} s; "
         f"plans told a peer did not hear them {total['unheard_plans']}"
     )
@@ -209,6 +243,8 @@ def bench_hidden(
             "outage_from_s": outage_from,
             "outage_s": outage_s,
             "unheard_margin_m": params.unheard_margin_m,
+            "resend_s": list(resends),
+            "deviation_ahead_s": deviation_ahead_s,
             "total": total,
             "flights": rows,
         }

@@ -36,6 +36,7 @@ from onboard.agent import (
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_REPLAN_AFTER_S,
     OFFBOARD_LOSS_S,
+    PEER_DEVIATION_AHEAD_S,
     PLAN_AHEAD_S,
     PX4_POSITION_GAIN,
     REPLAN_PERIOD_S,
@@ -180,6 +181,9 @@ class SimConfig:
     (``DroneAgent``; ``onboard.agent.GHOST_WINDOW_S``: PX4's failsafe carries a killed drone's
     vehicle on for about 0.65 s worth of its speed, see ``kill_model``)."""
     peer_deviation_m: float = 0.3
+    peer_deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
+    """... or whose reported velocity would take it further than that from its trajectory
+    within this time (``DroneAgent``; 0: positions only)."""
     """A peer reported further than this from its trajectory (a stuck drone whose new hover is
     late) is also avoided where it reported itself (``DroneAgent``; tracking here is perfect)."""
     state_period_s: float = 0.1
@@ -241,6 +245,10 @@ class SimConfig:
             raise ValueError(f"ghost_window_s must be >= 0, got {self.ghost_window_s!r}")
         if not self.peer_deviation_m > 0.0:
             raise ValueError(f"peer_deviation_m must be > 0, got {self.peer_deviation_m!r}")
+        if not (math.isfinite(self.peer_deviation_ahead_s) and self.peer_deviation_ahead_s >= 0):
+            raise ValueError(
+                f"peer_deviation_ahead_s must be >= 0, got {self.peer_deviation_ahead_s!r}"
+            )
         if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
             raise ValueError(f"resend_s must hold delays > 0, got {self.resend_s!r}")
         if not self.ghost_forget_s >= 0.0:
@@ -596,12 +604,14 @@ class PeerAudit:
 
 @dataclass(frozen=True, eq=False)
 class StateMsg:
-    """A drone's 10 Hz state in the simulator: sender, stamp (its global time), position."""
+    """A drone's 10 Hz state in the simulator: sender, stamp (its global time), position,
+    velocity."""
 
     drone_id: int
     seq: int
     stamp_s: float
     position: np.ndarray
+    velocity: np.ndarray | None = None
 
 
 STATUS_PERIOD_S = 1.0
@@ -937,6 +947,7 @@ def run_sim(
             ghost_forget_s=cfg.ghost_forget_s,
             ghost_window_s=cfg.ghost_window_s,
             peer_deviation_m=cfg.peer_deviation_m,
+            peer_deviation_ahead_s=cfg.peer_deviation_ahead_s,
             on_inputs=record,
             resend_s=cfg.resend_s,
         )
@@ -986,7 +997,7 @@ def run_sim(
         # the states that have arrived by now (a service's subscriber hands them over as they
         # come; between the 10 Hz looks a peer would seem up to 0.1 s quieter than it is)
         for sender, sm in state_bus.receive(ag.drone_id, t).items():
-            ag.heard(sender, sm.stamp_s, sm.position)
+            ag.heard(sender, sm.stamp_s, sm.position, sm.velocity)
         nonlocal unheard_plans
         rep = ag.replan(t, p_now)
         unheard_plans += bool(rep.unheard_by)
@@ -1067,13 +1078,14 @@ def run_sim(
             for i in range(n):
                 # a dead process sends nothing, nor does a radio that is out
                 if (i not in killed or i not in stopped) and not _radio_out(outages, i, t):
-                    state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy()), t)
+                    v_i = agents[i].current.sample(t, order=1)
+                    state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy(), v_i), t)
                     state_seq += 1
             for i, ag in enumerate(agents):
                 if i in stopped and i not in stuck:
                     continue  # a dead process
                 for sender, sm in state_bus.receive(i, t).items():
-                    ag.heard(sender, sm.stamp_s, sm.position)
+                    ag.heard(sender, sm.stamp_s, sm.position, sm.velocity)
                 if i in stopped:
                     continue  # a stuck airframe: its service hears on (its statuses say so)
                 # the statuses that have arrived (the newest of each peer by its stamp)

@@ -570,6 +570,31 @@ def test_a_peer_reported_off_its_trajectory_is_avoided_where_it_reported() -> No
         _agent(0, bus, me, None, peer_deviation_m=0.0)
 
 
+def test_a_peer_whose_velocity_leaves_its_trajectory_is_avoided_before_its_position_does() -> None:
+    """Peer 1's trajectory flies on at 1 m/s but it reports itself stopped (a brake whose
+    copies were lost) 0.1 m short of where its trajectory has it: off by less than
+    peer_deviation_m, but its velocity would take it 0.6 m off within peer_deviation_ahead_s.
+    A velocity that agrees with the trajectory is no deviation; without the lookahead the
+    stop is found only once its position is 0.3 m off."""
+    me = np.array([0.0, 0, 1])
+    p0 = np.array([0.0, 3.0, 1.0])
+    line = _line(p0, np.array([1.0, 0, 0]), 0.0)
+    for ahead, expect in ((0.5, (1,)), (0.0, ())):
+        bus = InMemoryBus()
+        a = _agent(0, bus, me, me + np.array([6.0, 0, 0]), validity_s=3.0, peer_silence_s=0.5,
+                   peer_deviation_m=0.3, peer_deviation_ahead_s=ahead)  # fmt: skip
+        bus.publish(TrajectoryMsg(1, 1, 1, line, valid_until_s=3.0), 0)
+        a.replan(0.0)
+        a.heard(1, 0.2, line.sample(0.2), line.sample(0.2, order=1))  # on it
+        assert a.watch(0.25) == ()
+        a.heard(1, 0.4, line.sample(0.3), np.zeros(3))  # stopped, 0.1 m short
+        assert a.watch(0.45) == expect
+        rep = a.replan(0.45)
+        assert rep.deviating_peers == expect
+    with pytest.raises(ValueError, match="peer_deviation_ahead_s"):
+        _agent(0, bus, me, None, peer_deviation_ahead_s=-0.1)
+
+
 @pytest.mark.parametrize(
     ("conflict_in_s", "asked_ago_s", "expected"),
     [

@@ -311,9 +311,22 @@ def test_bench_hidden_small(tmp_path: Path) -> None:
     args = ["bench", "hidden", "--seeds", "1", "--jobs", "1", "--json", str(js), "-q"]
     out = CliRunner().invoke(main, [*args, "--set", "unheard_margin_m=0"])
     assert out.exit_code == 0, out.output
-    assert "unheard_margin_m 0:" in out.output and "success 1" in out.output
+    assert "unheard_margin_m 0," in out.output and "success 1" in out.output
     data = json.loads(js.read_text())
     assert data["unheard_margin_m"] == 0.0 and len(data["flights"]) == 1
     assert data["total"]["collisions"] == 0 and data["total"]["unheard_plans"] > 0
-    out = CliRunner().invoke(main, ["bench", "hidden", "--seeds", "0"])
-    assert out.exit_code != 0 and "--seeds" in out.output
+    assert data["resend_s"] == [0.05, 0.15] and data["flights"][0]["resent"] > 0
+    # without the copies
+    out = CliRunner().invoke(main, [*args, "--resend-s", "", "--deviation-ahead-s", "0"])
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert data["resend_s"] == [] and data["deviation_ahead_s"] == 0.0
+    assert data["flights"][0]["resent"] == 0
+    for bad, hint in (
+        (["--seeds", "0"], "--seeds"),
+        (["--resend-s", "0.1,x"], "--resend-s"),
+        (["--resend-s", "-0.1"], "--resend-s"),
+        (["--deviation-ahead-s", "-1"], "--deviation-ahead-s"),
+    ):
+        out = CliRunner().invoke(main, ["bench", "hidden", *bad])
+        assert out.exit_code != 0 and hint in out.output, out.output

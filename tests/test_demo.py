@@ -295,6 +295,9 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
         # ... on a healthy bus: no peer ever reported that it did not hear this drone
         last = rec.messages("/counters")[-1]["counters"]
         assert last["service.peers_stopped_hearing_us"] == 0, rec_path
+        # ... and no peer was taken for one off its trajectory (its position, or its velocity
+        # taking it off within peer_deviation_ahead_s: tracking errors are no deviation)
+        assert last["service.peers_left_trajectory"] == 0, rec_path
         assert not [p for p in rec.messages("/plan") if p["unheard_by"]], rec_path
     for name in ("top_view.png", "formation_error.png", "summary.json"):
         assert (out / "report" / name).is_file()

@@ -24,6 +24,7 @@ from typing import Any, Literal
 from onboard.agent import (
     GHOST_FORGET_S,
     GHOST_WINDOW_S,
+    PEER_DEVIATION_AHEAD_S,
     PEER_DEVIATION_M,
     PEER_SILENCE_IN_WAY_S,
     PEER_SILENCE_MAX_S,
@@ -452,6 +453,9 @@ class PeerLostReaction:
     peer_deviation_m: float = PEER_DEVIATION_M
     """A peer reported further than this from its trajectory is avoided where it reported
     itself (more than the vehicles' tracking error)."""
+    peer_deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
+    """... and so is one whose reported velocity would take it further than that from its
+    trajectory within this time (it stopped or turned off it; 0: positions only)."""
     ghost_window_s: float = GHOST_WINDOW_S
     """A silent peer may have flown on this long after it was last heard before it stopped."""
     ghost_forget_s: float = GHOST_FORGET_S
@@ -469,6 +473,7 @@ class PeerLostReaction:
                 f"got {self.peer_silence_max_s:g}"
             )
         _in_range("peer_deviation_m", self.peer_deviation_m, 0.05, 10.0)
+        _in_range("peer_deviation_ahead_s", self.peer_deviation_ahead_s, 0.0, 5.0)
         _in_range("ghost_window_s", self.ghost_window_s, 0.0, 10.0)
         _in_range("ghost_forget_s", self.ghost_forget_s, 0.0, 3600.0)
 

@@ -89,7 +89,8 @@ class PortPeerBus:
 
 class StateRelay:
     """Hands the peers' newest states from the bus port to the agent as signs of life
-    (``DroneAgent.heard``: the sender's stamp and where its vehicle reported itself), each one
+    (``DroneAgent.heard``: the sender's stamp, where its vehicle reported itself and its
+    velocity), each one
     once. Any thread (the agent keeps the newest stamp)."""
 
     def __init__(self, port: SwarmBusPort, agent: DroneAgent) -> None:
@@ -106,7 +107,7 @@ class StateRelay:
                 if st.stamp_s <= self._handed.get(pid, -math.inf):
                     continue
                 self._handed[pid] = st.stamp_s
-            self.agent.heard(pid, st.stamp_s, st.position_m)
+            self.agent.heard(pid, st.stamp_s, st.position_m, st.velocity_m_s)
             n += 1
         return n
 

@@ -205,6 +205,7 @@ class FlightService:
             ghost_window_s=rc.ghost_window_s,
             ghost_forget_s=rc.ghost_forget_s,
             peer_deviation_m=rc.peer_deviation_m,
+            peer_deviation_ahead_s=rc.peer_deviation_ahead_s,
             avoid_reported=True,  # a peer with states but no trajectory (stuck long, by hand)
             on_plan=self._on_plan,
             clock=clock,  # a plan that comes back after its start may not be flown
