@@ -156,8 +156,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     "--deviation-ahead-s",
     default=PEER_DEVIATION_AHEAD_S,
     show_default=True,
-    help="A peer whose reported velocity takes it off its trajectory within this is avoided "
-    "where it reported itself [s] (0: positions only).",
+    help="A peer that would be off its trajectory this long later if both went straight on "
+    "is avoided where it reported itself [s] (0: positions only).",
 )
 @click.option("--time-limit", "time_limit_s", default=80.0, show_default=True, help="[s]")
 @click.option(

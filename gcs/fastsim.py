@@ -181,11 +181,11 @@ class SimConfig:
     (``DroneAgent``; ``onboard.agent.GHOST_WINDOW_S``: PX4's failsafe carries a killed drone's
     vehicle on for about 0.65 s worth of its speed, see ``kill_model``)."""
     peer_deviation_m: float = 0.3
-    peer_deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
-    """... or whose reported velocity would take it further than that from its trajectory
-    within this time (``DroneAgent``; 0: positions only)."""
     """A peer reported further than this from its trajectory (a stuck drone whose new hover is
     late) is also avoided where it reported itself (``DroneAgent``; tracking here is perfect)."""
+    peer_deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
+    """... and so is one that would be that far off it this long later if both went straight
+    on at their velocities then (``DroneAgent``; 0: positions only)."""
     state_period_s: float = 0.1
     """Every drone whose process runs broadcasts its state (time, position) this often, over
     the bus's delay and ``bus_faults`` (drawn independently of the trajectories'); receivers

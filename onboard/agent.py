@@ -51,9 +51,9 @@ its last message was sent and out of the formation at most ``peer_silence_max_s`
 (both one look later at most; one replan period more without states).
 
 A peer whose last reported position is further than ``peer_deviation_m`` from its trajectory
-(stuck or lagging, its new trajectory late), or whose reported velocity would take it further
-than that from its trajectory within ``peer_deviation_ahead_s`` (it stopped or turned off it:
-a brake or a plan whose copies were lost), is also avoided as a hover there; with
+(stuck or lagging, its new trajectory late), or would be ``peer_deviation_ahead_s`` later if
+it and its trajectory went straight on at their velocities (it stopped or turned off it: a
+brake or a plan whose copies were lost), is also avoided as a hover there; with
 ``avoid_reported``, so is a peer heard through states without a trajectory considered.
 ``watch`` (called at the state rate) asks for a replan at once when a peer falls silent, falls
 quiet in our way or leaves its trajectory; ``peer_view`` gives what a plan made now would avoid
@@ -596,9 +596,9 @@ class DroneAgent:
     peer_deviation_m: a peer whose reported position is
     further than this from its trajectory (a stuck or lagging vehicle) is also avoided as a
     hover where it reported itself (inf: never; more than the vehicles' tracking error; flown
-    with ``PEER_DEVIATION_M``); peer_deviation_ahead_s: ... or whose reported velocity
-    (``heard``) would take it further than that within this time (0: positions only; flown
-    with ``PEER_DEVIATION_AHEAD_S``); ghost_spacing_m:
+    with ``PEER_DEVIATION_M``); peer_deviation_ahead_s: ... or would be this long later if
+    it (its reported velocity, ``heard``) and its trajectory went straight on (0: positions
+    only; flown with ``PEER_DEVIATION_AHEAD_S``); ghost_spacing_m:
     spacing of a quiet peer's ghost hovers (at most 2 * sqrt(check_drone_m^2 - collision
     distance^2): a plan clear of the ghosts by check_drone_m is clear of any point between
     them by that distance); avoid_reported: a peer heard through ``heard`` with a position but
@@ -1178,9 +1178,9 @@ class DroneAgent:
 
     def _deviation(self, pid: int) -> np.ndarray | None:
         """Where ``pid`` last reported itself if that is further than ``peer_deviation_m``
-        from its newest trajectory at the report's time, or if its reported velocity would
-        take it further than that within ``peer_deviation_ahead_s`` (a report older than the
-        trajectory's start is not compared), else None. Under ``_peer_lock``."""
+        from its newest trajectory at the report's time, or would be ``peer_deviation_ahead_s``
+        later if both went straight on (``_off_by``; a report older than the trajectory's
+        start is not compared), else None. Under ``_peer_lock``."""
         if not math.isfinite(self.peer_deviation_m):
             return None
         st = self._heard.get(pid)

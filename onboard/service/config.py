@@ -454,8 +454,9 @@ class PeerLostReaction:
     """A peer reported further than this from its trajectory is avoided where it reported
     itself (more than the vehicles' tracking error)."""
     peer_deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
-    """... and so is one whose reported velocity would take it further than that from its
-    trajectory within this time (it stopped or turned off it; 0: positions only)."""
+    """... and so is one that would be that far off it this long later if it (its reported
+    velocity) and its trajectory went straight on (it stopped or turned off it; 0: positions
+    only)."""
     ghost_window_s: float = GHOST_WINDOW_S
     """A silent peer may have flown on this long after it was last heard before it stopped."""
     ghost_forget_s: float = GHOST_FORGET_S
