@@ -51,6 +51,7 @@ class HiddenTrial:
     time_limit_s: float
     resend_s: tuple[float, ...] = RESEND_S
     deviation_ahead_s: float = PEER_DEVIATION_AHEAD_S
+    resend_plans: bool = False
 
 
 def fly_hidden(trial: HiddenTrial) -> dict[str, Any]:
@@ -82,6 +83,7 @@ def fly_hidden(trial: HiddenTrial) -> dict[str, Any]:
         time_limit_s=trial.time_limit_s,
         resend_s=trial.resend_s,
         peer_deviation_ahead_s=trial.deviation_ahead_s,
+        resend_plans=trial.resend_plans,
     )
     r = run_sim(cfg)
     pos = r.tracks.pos
@@ -153,6 +155,12 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     help="Every trajectory goes out again this long after it, comma-separated [s] ('' once).",
 )
 @click.option(
+    "--resend-plans/--resend-stops-only",
+    default=False,
+    show_default=True,
+    help="Send plans again too, or only braking stops and hovers.",
+)
+@click.option(
     "--deviation-ahead-s",
     default=PEER_DEVIATION_AHEAD_S,
     show_default=True,
@@ -172,6 +180,7 @@ def bench_hidden(
     jobs: int,
     sets: tuple[str, ...],
     resend_s: str,
+    resend_plans: bool,
     deviation_ahead_s: float,
     time_limit_s: float,
     json_path: Path | None,
@@ -205,7 +214,9 @@ def bench_hidden(
     except ConfigError as exc:
         raise click.ClickException(str(exc)) from exc
     trials = [
-        HiddenTrial(s, outage_from, outage_s, params, time_limit_s, resends, deviation_ahead_s)
+        HiddenTrial(
+            s, outage_from, outage_s, params, time_limit_s, resends, deviation_ahead_s, resend_plans
+        )
         for s in range(first, first + seeds)
     ]
     rows: list[dict[str, Any]] = []
@@ -226,7 +237,8 @@ def bench_hidden(
     click.echo(
         f"{total['flights']} flights, uplink of drone {HIDDEN} out {outage_s:g} s from "
         f"{outage_from:g} s, unheard_margin_m {params.unheard_margin_m:g}, resends "
-        f"{resend_s or 'none'} s, deviation ahead {deviation_ahead_s:g} s: success "
+        f"{resend_s or 'none'} s{'' if resend_plans else ' (stops only)'}, deviation ahead "
+        f"{deviation_ahead_s:g} s: success "
         f"{total['success']}, collisions {total['collisions']} (seeds "
         f"{', '.join(map(str, total['collision_seeds'])) or '-'}); the hidden drone's closest "
         f"peer min {h['min']:.3f} / p10 {h['p10']:.3f} / median {h['median']:.3f} m, flights "
@@ -244,6 +256,7 @@ def bench_hidden(
             "outage_s": outage_s,
             "unheard_margin_m": params.unheard_margin_m,
             "resend_s": list(resends),
+            "resend_plans": resend_plans,
             "deviation_ahead_s": deviation_ahead_s,
             "total": total,
             "flights": rows,

@@ -168,6 +168,8 @@ class SimConfig:
     resend_s: tuple[float, ...] = RESEND_S
     """Every published trajectory goes out again this long after it unless a newer one went
     out first (``DroneAgent.resend``; the flight service's ``planning.resend_s``); () once."""
+    resend_plans: bool = False
+    """True: plans are sent again too, not only braking stops and hovers (``DroneAgent``)."""
     validity_s: float = math.inf
     """Published trajectories are valid this long (``TrajectoryMsg.valid_until_s``); a peer
     past it leaves the formation term and is only avoided (``DroneAgent``)."""
@@ -950,6 +952,7 @@ def run_sim(
             peer_deviation_ahead_s=cfg.peer_deviation_ahead_s,
             on_inputs=record,
             resend_s=cfg.resend_s,
+            resend_plans=cfg.resend_plans,
         )
         for i in range(n)
     ]

@@ -181,13 +181,13 @@ its monitor asked for replan after replan: bench demo seed 3, 2026-11-28)."""
 HOVER_S = 3600.0
 """Duration of the hovers a plan avoids where a peer may hold (ghosts, reported positions)."""
 RESEND_S = (0.05, 0.15)
-"""Every published trajectory (a plan, a braking stop, a hover) goes out again this long after
-it, unless a newer one went out first (``DroneAgent.resend``; the flight service's and fast
-time's default). On a bus that loses messages one lost copy left the peers planning along a
-trajectory the drone no longer flew until its next publication, up to a replan period later:
-two drones 0.07 m apart (``bench hidden --outage-from 3`` seed 271, a plan that slowed lost)
-and 0.33 m (seed 7, a brake lost); the 10 Hz states moved less than ``PEER_DEVIATION_M`` off
-the lost trajectory before it was too late."""
+"""A braking stop or hover a drone announces (and, with ``resend_plans``, every plan) goes out
+again this long after it, unless a newer trajectory went out first (``DroneAgent.resend``; the
+flight service's and fast time's default). On a bus that loses messages one lost copy left the
+peers planning along a trajectory the drone no longer flew until its next publication: two
+drones 0.33 m apart (``bench hidden --outage-from 3`` seed 7, a brake lost; seed 271, 0.07 m,
+a plan that slowed lost). Copies of plans too triple the trajectory messages for no fewer
+contacts over 800 flights (BENCHMARKS 9b), so the defaults send stops and hovers again only."""
 
 
 class MapSource(Protocol):
@@ -617,7 +617,9 @@ class DroneAgent:
     attempt while the trajectory in control is safe and moves on (``PlanStatus.OVER_BUDGET``:
     that trajectory flies on and a replan follows at once); resend_s: each published
     trajectory goes out again this long after it unless a newer one went out first, as
-    ``resend`` is called (``RESEND_S`` in the flight service and fast time; () none).
+    ``resend`` is called (``RESEND_S`` in the flight service and fast time; () none);
+    resend_plans: False: only what ``announce`` publishes (braking stops, hovers) is sent
+    again, not the replans' plans.
     """
 
     def __init__(
@@ -656,8 +658,10 @@ class DroneAgent:
         late_jump_m: float = LATE_JUMP_M,
         plan_budget_s: float = math.inf,
         resend_s: Sequence[float] = (),
+        resend_plans: bool = True,
     ) -> None:
         self.resend_s = tuple(float(d) for d in resend_s)
+        self.resend_plans = bool(resend_plans)
         if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
             raise ValueError(f"resend_s must hold delays > 0, got {tuple(resend_s)!r}")
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
@@ -1348,7 +1352,7 @@ class DroneAgent:
             seq = -1
             self.request_replan()
         else:
-            seq = self._publish(new, a, now)
+            seq = self._publish(new, a, now, copies=self.resend_plans)
             self.schedule(new)
             if res.status is PlanStatus.OVER_BUDGET:
                 self.request_replan()  # the attempts it gave up, from a newer start
@@ -1412,12 +1416,13 @@ class DroneAgent:
             return ""
         return f"done {done - t_start:.2f} s after its start, {jump:.2f} m off the flown one"
 
-    def _publish(self, traj: Trajectory, a: _Assignment, now: float) -> int:
+    def _publish(self, traj: Trajectory, a: _Assignment, now: float, copies: bool = True) -> int:
         """Any thread (a flight service announces its brakes from the thread that made them):
-        the numbers go out in the order they are taken. Copies follow ``resend_s`` later."""
+        the numbers go out in the order they are taken. Copies follow ``resend_s`` later
+        (``copies``; either way, none of an older trajectory goes out after this one)."""
         with self._pub_lock:
             self._last_sent = (traj, a)
-            self._resend_at = [now + d for d in self.resend_s]
+            self._resend_at = [now + d for d in self.resend_s] if copies else []
             return self._send(traj, a, now)
 
     def _send(self, traj: Trajectory, a: _Assignment, now: float) -> int:

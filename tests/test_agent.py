@@ -722,6 +722,17 @@ def test_a_published_trajectory_goes_out_again_on_time_until_a_newer_one_does() 
     assert a.resend(20.07) and newest().trajectory is newer.trajectory
     assert not a.resend(20.1) and a.resend(20.17) and a.resent == 4
     assert newest().trajectory is newer.trajectory
+    # resend_plans False: a plan goes out once, a braking stop or hover as before
+    bus_c = InMemoryBus(0.0)
+    c = _agent(0, bus_c, np.zeros(3), np.array([5.0, 0, 1]), resend_s=(0.05, 0.15),
+               resend_plans=False)  # fmt: skip
+    c.replan(0.0)
+    assert not c.resend(0.05) and not c.resend(0.2) and c.resent == 0
+    c.announce(1.0)
+    assert c.resend(1.05) and c.resent == 1
+    a.set_goal(np.array([5.0, 0, 1]))  # ... and with it True a plan goes out again too
+    a.replan(30.0)
+    assert not a.resend(30.04) and a.resend(30.05)
     # off by default
     b = _agent(1, InMemoryBus(0.0), np.zeros(3), None)
     b.announce(0.0)

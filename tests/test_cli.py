@@ -316,6 +316,12 @@ def test_bench_hidden_small(tmp_path: Path) -> None:
     assert data["unheard_margin_m"] == 0.0 and len(data["flights"]) == 1
     assert data["total"]["collisions"] == 0 and data["total"]["unheard_plans"] > 0
     assert data["resend_s"] == [0.05, 0.15] and data["flights"][0]["resent"] > 0
+    assert data["resend_plans"] is False and "(stops only)" in out.output
+    out = CliRunner().invoke(main, [*args, "--resend-plans"])
+    assert out.exit_code == 0 and "(stops only)" not in out.output, out.output
+    plans = json.loads(js.read_text())
+    assert plans["resend_plans"] is True
+    assert plans["flights"][0]["resent"] > data["flights"][0]["resent"]
     # without the copies
     out = CliRunner().invoke(main, [*args, "--resend-s", "", "--deviation-ahead-s", "0"])
     assert out.exit_code == 0, out.output

@@ -335,6 +335,10 @@ class PlanningSection:
     """Every trajectory published (a plan, a braking stop, a hover) goes out again this long
     after it unless a newer one went out first (``onboard.agent.RESEND_S``): one lost copy
     leaves the peers planning along a trajectory the drone no longer flies ([]: once)."""
+    resend_plans: bool = False
+    """true: the replans' plans go out again too, not only braking stops and hovers (three
+    times the trajectory messages, and their cost to every peer: about a tenth more CPU for
+    the 7-drone demo on 2 cores; no fewer contacts in fast time, BENCHMARKS 9b)."""
     retry_after_s: float = 1.0
     """After an 'emergency' plan the drone hovers, then retries this late (after a
     'kept-previous' one the kept trajectory flies on and the next replan comes on its grid)."""

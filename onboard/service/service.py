@@ -211,6 +211,7 @@ class FlightService:
             clock=clock,  # a plan that comes back after its start may not be flown
             plan_budget_s=pc.plan_budget_s,
             resend_s=pc.resend_s,
+            resend_plans=pc.resend_plans,
         )
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
