@@ -8,7 +8,8 @@ that loses 20 % and delays up to 0.3 s; drone 2's uplink is out for ``--outage-s
 falls in the outage. The starts are jittered up to 0.3 m by the seed, and the bus faults are
 seeded by it. The 1 Hz statuses tell drone 2 that its peers do not hear it
 (``onboard.comm.hearing``); ``--set unheard_margin_m=0`` flies without the wider berth that
-follows.
+follows. ``--resend-s`` / ``--resend-plans`` set which trajectories go out again
+(``DroneAgent.resend``), ``--deviation-ahead-s`` when a peer counts as off its trajectory.
 
 Per flight and in total: arrivals, collisions, the hidden drone's closest approach to a peer,
 the closest approach of the two drones that hear each other, flight time, the plans made while
@@ -152,7 +153,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     "--resend-s",
     default=",".join(f"{d:g}" for d in RESEND_S),
     show_default=True,
-    help="Every trajectory goes out again this long after it, comma-separated [s] ('' once).",
+    help="A braking stop or hover (with --resend-plans, every plan) goes out again this long "
+    "after it, comma-separated [s] ('' once).",
 )
 @click.option(
     "--resend-plans/--resend-stops-only",
