@@ -166,8 +166,9 @@ class SimConfig:
     """A conflict further ahead than this that a fresh plan did not clear is left to the next
     replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
     resend_s: tuple[float, ...] = RESEND_S
-    """Every published trajectory goes out again this long after it unless a newer one went
-    out first (``DroneAgent.resend``; the flight service's ``planning.resend_s``); () once."""
+    """A braking stop or hover announced (every plan too with ``resend_plans``) goes out again
+    this long after it unless a newer trajectory went out first (``DroneAgent.resend``; the
+    flight service's ``planning.resend_s``); () once."""
     resend_plans: bool = False
     """True: plans are sent again too, not only braking stops and hovers (``DroneAgent``)."""
     validity_s: float = math.inf

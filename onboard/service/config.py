@@ -332,9 +332,10 @@ class PlanningSection:
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
     resend_s: tuple[float, ...] = RESEND_S
-    """Every trajectory published (a plan, a braking stop, a hover) goes out again this long
-    after it unless a newer one went out first (``onboard.agent.RESEND_S``): one lost copy
-    leaves the peers planning along a trajectory the drone no longer flies ([]: once)."""
+    """A braking stop or hover announced (every plan too with ``resend_plans``) goes out again
+    this long after it unless a newer trajectory went out first (``onboard.agent.RESEND_S``):
+    one lost copy leaves the peers planning along a trajectory the drone no longer flies
+    ([]: once)."""
     resend_plans: bool = False
     """true: the replans' plans go out again too, not only braking stops and hovers (three
     times the trajectory messages, and their cost to every peer: about a tenth more CPU for
