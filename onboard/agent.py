@@ -764,7 +764,7 @@ class DroneAgent:
         self._pub_lock = threading.Lock()
         # the last trajectory published (and its assignment), and when to send it again
         self._last_sent: tuple[Trajectory, _Assignment] | None = None
-        self._resend_at: list[float] = []
+        self._resend_at: tuple[float, ...] = ()  # replaced, never changed: read unlocked
         self.resent = 0
         """Copies sent by ``resend``."""
         self._last: PlanReport | None = None
@@ -1422,7 +1422,7 @@ class DroneAgent:
         (``copies``; either way, none of an older trajectory goes out after this one)."""
         with self._pub_lock:
             self._last_sent = (traj, a)
-            self._resend_at = [now + d for d in self.resend_s] if copies else []
+            self._resend_at = tuple(sorted(now + d for d in self.resend_s)) if copies else ()
             return self._send(traj, a, now)
 
     def _send(self, traj: Trajectory, a: _Assignment, now: float) -> int:
@@ -1456,8 +1456,7 @@ class DroneAgent:
             last = self._last_sent
             if not at or now_s < at[0] - EPS_T or last is None:
                 return False
-            while at and now_s >= at[0] - EPS_T:
-                at.pop(0)
+            self._resend_at = tuple(d for d in at if now_s < d - EPS_T)
             self._send(last[0], last[1], now_s)
             self.resent += 1
         return True
