@@ -30,7 +30,7 @@ from typing import Any
 import click
 import numpy as np
 
-from onboard.agent import PEER_DEVIATION_AHEAD_S, RESEND_S
+from onboard.agent import PEER_DEVIATION_AHEAD_S, RESEND_S, resend_delays
 from onboard.planner.params import PlannerParams
 
 POINTS = ((0.0, 1.5, 0.0), (0.0, 0.0, 0.0), (0.0, -1.5, 0.0))
@@ -204,8 +204,10 @@ def bench_hidden(
         resends = tuple(float(x) for x in resend_s.split(",") if x.strip())
     except ValueError:
         raise click.BadParameter(f"not numbers: {resend_s!r}", param_hint="--resend-s") from None
-    if any(not (math.isfinite(d) and d > 0.0) for d in resends):
-        raise click.BadParameter("delays must be > 0", param_hint="--resend-s")
+    try:
+        resend_delays(resends)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--resend-s") from None
     if not (math.isfinite(deviation_ahead_s) and 0.0 <= deviation_ahead_s <= 5.0):
         raise click.BadParameter("must be in [0, 5]", param_hint="--deviation-ahead-s")
     from gcs.cli import _planner_params, _sets_v_max

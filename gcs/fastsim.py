@@ -45,6 +45,7 @@ from onboard.agent import (
     MapSource,
     PlanInputs,
     peer_links,
+    resend_delays,
 )
 from onboard.comm import InMemoryBus
 from onboard.comm.faults import BusFaults, FaultyBus
@@ -252,8 +253,7 @@ class SimConfig:
             raise ValueError(
                 f"peer_deviation_ahead_s must be >= 0, got {self.peer_deviation_ahead_s!r}"
             )
-        if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
-            raise ValueError(f"resend_s must hold delays > 0, got {self.resend_s!r}")
+        resend_delays(self.resend_s)
         if not self.ghost_forget_s >= 0.0:
             raise ValueError(f"ghost_forget_s must be >= 0, got {self.ghost_forget_s!r}")
         n = self.formation.n
@@ -1079,11 +1079,12 @@ def run_sim(
                 agents[i].announce(t)
                 stuck_next[i] += cfg.replan_period_s
         if t >= next_state_s - EPS_T:
+            v_now = velocities()
             for i in range(n):
                 # a dead process sends nothing, nor does a radio that is out
                 if (i not in killed or i not in stopped) and not _radio_out(outages, i, t):
-                    v_i = agents[i].current.sample(t, order=1)
-                    state_bus.publish(StateMsg(i, state_seq, t, pos[i].copy(), v_i), t)
+                    msg = StateMsg(i, state_seq, t, pos[i].copy(), v_now[i].copy())
+                    state_bus.publish(msg, t)
                     state_seq += 1
             for i, ag in enumerate(agents):
                 if i in stopped and i not in stuck:

@@ -190,6 +190,15 @@ a plan that slowed lost). Copies of plans too triple the trajectory messages for
 contacts over 800 flights (BENCHMARKS 9b), so the defaults send stops and hovers again only."""
 
 
+def resend_delays(delays: Iterable[float]) -> tuple[float, ...]:
+    """``delays`` as the tuple ``DroneAgent(resend_s=...)`` keeps; ValueError unless each is a
+    finite number > 0."""
+    out = tuple(float(d) for d in delays)
+    if any(not (math.isfinite(d) and d > 0.0) for d in out):
+        raise ValueError(f"resend_s must hold delays > 0, got {out!r}")
+    return out
+
+
 class MapSource(Protocol):
     """Where the agent's distance field comes from (a sensed world, a mapping thread's ESDF)."""
 
@@ -660,10 +669,8 @@ class DroneAgent:
         resend_s: Sequence[float] = (),
         resend_plans: bool = True,
     ) -> None:
-        self.resend_s = tuple(float(d) for d in resend_s)
+        self.resend_s = resend_delays(resend_s)
         self.resend_plans = bool(resend_plans)
-        if any(not (math.isfinite(d) and d > 0.0) for d in self.resend_s):
-            raise ValueError(f"resend_s must hold delays > 0, got {tuple(resend_s)!r}")
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
             raise ValueError(f"replan_period_s must be > 0, got {replan_period_s!r}")
         if not (math.isfinite(plan_ahead_s) and plan_ahead_s >= 0.0):
