@@ -20,7 +20,7 @@ from onboard.config import (
 from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.formation import similarity
-from onboard.planner.params import PlannerParams, reform_params
+from onboard.planner.params import PlannerParams, recover_params, reform_params
 from onboard.planner.planner import FormationPlanner, PeerTrajectory, PlanStatus, _pack_peers
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
@@ -274,6 +274,39 @@ def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
         )
     with pytest.raises(ValueError, match="lead_deadband_m"):
         PlannerParams(lead_deadband_m=-1.0)
+
+
+def test_with_the_lead_from_the_centroid_a_member_far_behind_is_still_waited_for() -> None:
+    """The situation above, planned while re-forming or recovering the shape (the lead from
+    the centroid, 5/3 m): with ``lead_slowest_beyond_m`` b the lead is the larger of that and
+    the slowest member's 3 m less b (0: off). Without it a drone left behind is never waited
+    for (the swarm cruises near the limit), and the shape stays broken."""
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    base = PlannerParams(lead_slowdown_m=4.0, lead_deadband_m=1.0, lead_min_speed_frac=0.1)
+    full = base.v_max_m_s * base.limit_margin
+    for beyond, lead in ((0.5, 2.5), (1.0, 2.0), (1.5, 5.0 / 3.0), (0.0, 5.0 / 3.0)):
+        b = dataclasses.replace(base, lead_slowest_beyond_m=beyond)
+        for params in (reform_params(b), recover_params(b)):
+            assert not params.lead_from_slowest
+            problem = FormationPlanner(params, LINE3, slot=1).prepare(
+                0.0, sp, ZERO, ZERO, goal, peers, EMPTY
+            )
+            v = float(problem.prob[3][obj.P_V_MAX])
+            assert v == pytest.approx(full * (1.0 - (lead - 1.0) / 4.0), rel=1e-9), beyond
+    # from the slowest member already (plain flight), the margin changes nothing
+    plain = dataclasses.replace(base, lead_slowest_beyond_m=0.5)
+    problem = FormationPlanner(plain, LINE3, slot=1).prepare(
+        0.0, sp, ZERO, ZERO, goal, peers, EMPTY
+    )
+    assert float(problem.prob[3][obj.P_V_MAX]) == pytest.approx(full * (1.0 - 2.0 / 4.0))
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="lead_slowest_beyond_m"):
+            PlannerParams(lead_slowest_beyond_m=bad)
+    assert (
+        load_planner_params(**parse_override("lead_slowest_beyond_m=0")).lead_slowest_beyond_m == 0
+    )
 
 
 @pytest.mark.parametrize("yaw_deg", [30.0, -20.0])

@@ -184,6 +184,20 @@ class PlannerParams:
     e_sim fell in every density and 1757 of 1772 healthy drones arrived in 300 fault trials
     (1725 off), but one of those trials had a collision (a peer killed in a close pass stopped
     in the other's way), none off; BENCHMARKS section 8, 2026-11-29 (fourth session)."""
+    lead_slowest_beyond_m: float = 1.5
+    """While the lead is measured from the centroid (re-forming, ``reform_lead_from_centroid``;
+    recovering the shape, ``recover_e_sim``), a member left further behind than this still
+    slows the drones ahead of it: the lead is the larger of the one from the centroid and the
+    one from the member least advanced less this. From the centroid alone, a drone that falls
+    far behind its slot is never waited for: the swarm cruises near the speed limit, so it
+    cannot catch up, and the shape stays broken for the rest of the flight. Seen in the mapped
+    twin of the demo (seed 1 with the service's ``check_obstacle_horizon_s`` 4, and the real
+    stack's seed 1 on 2026-11-30, fifth session): the centre drone stuck 3.2 m behind, in the
+    lane of the drone ahead of it, e_sim 0.12-0.20 for 55 s, in the open too. Lead from the
+    slowest throughout (no margin) held that flight but lost others and the table (mean e_sim
+    0.0032 / 0.0070 / 0.0152 against 0.0029 / 0.0061 / 0.0133); at 1.5 m the table is as before
+    (BENCHMARKS.md section 8, 2026-11-30, seventh session). 0: off (the centroid only; the
+    slowest member throughout is ``lead_from_slowest``)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
     flight's first assignment is not a change) a drone plans with ``reform_params``: the lead
@@ -419,6 +433,7 @@ class PlannerParams:
             "check_known_s",
             "lead_slowdown_m",
             "lead_deadband_m",
+            "lead_slowest_beyond_m",
             "reform_s",
             "reform_replan_period_s",
             "recover_e_sim",
