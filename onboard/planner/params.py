@@ -193,10 +193,11 @@ class PlannerParams:
     cannot catch up, and the shape stays broken for the rest of the flight. Seen in the mapped
     twin of the demo (seed 1 with the service's ``check_obstacle_horizon_s`` 4, and the real
     stack's seed 1 on 2026-11-30, fifth session): the centre drone stuck 3.2 m behind, in the
-    lane of the drone ahead of it, e_sim 0.12-0.20 for 55 s, in the open too. Lead from the
-    slowest throughout (no margin) held that flight but lost others and the table (mean e_sim
-    0.0032 / 0.0070 / 0.0152 against 0.0029 / 0.0061 / 0.0133); at 1.5 m the table is as before
-    (BENCHMARKS.md section 8, 2026-11-30, seventh session). 0: off (the centroid only; the
+    lane of the drone ahead of it, e_sim 0.12-0.21 for 55 s, in the open too. Recovery's lead
+    from the member least advanced with no margin held that flight but lost others and the
+    table (mean e_sim 0.0032 / 0.0070 / 0.0152 against 0.0029 / 0.0061 / 0.0133); at 1.5 m the
+    table is as before and the twin's mean e_sim 0.0318 -> 0.0252 (BENCHMARKS.md section 8,
+    2026-11-30, seventh session). 0: off (the centroid only; the
     slowest member throughout is ``lead_from_slowest``)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
