@@ -43,12 +43,32 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _group_alive(pgid: int) -> bool:
+def _group_members(pgid: int) -> list[str]:
+    """The processes of process group ``pgid`` that still run (zombies not: their parent has
+    not reaped them yet), as "pid state cmdline" for an assertion's message."""
     try:
         os.killpg(pgid, 0)
     except ProcessLookupError:
-        return False
-    return True
+        return []
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                fields = f.read().split(") ", 1)[1].split()
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except (OSError, IndexError):
+            continue  # ended meanwhile
+        # after the comm: state, ppid, pgrp
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(f"{d} {fields[0]} {cmd[:200]}")
+    return out
+
+
+def _group_alive(pgid: int) -> bool:
+    return bool(_group_members(pgid))
 
 
 def _wait_for(cond: Any, timeout_s: float, what: str, proc: subprocess.Popen[str]) -> None:
@@ -238,12 +258,18 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    end = time.monotonic() + 30.0  # orphans take a moment to stop after their SIGTERM
-    while [p for p in pids if _alive(p)] and time.monotonic() < end:
+    # orphans take a moment to stop after their SIGTERM, and so may a process of the group
+    # that is not one of the four (one was seen alive once, right after them; CI, 2026-11-30)
+    pgid = int(info["pgid"])
+    group = signum != signal.SIGKILL
+    end = time.monotonic() + 30.0
+    while ([p for p in pids if _alive(p)] or (group and _group_alive(pgid))) and (
+        time.monotonic() < end
+    ):
         time.sleep(0.1)
     assert not [p for p in pids if _alive(p)]
-    if signum != signal.SIGKILL:
-        assert not _group_alive(int(info["pgid"]))
+    if group:
+        assert not _group_members(pgid), _group_members(pgid)
 
 
 @pytest.mark.slow
