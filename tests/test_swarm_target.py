@@ -277,10 +277,11 @@ def test_lead_deadband_and_lead_from_the_slowest_member() -> None:
 
 
 def test_with_the_lead_from_the_centroid_a_member_far_behind_is_still_waited_for() -> None:
-    """The situation above, planned while re-forming or recovering the shape (the lead from
-    the centroid, 5/3 m): with ``lead_slowest_beyond_m`` b the lead is the larger of that and
-    the slowest member's 3 m less b (0: off). Without it a drone left behind is never waited
-    for (the swarm cruises near the limit), and the shape stays broken."""
+    """The situation above, planned while recovering the shape (the lead from the centroid,
+    5/3 m): with ``lead_slowest_beyond_m`` b the lead is the larger of that and the slowest
+    member's 3 m less b (0: off). Without it a drone left behind is never waited for (the swarm
+    cruises near the limit), and the shape stays broken. While re-forming the lead is the
+    centroid's whatever b: a new shape forming turned reads as members behind."""
     sp = np.array([3.0, 0.0, 1.0])
     peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
     goal = GOAL_ORIGIN + LINE3[1]
@@ -288,13 +289,13 @@ def test_with_the_lead_from_the_centroid_a_member_far_behind_is_still_waited_for
     full = base.v_max_m_s * base.limit_margin
     for beyond, lead in ((0.5, 2.5), (1.0, 2.0), (1.5, 5.0 / 3.0), (0.0, 5.0 / 3.0)):
         b = dataclasses.replace(base, lead_slowest_beyond_m=beyond)
-        for params in (reform_params(b), recover_params(b)):
+        for params, want in ((recover_params(b), lead), (reform_params(b), 5.0 / 3.0)):
             assert not params.lead_from_slowest
             problem = FormationPlanner(params, LINE3, slot=1).prepare(
                 0.0, sp, ZERO, ZERO, goal, peers, EMPTY
             )
             v = float(problem.prob[3][obj.P_V_MAX])
-            assert v == pytest.approx(full * (1.0 - (lead - 1.0) / 4.0), rel=1e-9), beyond
+            assert v == pytest.approx(full * (1.0 - (want - 1.0) / 4.0), rel=1e-9), beyond
     # from the slowest member already (plain flight), the margin changes nothing
     plain = dataclasses.replace(base, lead_slowest_beyond_m=0.5)
     problem = FormationPlanner(plain, LINE3, slot=1).prepare(

@@ -185,20 +185,23 @@ class PlannerParams:
     (1725 off), but one of those trials had a collision (a peer killed in a close pass stopped
     in the other's way), none off; BENCHMARKS section 8, 2026-11-29 (fourth session)."""
     lead_slowest_beyond_m: float = 1.5
-    """While the lead is measured from the centroid (re-forming, ``reform_lead_from_centroid``;
-    recovering the shape, ``recover_e_sim``), a member left further behind than this still
-    slows the drones ahead of it: the lead is the larger of the one from the centroid and the
-    one from the member least advanced less this. From the centroid alone, a drone that falls
-    far behind its slot is never waited for: the swarm cruises near the speed limit, so it
-    cannot catch up, and the shape stays broken for the rest of the flight. Seen in the mapped
-    twin of the demo (seed 1 with the service's ``check_obstacle_horizon_s`` 4, and the real
-    stack's seed 1 on 2026-11-30, fifth session): the centre drone stuck 3.2 m behind, in the
-    lane of the drone ahead of it, e_sim 0.12-0.21 for 55 s, in the open too. Recovery's lead
-    from the member least advanced with no margin held that flight but lost others and the
-    table (mean e_sim 0.0032 / 0.0070 / 0.0152 against 0.0029 / 0.0061 / 0.0133); at 1.5 m the
-    table is as before and the twin's mean e_sim 0.0318 -> 0.0252 (BENCHMARKS.md section 8,
-    2026-11-30, seventh session). 0: off (the centroid only; the
-    slowest member throughout is ``lead_from_slowest``)."""
+    """While recovering the shape (``recover_e_sim``; the lead is then measured from the
+    centroid), a member left further behind than this still slows the drones ahead of it: the
+    lead is the larger of the one from the centroid and the one from the member least advanced
+    less this. From the centroid alone, a drone that falls far behind its slot is never waited
+    for: the swarm cruises near the speed limit, so it cannot catch up, and the shape stays
+    broken for the rest of the flight. Seen in the mapped twin of the demo (seed 1 with the
+    service's ``check_obstacle_horizon_s`` 4, and the real stack's seed 1 on 2026-11-30, fifth
+    session): the centre drone stuck 3.2 m behind, in the lane of the drone ahead of it, e_sim
+    0.12-0.21 for 55 s, in the open too. Recovery's lead from the member least advanced with no
+    margin held that flight but lost others and the table (mean e_sim 0.0032 / 0.0070 / 0.0152
+    against 0.0029 / 0.0061 / 0.0133); at 1.5 m the table is as before and the twin's mean e_sim
+    0.0318 -> 0.0252 (BENCHMARKS.md section 8, 2026-11-30, seventh session). Not while
+    re-forming (``reform_params`` turns it off): a new shape often forms turned from the
+    template's yaw, and at the template's yaw its members read as behind, so the swarm waited for
+    drones that were in their place (twin seed 8: e_sim 0.041 -> 0.059 with it; with recovery
+    only, the twin's mean e_sim 0.0237 and worst 0.033 against 0.0252 and 0.059). 0: off (the
+    centroid only; the slowest member throughout is ``lead_from_slowest``)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
     flight's first assignment is not a change) a drone plans with ``reform_params``: the lead
@@ -534,9 +537,10 @@ class PlannerParams:
 def reform_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
     the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
-    the centroid reference (``reform_lead_from_centroid``), else off."""
+    the centroid reference alone (``reform_lead_from_centroid``; ``lead_slowest_beyond_m`` off),
+    else off."""
     lead = (
-        {"lead_from_slowest": False}
+        {"lead_from_slowest": False, "lead_slowest_beyond_m": 0.0}
         if params.reform_lead_from_centroid
         else {"lead_slowdown_m": 0.0}
     )
@@ -548,12 +552,13 @@ def reform_params(params: PlannerParams) -> PlannerParams:
 def recover_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with while recovering the shape (``recover_e_sim``): those
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
-    ``recover_formation_scale``."""
+    ``recover_formation_scale``, and a member far behind waited for (``lead_slowest_beyond_m``)."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),
         w_formation=params.w_formation * k,
         w_altitude_hold=params.w_altitude_hold * k,
+        lead_slowest_beyond_m=params.lead_slowest_beyond_m,
     )
 
 
