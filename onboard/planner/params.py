@@ -539,14 +539,10 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
     the centroid reference alone (``reform_lead_from_centroid``; ``lead_slowest_beyond_m`` off),
     else off."""
-    lead = (
-        {"lead_from_slowest": False, "lead_slowest_beyond_m": 0.0}
-        if params.reform_lead_from_centroid
-        else {"lead_slowdown_m": 0.0}
-    )
-    return dataclasses.replace(
-        params, w_formation=params.w_formation * params.reform_formation_scale, **lead
-    )
+    p = dataclasses.replace(params, w_formation=params.w_formation * params.reform_formation_scale)
+    if params.reform_lead_from_centroid:
+        return dataclasses.replace(p, lead_from_slowest=False, lead_slowest_beyond_m=0.0)
+    return dataclasses.replace(p, lead_slowdown_m=0.0)
 
 
 def recover_params(params: PlannerParams) -> PlannerParams:
