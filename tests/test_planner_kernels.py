@@ -11,6 +11,7 @@ inside the band, unobserved space).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from functools import cache
@@ -433,31 +434,37 @@ def _numpy_swarm_setup(
         w = target - sp
         horizon = float(np.linalg.norm(w))
         goal_t = sp + (horizon + (dist - h) + 1.0) * (w / horizon)
-    amount = math.nan
     centroid = reference("centroid")
-    if lead and p.lead_from_slowest and p.lead_turned and centroid is not None:
-        # the template turned about its centroid to the members' least-squares yaw
-        g = F[:, :2] - F[:, :2].mean(axis=0)
-        q = P[:, :2] - P[:, :2].mean(axis=0)
-        th = math.atan2(float(np.sum(g[:, 0] * q[:, 1] - g[:, 1] * q[:, 0])),
-                        float(np.sum(g[:, 0] * q[:, 0] + g[:, 1] * q[:, 1])))  # fmt: skip
-        Ft = F.copy()
-        Ft[:, :2] = F[:, :2].mean(axis=0) + g @ np.array(
-            [[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]]
-        )
-        r, u, _ = centroid
-        along = ((P - Ft) - r) @ u
-        return goal_t, horizon, float(along[0] - along.min())
-    if lead:
-        lead_ref = reference("slowest") if p.lead_from_slowest else ref
+
+    def lead_of(slowest: bool) -> float:
+        if slowest and p.lead_turned and centroid is not None:
+            # the template turned about its centroid to the members' least-squares yaw
+            g = F[:, :2] - F[:, :2].mean(axis=0)
+            q = P[:, :2] - P[:, :2].mean(axis=0)
+            th = math.atan2(float(np.sum(g[:, 0] * q[:, 1] - g[:, 1] * q[:, 0])),
+                            float(np.sum(g[:, 0] * q[:, 0] + g[:, 1] * q[:, 1])))  # fmt: skip
+            Ft = F.copy()
+            Ft[:, :2] = F[:, :2].mean(axis=0) + g @ np.array(
+                [[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]]
+            )
+            r, u, _ = centroid
+            along = ((P - Ft) - r) @ u
+            return float(along[0] - along.min())
+        lead_ref = reference("slowest") if slowest else ref
         d = goal - sp
         if lead_ref is not None:
-            amount = float((sp - F[0] - lead_ref[0]) @ lead_ref[1])
-        elif float(np.linalg.norm(d)) < 1e-6 or P.shape[0] < 2:
-            amount = 0.0
-        else:
-            off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
-            amount = float(off @ (d / float(np.linalg.norm(d))))
+            return float((sp - F[0] - lead_ref[0]) @ lead_ref[1])
+        if float(np.linalg.norm(d)) < 1e-6 or P.shape[0] < 2:
+            return 0.0
+        off = (sp - P.mean(axis=0)) - (F[0] - F.mean(axis=0))
+        return float(off @ (d / float(np.linalg.norm(d))))
+
+    if not lead:
+        return goal_t, horizon, math.nan
+    amount = lead_of(p.lead_from_slowest)
+    if not p.lead_from_slowest and p.lead_slowest_beyond_m > 0.0:
+        # a member far behind is waited for even when the lead is the local target's
+        amount = max(amount, lead_of(True) - p.lead_slowest_beyond_m)
     return goal_t, horizon, amount
 
 
@@ -466,7 +473,7 @@ def test_swarm_setup_is_the_numpy_one() -> None:
     reference mode, with partial formation graphs, near and at the goal's origin, alone."""
     rng = np.random.default_rng(11)
     seen = dict.fromkeys(
-        ("far", "near", "at the origin", "alone", "lead fallback", "lead turned"), 0
+        ("far", "near", "at the origin", "alone", "lead fallback", "lead turned", "laggard"), 0
     )
     for trial in range(240):
         mode = ("own-goal", "centroid", "slowest")[trial % 3]
@@ -474,6 +481,7 @@ def test_swarm_setup_is_the_numpy_one() -> None:
             swarm_target=mode,
             lead_from_slowest=bool(trial // 3 % 2),
             lead_turned=bool(trial // 6 % 2),
+            lead_slowest_beyond_m=(0.0, 0.5, 1.5)[trial // 12 % 3],
         )
         mask = None if trial % 5 else (rng.uniform(size=(7, 7)) < 0.4).astype(float)
         slot = int(rng.integers(0, 7))
@@ -506,6 +514,11 @@ def test_swarm_setup_is_the_numpy_one() -> None:
             assert got[1] == pytest.approx(want[1], rel=0.0, abs=1e-12)
             if lead:
                 assert got[2] == pytest.approx(want[2], rel=0.0, abs=1e-12)
+                if params.lead_slowest_beyond_m > 0.0 and not params.lead_from_slowest:
+                    off = dataclasses.replace(params, lead_slowest_beyond_m=0.0)
+                    alone = FormationPlanner(off, HEX, slot, mask)
+                    plain = alone._swarm_setup(t, sp, goal, peers, pack, True)[2]
+                    seen["laggard"] += got[2] > plain
             else:
                 assert math.isnan(got[2]) and math.isnan(want[2])
         n_members = 1 + sum(planner.mask[slot, pt.slot] > 0 for pt in peers)

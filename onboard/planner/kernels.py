@@ -419,6 +419,46 @@ def _swarm_reference(
 
 
 @njit(cache=True, nogil=True)
+def _lead(
+    P: np.ndarray,
+    F: np.ndarray,
+    sp: np.ndarray,
+    goal: np.ndarray,
+    found: bool,
+    r: np.ndarray,
+    u: np.ndarray,
+    ref_mode: int,
+    from_slowest: bool,
+    turned: bool,
+) -> float:
+    """``swarm_setup``'s lead of the member at ``sp`` (``P[0]``, template point ``F[0]``) from
+    the local target's reference (``found``, ``r``, ``u``, of ``ref_mode``), or from the
+    slowest member's with ``from_slowest`` (against the turned template with ``turned``)."""
+    K = P.shape[0]
+    if from_slowest and turned and K >= 2:
+        # from the centroid reference (the direction u of every mode), each member's origin
+        # estimate with the template turned to the swarm's yaw, which keeps its centroid
+        found_c, r_c, u_c, _ = _swarm_reference(P, F, goal, False)
+        if found_c:
+            O = P - _turned(F, P)
+            return _dot3(O[0] - r_c, u_c) - _slowest_back(O, r_c, u_c)
+    # the slowest reference: the local target's one already, moved back from the centroid
+    # one, or computed afresh (a centroid one that was not found is not found either)
+    if from_slowest and found and ref_mode == REF_CENTROID:
+        r = r + _slowest_back(P - F, r, u) * u
+    elif from_slowest and ref_mode == REF_OWN_GOAL:
+        found, r, u, _ = _swarm_reference(P, F, goal, True)
+    if found:
+        return _dot3((sp - F[0]) - r, u)
+    d = goal - sp
+    gd = norm3(d[0], d[1], d[2])
+    if gd < 1e-6 or K < 2:
+        return 0.0
+    off = (sp - _row_mean(P)) - (F[0] - _row_mean(F))
+    return _dot3(off, d / gd)
+
+
+@njit(cache=True, nogil=True)
 def swarm_setup(
     c: np.ndarray,
     T: np.ndarray,
@@ -435,6 +475,7 @@ def swarm_setup(
     lead: bool,
     lead_from_slowest: bool,
     lead_turned: bool,
+    slowest_beyond_m: float,
 ) -> tuple[np.ndarray, float, float]:
     """(goal, horizon, lead) of a replan at global time ``t`` from the packed peers (``c``,
     ``T``, ``n``, ``t0``): the members are this drone at ``sp`` and the packed peers ``rows``
@@ -453,7 +494,10 @@ def swarm_setup(
     the members' centroid minus its slot's offset from their template's, projected on the
     direction to ``goal`` (0 at the goal or alone). With ``lead_from_slowest`` and
     ``lead_turned`` the origin estimates of the lead take the template turned to the members'
-    yaw (``_turned``): a formation flown turned is no member ahead of another."""
+    yaw (``_turned``): a formation flown turned is no member ahead of another. Without
+    ``lead_from_slowest`` and with ``slowest_beyond_m`` > 0 the lead is the larger of that and
+    the lead from the slowest member less ``slowest_beyond_m`` (a member far behind is waited
+    for)."""
     K = rows.shape[0] + 1
     pos = peer_positions(c, T, n, t0, t)
     P = np.empty((K, 3))
@@ -483,31 +527,12 @@ def swarm_setup(
             w = w / reach
             goal_t = sp + ((reach + (dist - horizon_m)) + 1.0) * w
             horizon = reach
-    amount = math.nan
-    if lead and lead_from_slowest and lead_turned and K >= 2:
-        # from the centroid reference (the direction u of every mode), each member's origin
-        # estimate with the template turned to the swarm's yaw, which keeps its centroid
-        found_c, r_c, u_c, _ = _swarm_reference(P, F, goal, False)
-        if found_c:
-            O = P - _turned(F, P)
-            return goal_t, horizon, _dot3(O[0] - r_c, u_c) - _slowest_back(O, r_c, u_c)
-    if lead:
-        # the slowest reference: the local target's one already, moved back from the centroid
-        # one, or computed afresh (a centroid one that was not found is not found either)
-        if lead_from_slowest and found and ref_mode == REF_CENTROID:
-            r = r + _slowest_back(P - F, r, u) * u
-        elif lead_from_slowest and ref_mode == REF_OWN_GOAL:
-            found, r, u, dist = _swarm_reference(P, F, goal, True)
-        if found:
-            amount = _dot3((sp - F[0]) - r, u)
-        else:
-            d = goal - sp
-            gd = norm3(d[0], d[1], d[2])
-            if gd < 1e-6 or K < 2:
-                amount = 0.0
-            else:
-                off = (sp - _row_mean(P)) - (F[0] - _row_mean(F))
-                amount = _dot3(off, d / gd)
+    if not lead:
+        return goal_t, horizon, math.nan
+    amount = _lead(P, F, sp, goal, found, r, u, ref_mode, lead_from_slowest, lead_turned)
+    if not lead_from_slowest and slowest_beyond_m > 0.0:
+        behind = _lead(P, F, sp, goal, found, r, u, ref_mode, True, lead_turned)
+        amount = max(amount, behind - slowest_beyond_m)
     return goal_t, horizon, amount
 
 

@@ -588,11 +588,9 @@ class FormationPlanner:
         peers: Sequence[PeerTrajectory],
         pack: _PeerPack,
         lead: bool,
-        from_slowest: bool | None = None,
     ) -> tuple[np.ndarray, float, float]:
         """(goal, horizon, lead) of ``kernels.swarm_setup`` for this drone at ``sp`` and its
-        formation peers (those with an edge to its slot) at ``t_s``; the lead from the member
-        least advanced if ``from_slowest`` (default ``params.lead_from_slowest``)."""
+        formation peers (those with an edge to its slot) at ``t_s``."""
         n = self.formation.shape[0]
         row = self.mask[self.slot]
         rows = [j for j, pt in enumerate(peers) if pt.slot < n and row[pt.slot] > 0.0]
@@ -612,8 +610,9 @@ class FormationPlanner:
             SWARM_TARGET_MIN_M,
             _REF_MODES[p.swarm_target],
             lead,
-            p.lead_from_slowest if from_slowest is None else from_slowest,
+            p.lead_from_slowest,
             p.lead_turned,
+            p.lead_slowest_beyond_m,
         )
         return goal_t, float(horizon), float(amount)
 
@@ -705,10 +704,6 @@ class FormationPlanner:
         )
         if len(peers) > 0:
             goal_t, horizon, lead = self._swarm_setup(t_start_s, sp, gl, peers, pack, want_lead)
-            if want_lead and not p.lead_from_slowest and p.lead_slowest_beyond_m > 0.0:
-                # a member far behind is waited for even when the lead is the centroid's
-                _, _, behind = self._swarm_setup(t_start_s, sp, gl, peers, pack, True, True)
-                lead = max(lead, behind - p.lead_slowest_beyond_m)
         else:
             goal_t, horizon, lead = gl, p.horizon_m, 0.0
         target, x0, astar_clearance = self._initial_x(
