@@ -269,7 +269,8 @@ def test_no_process_left_after_an_interrupt(tmp_path: Path, signum: int) -> None
         time.sleep(0.1)
     assert not [p for p in pids if _alive(p)]
     if group:
-        assert not _group_members(pgid), _group_members(pgid)
+        left = _group_members(pgid)
+        assert not left, left
 
 
 @pytest.mark.slow
