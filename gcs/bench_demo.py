@@ -6,7 +6,9 @@ for each seed the fast-time simulator (``gcs.fastsim``) on the same world: the s
 obstacles, starts and goals, mapped perception at the demo's depth rate and pixel step, the
 same change at the same time after the goal. One demo runs at a time (each takes the whole
 machine), its own process (``swarm-gcs demo --json``, so that an interrupted run cleans up as
-the demo does); the fast-time flight runs after it.
+the demo does); the fast-time flight runs after it. ``--fastsim-only`` flies the fast-time
+twins alone, ``--jobs`` of them at a time: the twin of the real stack in minutes, for
+comparing changes (issue #10's figure stays the real stack's).
 
 Clearances differ in kind: the demo's ``body`` clearance is the mock's (trunk surface to the
 vehicle's body, its radius off the centre's); ``centre`` clearances (the flight records' for
@@ -19,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -173,7 +176,8 @@ def _reached(row: dict[str, Any]) -> bool:
 
 def summarise(rows: list[dict[str, Any]], change: bool) -> dict[str, Any]:
     """Counts over the seeds: demo successes (and, with a change, those that reached the new
-    shape within ``REACHED_WITHIN_S``), the same for the fast-time flights."""
+    shape within ``REACHED_WITHIN_S``), the same for the fast-time flights; whether issue #10's
+    target is met (None when only the fast-time flights were flown)."""
     out: dict[str, Any] = {"seeds": len(rows)}
     for side in ("demo", "fastsim"):
         got = [r[side] for r in rows if r.get(side) is not None]
@@ -184,11 +188,19 @@ def summarise(rows: list[dict[str, Any]], change: bool) -> dict[str, Any]:
         }
         if change:
             out[side]["reached_within_10_s"] = sum(1 for g in got if g["success"] and _reached(g))
+    if rows and out["demo"]["flown"] == 0:
+        out["demo_target_met"] = None  # fast time only: the real stack was not flown
+        return out
     met = out["demo"]["success"] == len(rows) and out["demo"]["collisions"] == 0
     if change:
         met = met and out["demo"]["reached_within_10_s"] == len(rows)
     out["demo_target_met"] = bool(rows) and met
     return out
+
+
+def _fastsim_job(args: tuple[Any, ...]) -> dict[str, Any]:
+    """``run_fastsim_seed(*args)`` in a worker process (``--jobs``)."""
+    return run_fastsim_seed(*args)
 
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
@@ -216,6 +228,12 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
               "that name (repeatable); the fast-time flight takes its planner and replan "
               "period too.")  # fmt: skip
 @click.option("--no-fastsim", is_flag=True, help="Fly only the real stack.")
+@click.option("--fastsim-only", is_flag=True,
+              help="Fly only the fast-time twins (minutes instead of hours; not issue #10's "
+              "figure, which is the real stack's).")  # fmt: skip
+@click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="With --fastsim-only: twins flown in parallel processes (each demo takes "
+              "the whole machine, so the real stack flies one at a time).")  # fmt: skip
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None,
               help="Flight directories go here [default: flights/bench-demo-TIME].")  # fmt: skip
@@ -227,8 +245,8 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
 def bench_demo(
     seeds: int, first_seed: int, drones: int, formation: str, world: str, change: str | None,
     depth_rate: float | None, altitude_band: tuple[float, float] | None,
-    onboard_sets: tuple[str, ...], no_fastsim: bool, out_dir: Path | None, timeout_s: float,
-    json_path: Path | None, quiet: bool,
+    onboard_sets: tuple[str, ...], no_fastsim: bool, fastsim_only: bool, jobs: int,
+    out_dir: Path | None, timeout_s: float, json_path: Path | None, quiet: bool,
 ) -> None:  # fmt: skip
     """The end-to-end demo over seeds (1..N by default), each beside the fast-time simulator
     on the same world (issue #10: 5 of 5 seeds; with a formation change, the new shape within
@@ -250,6 +268,13 @@ def bench_demo(
 
     # a wide table when written to a file or a pipe (rich's default there is 80 columns)
     console = Console(quiet=quiet, highlight=False, width=None if sys.stdout.isatty() else 180)
+    if no_fastsim and fastsim_only:
+        raise click.UsageError("--no-fastsim and --fastsim-only exclude each other")
+    if jobs > 1 and not fastsim_only:
+        raise click.BadParameter(
+            "more than one job needs --fastsim-only: a demo takes the whole machine",
+            param_hint="--jobs",
+        )
     try:
         fc = parse_change(change)
     except ValueError as e:
@@ -275,7 +300,8 @@ def bench_demo(
         if out_dir is not None
         else Path("flights") / time.strftime("bench-demo-%Y%m%d-%H%M%S")
     )
-    base.mkdir(parents=True, exist_ok=True)
+    if not fastsim_only:
+        base.mkdir(parents=True, exist_ok=True)
     argv = ["--drones", str(drones), "--formation", formation, "--world", world]
     argv += ["--depth-rate", str(rate)]
     argv += ["--altitude-band", *(str(x) for x in (band if band is not None else (0, 0)))]
@@ -286,7 +312,20 @@ def bench_demo(
     replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
     rows: list[dict[str, Any]] = []
-    for seed in range(first_seed, first_seed + seeds):
+    seed_list = list(range(first_seed, first_seed + seeds))
+    if fastsim_only:
+        jobs_args = [(seed, formation, world, fc, rate, step, planner, replan_s)
+                     for seed in seed_list]  # fmt: skip
+        console.print(f"{seeds} fast-time flights, {jobs} at a time ...")
+        if jobs == 1:
+            twins = [_fastsim_job(a) for a in jobs_args]
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(jobs) as pool:
+                twins = pool.map(_fastsim_job, jobs_args, chunksize=1)
+        rows = [{"seed": sd, "demo": None, "fastsim": tw}
+                for sd, tw in zip(seed_list, twins, strict=True)]  # fmt: skip
+    for seed in [] if fastsim_only else seed_list:
         console.print(f"seed {seed}: demo ...")
         d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
         row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
@@ -304,7 +343,8 @@ def bench_demo(
             "formation": formation,
             "world": world,
             "formation_change": change,
-            "seeds": list(range(first_seed, first_seed + seeds)),
+            "seeds": seed_list,
+            "real_stack": not fastsim_only,
             "depth_rate_hz": rate,
             "depth_step": step,
             "v_max_m_s": planner.v_max_m_s,
@@ -317,7 +357,7 @@ def bench_demo(
         "summary": summarise(rows, fc is not None),
         "load_average": {"start": list(load0), "end": list(os.getloadavg())},
         "host": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
-        "out_dir": str(base),
+        "out_dir": None if fastsim_only else str(base),
     }
     t = Table(title=f"{formation} ({drones} drones) through {world}"
               + (f", change to {change}" if change else ""))  # fmt: skip
@@ -357,12 +397,16 @@ def bench_demo(
             t.add_row(*cells)
     console.print(t)
     s = report["summary"]
-    line = f"real stack: {s['demo']['success']} of {seeds} seeds succeeded"
-    if fc is not None:
-        line += f", {s['demo']['reached_within_10_s']} reached the new shape within 10 s"
-    if not no_fastsim:
-        line += f"; fast time: {s['fastsim']['success']} of {seeds}"
-    console.print(line)
+    parts = []
+    for side, name, flown in (("demo", "real stack", not fastsim_only),
+                              ("fastsim", "fast time", not no_fastsim)):  # fmt: skip
+        if not flown:
+            continue
+        part = f"{name}: {s[side]['success']} of {seeds} seeds succeeded"
+        if fc is not None:
+            part += f", {s[side]['reached_within_10_s']} reached the new shape within 10 s"
+        parts.append(part)
+    console.print("; ".join(parts))
     console.print(
         f"e_sim: mean over the cluttered span; new shape: e_sim < {FORMATION_REACHED_E_SIM}"
     )

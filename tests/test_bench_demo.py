@@ -99,3 +99,53 @@ def test_onboard_settings_reach_every_demo_and_the_fast_time_twin(
     bad = CliRunner().invoke(main, [*base, *too_fast, "--out", str(tmp_path / "g")])
     assert bad.exit_code == 1 and "replan_period_s" in bad.output
     assert not (tmp_path / "g").exists()
+
+
+def test_fast_time_only_judges_no_real_stack() -> None:
+    """Rows without a demo (``--fastsim-only``): the twins are counted, and issue #10's target
+    (the real stack's) is neither met nor failed."""
+    rows = [{"seed": k, "demo": None, "fastsim": _row(k, True, 12.0)["fastsim"]} for k in (1, 2)]
+    s = summarise(rows, change=True)
+    assert s["demo"]["flown"] == 0 and s["demo_target_met"] is None
+    assert s["fastsim"] == {"flown": 2, "success": 2, "collisions": 0, "reached_within_10_s": 0}
+
+
+def test_fastsim_only_flies_no_demo(tmp_path: Path, monkeypatch: Any) -> None:
+    """``--fastsim-only`` flies every seed's twin and no demo, makes no flight directory, and
+    reports the twins' counts; ``--jobs`` over 1 needs it, and it excludes ``--no-fastsim``."""
+    import json
+
+    from click.testing import CliRunner
+
+    import gcs.bench_demo as bd
+    from gcs.cli import main
+
+    flown: list[int] = []
+
+    def demo(*args: Any) -> dict[str, Any]:
+        raise AssertionError("a demo was started")
+
+    def twin(seed: int, *args: Any) -> dict[str, Any]:
+        flown.append(seed)
+        reached = 6.0 if seed == 3 else 14.0
+        return {"success": True, "collisions": 0, "formation_change_reached_s": reached}
+
+    monkeypatch.setattr(bd, "run_demo_seed", demo)
+    monkeypatch.setattr(bd, "run_fastsim_seed", twin)
+    base = ["bench", "demo", "--seeds", "2", "--first-seed", "3", "--drones", "3"]
+    base += ["--formation", "triangle-3", "--formation-change", "line-3@8"]
+    out, js = tmp_path / "f", tmp_path / "b.json"
+    res = CliRunner().invoke(main, [*base, "--fastsim-only", "--out", str(out), "--json", str(js)])
+    assert res.exit_code == 0, res.output
+    assert flown == [3, 4] and not out.exists()
+    assert "fast time: 2 of 2 seeds succeeded, 1 reached the new shape within 10 s" in res.output
+    assert "real stack" not in res.output
+    report = json.loads(js.read_text())
+    assert report["config"]["real_stack"] is False and report["out_dir"] is None
+    assert [r["demo"] for r in report["rows"]] == [None, None]
+    assert report["summary"]["demo_target_met"] is None
+    for bad, what in ((["--jobs", "2"], "--fastsim-only"),
+                      (["--fastsim-only", "--no-fastsim"], "exclude each other")):  # fmt: skip
+        res = CliRunner().invoke(main, [*base, *bad, "--out", str(out)])
+        assert res.exit_code == 2 and what in res.output, res.output
+    assert flown == [3, 4]
