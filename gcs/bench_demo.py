@@ -375,7 +375,7 @@ def bench_demo(
                 continue
             ok = "[green]success[/green]" if g["success"] else "[red]failed[/red]"
             cells = [
-                str(r["seed"]) if side == "demo" else "",
+                str(r["seed"]) if side == "demo" or r["demo"] is None else "",
                 "real stack" if side == "demo" else "fast time",
                 ok,
                 _fmt(g.get("wall_s", g.get("sim_wall_s")), ".0f"),

@@ -140,6 +140,7 @@ def test_fastsim_only_flies_no_demo(tmp_path: Path, monkeypatch: Any) -> None:
     assert flown == [3, 4] and not out.exists()
     assert "fast time: 2 of 2 seeds succeeded, 1 reached the new shape within 10 s" in res.output
     assert "real stack" not in res.output
+    assert [ln.split()[1] for ln in res.output.splitlines() if "fast time" in ln][:2] == ["3", "4"]
     report = json.loads(js.read_text())
     assert report["config"]["real_stack"] is False and report["out_dir"] is None
     assert [r["demo"] for r in report["rows"]] == [None, None]
