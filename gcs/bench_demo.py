@@ -199,8 +199,17 @@ def summarise(rows: list[dict[str, Any]], change: bool) -> dict[str, Any]:
 
 
 def _fastsim_job(args: tuple[Any, ...]) -> dict[str, Any]:
-    """``run_fastsim_seed(*args)`` in a worker process (``--jobs``)."""
+    """``run_fastsim_seed(*args)`` (a worker process's task with ``--jobs``)."""
     return run_fastsim_seed(*args)
+
+
+def fly_twins(args: list[tuple[Any, ...]], jobs: int) -> list[dict[str, Any]]:
+    """``run_fastsim_seed`` on each of ``args``, in order; ``jobs`` at a time in spawned worker
+    processes when over 1."""
+    if jobs == 1:
+        return [_fastsim_job(a) for a in args]
+    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        return pool.map(_fastsim_job, args, chunksize=1)
 
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
@@ -311,30 +320,24 @@ def bench_demo(
         argv += ["--set-onboard", s_]
     replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
-    rows: list[dict[str, Any]] = []
     seed_list = list(range(first_seed, first_seed + seeds))
+    twin_args = [(seed, formation, world, fc, rate, step, planner, replan_s)
+                 for seed in seed_list]  # fmt: skip
+    rows: list[dict[str, Any]] = []
     if fastsim_only:
-        jobs_args = [(seed, formation, world, fc, rate, step, planner, replan_s)
-                     for seed in seed_list]  # fmt: skip
         console.print(f"{seeds} fast-time flights, {jobs} at a time ...")
-        if jobs == 1:
-            twins = [_fastsim_job(a) for a in jobs_args]
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(jobs) as pool:
-                twins = pool.map(_fastsim_job, jobs_args, chunksize=1)
+        twins = fly_twins(twin_args, jobs)
         rows = [{"seed": sd, "demo": None, "fastsim": tw}
                 for sd, tw in zip(seed_list, twins, strict=True)]  # fmt: skip
-    for seed in [] if fastsim_only else seed_list:
-        console.print(f"seed {seed}: demo ...")
-        d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
-        row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
-        if not no_fastsim:
-            console.print(f"seed {seed}: fast-time flight ...")
-            row["fastsim"] = run_fastsim_seed(
-                seed, formation, world, fc, rate, step, planner, replan_s
-            )
-        rows.append(row)
+    else:
+        for seed, args in zip(seed_list, twin_args, strict=True):
+            console.print(f"seed {seed}: demo ...")
+            d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
+            row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
+            if not no_fastsim:
+                console.print(f"seed {seed}: fast-time flight ...")
+                row["fastsim"] = _fastsim_job(args)
+            rows.append(row)
     report: dict[str, Any] = {
         "benchmark": "demo",
         "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
