@@ -150,3 +150,21 @@ def test_fastsim_only_flies_no_demo(tmp_path: Path, monkeypatch: Any) -> None:
         res = CliRunner().invoke(main, [*base, *bad, "--out", str(out)])
         assert res.exit_code == 2 and what in res.output, res.output
     assert flown == [3, 4]
+
+
+def test_twins_flown_in_worker_processes_are_the_twins_flown_here() -> None:
+    """``fly_twins`` with two jobs (spawned workers: the arguments and results cross a process
+    boundary) gives, in the seeds' order, the flights of one job: fast time is deterministic."""
+    from gcs.bench_demo import fly_twins
+    from onboard.planner.params import PlannerParams
+
+    planner = PlannerParams(z_limits_m=(0.4, 1.8))
+    args = [(seed, "triangle-3", "forest-small", ("line-3", 6.0), 3.0, 3, planner, 1.0)
+            for seed in (1, 2)]  # fmt: skip
+    pooled = fly_twins(args, 2)
+    here = fly_twins(args[1:], 1)  # the second seed: the order is kept
+    for r in (*pooled, *here):
+        for timing in ("sim_wall_s", "replan_ms_median"):
+            r.pop(timing)
+        assert r["success"] and r["collisions"] == 0
+    assert pooled[1] == here[0] and pooled[0] != pooled[1]
