@@ -248,11 +248,17 @@ def test_zenoh_clients_behind_proxies_hear_each_other_only_through_them() -> Non
             poll_until(lambda: first + n - 1 in heard["g"], 5.0, "the direct session's copy")
 
         # the declarations travel once: wait until the router forwards to client 1
+        probes: list[int] = []
+
         def b_hears() -> bool:
-            burst(len(heard["g"]) + 1000, 1)
+            probes.append(1000 + len(probes))
+            burst(probes[-1], 1)
             return bool(heard["b"])
 
         poll_until(b_hears, 10.0, "client 1 hears client 0", period_s=0.1)
+        # a probe sent after the first one heard may still be in the proxy: the link keeps the
+        # order, so once the last probe is heard nothing more of them is on its way
+        poll_until(lambda: probes[-1] in heard["b"], 5.0, "client 1 hears the last probe")
         star.proxies[1].set_faults(LinkFaults(loss=1.0), "down")
         heard["b"].clear()
         burst(0)
