@@ -206,11 +206,11 @@ def _fastsim_job(args: tuple[Any, ...]) -> dict[str, Any]:
 def fly_twins(args: list[tuple[Any, ...]], jobs: int) -> list[dict[str, Any]]:
     """``run_fastsim_seed`` on each of ``args``, in order; ``jobs`` at a time in spawned worker
     processes when over 1 (a SIGTERM ends them too, as in ``bench faults``)."""
-    from gcs.bench_faults import _sigterm_interrupts
+    from gcs.pools import sigterm_interrupts
 
     if jobs == 1:
         return [_fastsim_job(a) for a in args]
-    with _sigterm_interrupts(), multiprocessing.get_context("spawn").Pool(jobs) as pool:
+    with sigterm_interrupts(), multiprocessing.get_context("spawn").Pool(jobs) as pool:
         return pool.map(_fastsim_job, args, chunksize=1)
 
 

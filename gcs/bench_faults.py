@@ -46,11 +46,8 @@ import dataclasses
 import json
 import math
 import multiprocessing
-import signal
-import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,6 +55,7 @@ from typing import Any
 import click
 import numpy as np
 
+from gcs.pools import sigterm_interrupts
 from onboard.comm.faults import BusFaults
 
 WORLDS = ("forest-sparse", "forest-medium")
@@ -365,25 +363,6 @@ def _same(a: Any, b: Any) -> bool:
     return bool(np.array_equal(a, b)) if isinstance(a, np.ndarray) else bool(a == b)
 
 
-@contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM ends a run as Ctrl-C does: the pool's workers are terminated on the way out.
-    (Its default action ends this process alone; the workers went on flying the trials already
-    queued to them, for minutes.) Only from the main thread, where signals are handled."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
 def run_bench(
     trials: int,
     jobs: int,
@@ -432,7 +411,7 @@ def run_bench(
                 on_trial(rows[-1])
     else:
         ctx = multiprocessing.get_context("spawn")
-        with _sigterm_interrupts(), ctx.Pool(jobs) as pool:
+        with sigterm_interrupts(), ctx.Pool(jobs) as pool:
             for row in pool.imap_unordered(_run_one, todo):
                 rows.append(row)
                 if on_trial is not None:

@@ -229,10 +229,10 @@ def bench_hidden(
             rows.append(row)
             _echo_row(row, quiet)
     else:
-        from gcs.bench_faults import _sigterm_interrupts
+        from gcs.pools import sigterm_interrupts
 
         ctx = multiprocessing.get_context("spawn")
-        with _sigterm_interrupts(), ctx.Pool(jobs) as pool:
+        with sigterm_interrupts(), ctx.Pool(jobs) as pool:
             for row in pool.imap(fly_hidden, trials):
                 rows.append(row)
                 _echo_row(row, quiet)
