@@ -1,5 +1,6 @@
 """Planner API: plans that arrive and stay clear, fallbacks, failure as a value, bad inputs."""
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -9,7 +10,7 @@ from gcs.fastsim import REFUSAL_KEYS, count_refusals
 from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import LbfgsStatus, minimize
 from onboard.planner.minco import Minco
-from onboard.planner.params import PlannerParams
+from onboard.planner.params import PlannerParams, recover_params, reform_params
 from onboard.planner.planner import (
     APPROACH,
     LAST_RESORT,
@@ -594,3 +595,56 @@ def test_the_refine_settings_are_validated() -> None:
     for bad_scale in (0.5, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="refine_penalty_scale"):
             PlannerParams(refine_penalty_scale=bad_scale)
+
+
+def _y_where_x(traj: Trajectory, x: float) -> float:
+    """y of the sample of ``traj`` nearest to the plane x = ``x``."""
+    p = traj.sample(np.linspace(traj.t0_s, traj.t_end_s, 2000))
+    return float(p[int(np.argmin(np.abs(p[:, 0] - x))), 1])
+
+
+def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk() -> None:
+    """``fresh_alternative``: a plan accepted from the warm start is solved again from the
+    straight line (an A* path where it is blocked) and the cheaper of the two is flown. The
+    previous trajectory passes a trunk on the far side (planned with a wide trunk that blocked
+    the near one); the warm start keeps that way, the fresh start takes the short one. When
+    the warm start is already the short way, the flown plan costs no more than it."""
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    base = PlannerParams(v_max_m_s=0.5)
+    assert not base.fresh_alternative and base.reform_fresh_start
+    wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
+    far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
+    assert far_way.status == PlanStatus.OK and _y_where_x(far_way.trajectory, 3.0) > 0.3
+    field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))  # the line passes 0.1 m off
+    results = {}
+    for on in (False, True):
+        params = dataclasses.replace(base, fresh_alternative=on)
+        planner = FormationPlanner(params, LINE3, slot=1)
+        res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory)
+        assert res.status == PlanStatus.OK
+        results[on] = res
+    warm, fresh = results[False], results[True]
+    assert _y_where_x(warm.trajectory, 3.0) > 0.6 and "fresh start" not in warm.message
+    assert _y_where_x(fresh.trajectory, 3.0) < -0.2 and "fresh start: cost" in fresh.message
+    assert sum(fresh.costs.values()) < sum(warm.costs.values()) - 10.0
+    d, _ = field.distance(fresh.trajectory.sample(np.linspace(0.0, fresh.trajectory.t_end_s, 400)))
+    assert d.min() >= base.check_obstacle_m
+    # the warm start on the short way already: nothing dearer is flown
+    on = FormationPlanner(dataclasses.replace(base, fresh_alternative=True), LINE3, slot=1)
+    again = on.plan(0.0, start, ZERO, ZERO, goal, [], field, fresh.trajectory)
+    off = FormationPlanner(base, LINE3, slot=1)
+    kept = off.plan(0.0, start, ZERO, ZERO, goal, [], field, fresh.trajectory)
+    assert again.status == kept.status == PlanStatus.OK
+    assert sum(again.costs.values()) <= sum(kept.costs.values()) + 1e-9
+    assert _y_where_x(again.trajectory, 3.0) < -0.2
+
+
+def test_reform_fresh_start_acts_while_re_forming_only() -> None:
+    params = PlannerParams(reform_fresh_start=True)
+    assert not params.fresh_alternative
+    assert reform_params(params).fresh_alternative
+    assert not recover_params(params).fresh_alternative
+    assert reform_params(PlannerParams()).fresh_alternative  # the default
+    assert not reform_params(PlannerParams(reform_fresh_start=False)).fresh_alternative
+    assert recover_params(PlannerParams(fresh_alternative=True)).fresh_alternative

@@ -202,6 +202,21 @@ class PlannerParams:
     drones that were in their place (twin seed 8: e_sim 0.041 -> 0.059 with it; with recovery
     only, the twin's mean e_sim 0.0237 and worst 0.033 against 0.0252 and 0.059). 0: off (the
     centroid only; the slowest member throughout is ``lead_from_slowest``)."""
+    fresh_alternative: bool = False
+    """A plan accepted from the warm start (the previous trajectory) is solved once more from a
+    fresh start (the straight line to the local target, an A* path where that is blocked), and
+    of the two the one of lower cost that the check accepts outright is flown. The warm start
+    keeps the way round each trunk that the last plan took; when the local target moves (a new
+    slot), the way that was best for the old target may cost the drone a long slide along a
+    trunk. It costs a second solve; ``reform_params`` turns it on while re-forming
+    (``reform_fresh_start``)."""
+    reform_fresh_start: bool = True
+    """While re-forming (``reform_s``): ``fresh_alternative``. Measured on the demo's fast-time
+    twin (``bench demo --fastsim-only``, hexagon-7 -> rectangle-7 20 s after the start,
+    forest-medium seeds 1-24, mapped at 3 frames/s): the new shape within 10 s in 10 of 24
+    against 5, within 15 s in 17 against 11; faster in 18 of the 24 seeds; mean e_sim 0.0282 /
+    0.0381 against 0.0288 / 0.0393 (seeds 1-12 / 13-24), flights as long, closest trunk as far
+    (BENCHMARKS.md section 10, ninth session of 2026-11-30)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
     flight's first assignment is not a change) a drone plans with ``reform_params``: the lead
@@ -538,8 +553,12 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
     the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
     the centroid reference alone (``reform_lead_from_centroid``; ``lead_slowest_beyond_m`` off),
-    else off."""
-    p = dataclasses.replace(params, w_formation=params.w_formation * params.reform_formation_scale)
+    else off; a fresh start beside the warm one (``reform_fresh_start``)."""
+    p = dataclasses.replace(
+        params,
+        w_formation=params.w_formation * params.reform_formation_scale,
+        fresh_alternative=params.fresh_alternative or params.reform_fresh_start,
+    )
     if params.reform_lead_from_centroid:
         return dataclasses.replace(p, lead_from_slowest=False, lead_slowest_beyond_m=0.0)
     return dataclasses.replace(p, lead_slowdown_m=0.0)
@@ -548,13 +567,15 @@ def reform_params(params: PlannerParams) -> PlannerParams:
 def recover_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with while recovering the shape (``recover_e_sim``): those
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
-    ``recover_formation_scale``, and a member far behind waited for (``lead_slowest_beyond_m``)."""
+    ``recover_formation_scale``, a member far behind waited for (``lead_slowest_beyond_m``), and
+    the warm start alone unless ``fresh_alternative`` is on throughout."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),
         w_formation=params.w_formation * k,
         w_altitude_hold=params.w_altitude_hold * k,
         lead_slowest_beyond_m=params.lead_slowest_beyond_m,
+        fresh_alternative=params.fresh_alternative,
     )
 
 

@@ -994,8 +994,11 @@ class FormationPlanner:
             force_astar: bool,
             astar_margin_m: float = 3.0,
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
+            fresh: bool = False,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
-            """Prepare and solve one attempt (cancellable meanwhile), counting its work."""
+            """Prepare and solve one attempt (cancellable meanwhile), counting its work;
+            ``fresh``: from the straight line (an A* path where it is blocked), not from
+            ``previous``."""
             nonlocal iters, evals
             problem = self._prepare(
                 t_start_s,
@@ -1007,7 +1010,7 @@ class FormationPlanner:
                 pack,
                 field,
                 view.fld,
-                previous,
+                None if fresh else previous,
                 use_formation,
                 force_astar,
                 astar_margin_m,
@@ -1067,6 +1070,26 @@ class FormationPlanner:
                     last_resort = (ok_status, traj, last_status, problem, x)
                 messages.append(f"{label}: {why}")
                 return None, problem, False
+            if (
+                safe
+                and use_formation
+                and not force_astar
+                and previous is not None
+                and self.params.fresh_alternative
+                and not (give_up is not None and give_up())
+            ):
+                alt, x_alt, st_alt = solve(use_formation, False, fresh=True)
+                if st_alt != LbfgsStatus.CANCELED:
+                    traj_alt, ok_alt, why_alt, clr_alt, ahead_alt = self._finish(
+                        alt, x_alt, field, view, peers, pack, brake
+                    )
+                    if traj_alt is not None and ok_alt and not why_alt:
+                        f_warm = problem.objective(x)[0]
+                        f_alt = alt.objective(x_alt)[0]
+                        if f_alt < f_warm:
+                            problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
+                            clearance, ahead = clr_alt, ahead_alt
+                            messages.append(f"fresh start: cost {f_warm:.4g} -> {f_alt:.4g}")
             if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
                 # chose when the gap was far) far enough ahead to choose another: try the way
