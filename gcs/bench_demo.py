@@ -34,6 +34,7 @@ import click
 import numpy as np
 
 from gcs.fastsim import FORMATION_REACHED_E_SIM
+from gcs.pools import sigterm_interrupts
 from onboard.agent import REPLAN_PERIOD_S
 
 REACHED_WITHIN_S = 10.0
@@ -206,8 +207,6 @@ def _fastsim_job(args: tuple[Any, ...]) -> dict[str, Any]:
 def fly_twins(args: list[tuple[Any, ...]], jobs: int) -> list[dict[str, Any]]:
     """``run_fastsim_seed`` on each of ``args``, in order; ``jobs`` at a time in spawned worker
     processes when over 1 (a SIGTERM ends them too, as in ``bench faults``)."""
-    from gcs.pools import sigterm_interrupts
-
     if jobs == 1:
         return [_fastsim_job(a) for a in args]
     with sigterm_interrupts(), multiprocessing.get_context("spawn").Pool(jobs) as pool:

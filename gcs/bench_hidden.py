@@ -30,6 +30,7 @@ from typing import Any
 import click
 import numpy as np
 
+from gcs.pools import sigterm_interrupts
 from onboard.agent import PEER_DEVIATION_AHEAD_S, RESEND_S, resend_delays
 from onboard.planner.params import PlannerParams
 
@@ -229,8 +230,6 @@ def bench_hidden(
             rows.append(row)
             _echo_row(row, quiet)
     else:
-        from gcs.pools import sigterm_interrupts
-
         ctx = multiprocessing.get_context("spawn")
         with sigterm_interrupts(), ctx.Pool(jobs) as pool:
             for row in pool.imap(fly_hidden, trials):

@@ -1023,6 +1023,24 @@ class FormationPlanner:
             evals += problem.evaluations
             return problem, x, status
 
+        def alternative(
+            use_formation: bool, force_astar: bool, astar_margin_m: float = 3.0, fresh: bool = False
+        ) -> tuple[Problem, np.ndarray, LbfgsStatus, Trajectory, float, float] | None:
+            """A second solve of an accepted attempt (``solve``'s arguments): (problem, x,
+            status, trajectory, clearance, ahead) when the check accepts it outright, else None
+            (refused, a last resort, not finite or canceled)."""
+            alt, x_alt, st_alt = solve(
+                use_formation, force_astar, astar_margin_m=astar_margin_m, fresh=fresh
+            )
+            if st_alt == LbfgsStatus.CANCELED:
+                return None
+            traj_alt, ok_alt, why_alt, clr_alt, ahead_alt = self._finish(
+                alt, x_alt, field, view, peers, pack, brake
+            )
+            if traj_alt is None or not ok_alt or why_alt:
+                return None
+            return alt, x_alt, st_alt, traj_alt, clr_alt, ahead_alt
+
         def attempt(
             use_formation: bool,
             force_astar: bool,
@@ -1078,18 +1096,13 @@ class FormationPlanner:
                 and self.params.fresh_alternative
                 and not (give_up is not None and give_up())
             ):
-                alt, x_alt, st_alt = solve(use_formation, False, fresh=True)
-                if st_alt != LbfgsStatus.CANCELED:
-                    traj_alt, ok_alt, why_alt, clr_alt, ahead_alt = self._finish(
-                        alt, x_alt, field, view, peers, pack, brake
-                    )
-                    if traj_alt is not None and ok_alt and not why_alt:
-                        f_warm = problem.objective(x)[0]
-                        f_alt = alt.objective(x_alt)[0]
-                        if f_alt < f_warm:
-                            problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
-                            clearance, ahead = clr_alt, ahead_alt
-                            messages.append(f"fresh start: cost {f_warm:.4g} -> {f_alt:.4g}")
+                fresh = alternative(use_formation, False, fresh=True)
+                if fresh is not None:
+                    f_warm = problem.objective(x)[0]
+                    f_alt = fresh[0].objective(fresh[1])[0]
+                    if f_alt < f_warm:
+                        problem, x, last_status, traj, clearance, ahead = fresh
+                        messages.append(f"fresh start: cost {f_warm:.4g} -> {f_alt:.4g}")
             if safe and not force_astar and ahead < self.params.comfort_obstacle_m:
                 # it threads a gap narrower than comfortable (the warm start keeps the way it
                 # chose when the gap was far) far enough ahead to choose another: try the way
@@ -1097,16 +1110,10 @@ class FormationPlanner:
                 # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
                 if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
-                    alt, x_alt, st_alt = solve(
-                        use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M
-                    )
-                    if st_alt != LbfgsStatus.CANCELED:
-                        traj_alt, ok_alt, why_alt, clr_alt, _ = self._finish(
-                            alt, x_alt, field, view, peers, pack, brake
-                        )
-                        if traj_alt is not None and ok_alt and not why_alt and clr_alt > clearance:
-                            problem, x, traj, last_status = alt, x_alt, traj_alt, st_alt
-                            messages.append(f"roomier a* way: {clearance:.2f} -> {clr_alt:.2f} m")
+                    roomy = alternative(use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M)
+                    if roomy is not None and roomy[4] > clearance:
+                        problem, x, last_status, traj = roomy[:4]
+                        messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
             if safe:
                 assert traj is not None
                 if what == _RESCUE:
