@@ -603,35 +603,36 @@ def _y_where_x(traj: Trajectory, x: float) -> float:
     return float(p[int(np.argmin(np.abs(p[:, 0] - x))), 1])
 
 
-def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk() -> None:
+@pytest.mark.parametrize("mode", ["line", "astar"])
+def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk(mode: str) -> None:
     """``fresh_alternative``: a plan accepted from the warm start is solved again from the
-    straight line (an A* path where it is blocked) and the cheaper of the two is flown. The
-    previous trajectory passes a trunk on the far side (planned with a wide trunk that blocked
-    the near one); the warm start keeps that way, the fresh start takes the short one. When
-    the warm start is already the short way, the flown plan costs no more than it."""
+    straight line ('line'; 'astar': an A* path where it is blocked) and the cheaper of the two
+    is flown. The previous trajectory passes a trunk on the far side (planned with a wide trunk
+    that blocked the near one); the warm start keeps that way, the fresh start takes the short
+    one. When the warm start is already the short way, the flown plan costs no more than it."""
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([6.0, 0.0, 1.0])
     base = PlannerParams(v_max_m_s=0.5)
-    assert not base.fresh_alternative and base.reform_fresh_start
+    assert base.fresh_alternative == "never" and base.reform_fresh_start
     wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
     far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
     assert far_way.status == PlanStatus.OK and _y_where_x(far_way.trajectory, 3.0) > 0.3
     field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))  # the line passes 0.1 m off
     results = {}
-    for on in (False, True):
+    for on in ("never", mode):
         params = dataclasses.replace(base, fresh_alternative=on)
         planner = FormationPlanner(params, LINE3, slot=1)
         res = planner.plan(0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory)
         assert res.status == PlanStatus.OK
         results[on] = res
-    warm, fresh = results[False], results[True]
+    warm, fresh = results["never"], results[mode]
     assert _y_where_x(warm.trajectory, 3.0) > 0.6 and "fresh start" not in warm.message
     assert _y_where_x(fresh.trajectory, 3.0) < -0.2 and "fresh start: cost" in fresh.message
     assert sum(fresh.costs.values()) < sum(warm.costs.values()) - 10.0
     d, _ = field.distance(fresh.trajectory.sample(np.linspace(0.0, fresh.trajectory.t_end_s, 400)))
     assert d.min() >= base.check_obstacle_m
     # the warm start on the short way already: nothing dearer is flown
-    on = FormationPlanner(dataclasses.replace(base, fresh_alternative=True), LINE3, slot=1)
+    on = FormationPlanner(dataclasses.replace(base, fresh_alternative=mode), LINE3, slot=1)
     again = on.plan(0.0, start, ZERO, ZERO, goal, [], field, fresh.trajectory)
     off = FormationPlanner(base, LINE3, slot=1)
     kept = off.plan(0.0, start, ZERO, ZERO, goal, [], field, fresh.trajectory)
@@ -640,11 +641,57 @@ def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk() -> None:
     assert _y_where_x(again.trajectory, 3.0) < -0.2
 
 
+def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() -> None:
+    """Where a trunk blocks the line to the local target, the 'line' fresh start is that line
+    (the solver's obstacle term pushes it off) and runs no A* search; 'astar' searches."""
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    field = AnalyticField(_world([[3.0, 0.0, 0.4, 0.0, 3.0]]))  # right on the line
+    searched = {}
+    for mode in ("line", "astar"):
+        planner = FormationPlanner(PlannerParams(v_max_m_s=0.5, fresh_alternative=mode), LINE3, 1)
+        calls: list[int] = []
+        search = planner._astar
+
+        def counted(*args: Any, search: Any = search, calls: list[int] = calls) -> Any:
+            calls.append(1)
+            return search(*args)
+
+        planner._astar = counted  # type: ignore[method-assign]
+        first = planner.plan(0.0, start, ZERO, ZERO, goal, [], field)
+        assert first.status == PlanStatus.OK
+        n_first = len(calls)
+        res = planner.plan(
+            0.5,
+            first.trajectory.sample(np.array([0.5]))[0],
+            ZERO,
+            ZERO,
+            goal,
+            [],
+            field,
+            first.trajectory,
+        )
+        assert res.status == PlanStatus.OK
+        searched[mode] = len(calls) - n_first
+        d, _ = field.distance(res.trajectory.sample(np.linspace(0.5, res.trajectory.t_end_s, 400)))
+        assert d.min() >= PlannerParams().check_obstacle_m
+    assert searched == {"line": 0, "astar": 1}
+
+
 def test_reform_fresh_start_acts_while_re_forming_only() -> None:
     params = PlannerParams(reform_fresh_start=True)
-    assert not params.fresh_alternative
-    assert reform_params(params).fresh_alternative
-    assert not recover_params(params).fresh_alternative
-    assert reform_params(PlannerParams()).fresh_alternative  # the default
-    assert not reform_params(PlannerParams(reform_fresh_start=False)).fresh_alternative
-    assert recover_params(PlannerParams(fresh_alternative=True)).fresh_alternative
+    assert params.fresh_alternative == "never"
+    assert reform_params(params).fresh_alternative == "astar"
+    assert recover_params(params).fresh_alternative == "never"
+    assert reform_params(PlannerParams()).fresh_alternative == "astar"  # the default
+    off = PlannerParams(reform_fresh_start=False)
+    assert reform_params(off).fresh_alternative == "never"
+    line = PlannerParams(fresh_alternative="line")
+    assert reform_params(line).fresh_alternative == "astar"
+    assert recover_params(line).fresh_alternative == "line"
+    assert reform_params(dataclasses.replace(line, reform_fresh_start=False)).fresh_alternative == (
+        "line"
+    )
+    for bad in ("off", "", "A*", True):
+        with pytest.raises(ValueError, match="fresh_alternative must be one of"):
+            PlannerParams(fresh_alternative=bad)  # type: ignore[arg-type]

@@ -11,6 +11,7 @@ from onboard.planner.lbfgs import LbfgsParams
 
 FORMATION_PENALTIES = ("linear", "cubic", "linear-unit", "relative")
 SWARM_TARGETS = ("own-goal", "centroid", "slowest")
+FRESH_STARTS = ("never", "line", "astar")
 
 
 @dataclass(frozen=True)
@@ -202,16 +203,24 @@ class PlannerParams:
     drones that were in their place (twin seed 8: e_sim 0.041 -> 0.059 with it; with recovery
     only, the twin's mean e_sim 0.0237 and worst 0.033 against 0.0252 and 0.059). 0: off (the
     centroid only; the slowest member throughout is ``lead_from_slowest``)."""
-    fresh_alternative: bool = False
+    fresh_alternative: str = "never"
     """A plan accepted from the warm start (the previous trajectory) is solved once more from a
-    fresh start (the straight line to the local target, an A* path where that is blocked), and
-    of the two the one of lower cost that the check accepts outright is flown. The warm start
-    keeps the way round each trunk that the last plan took; when the local target moves (a new
-    slot), the way that was best for the old target may cost the drone a long slide along a
-    trunk. It costs a second solve; ``reform_params`` turns it on while re-forming
-    (``reform_fresh_start``)."""
+    fresh start, and of the two the one of lower cost that the check accepts outright is flown.
+    The warm start keeps the way round each trunk that the last plan took; when the local target
+    moves (a new slot, the swarm turning), the way that was best for the old target may cost the
+    drone a long slide along a trunk or a place out of its slot. 'line': the fresh start is the
+    straight line to the local target, also where a trunk blocks it (the solver's obstacle term
+    pushes it off); 'astar': an A* path where the line is blocked (the search costs more than
+    the second solve); 'never' (not 'off', which YAML reads as false): the warm start alone.
+    ``reform_params`` uses 'astar' while re-forming (``reform_fresh_start``). Measured with
+    'line' (BENCHMARKS.md section 8, ninth and tenth sessions of 2026-11-30): seeded table mean
+    e_sim 0.0026 / 0.0045 / 0.0102 against 0.0029 / 0.0063 / 0.0131 with the warm start alone,
+    no trial over 0.02; unseen seeds 0.0025 / 0.0049 / 0.0104 against 0.0038 / 0.0067 /
+    0.0160; ``bench planner``'s median plan 2.6 ms against 0.9 ms. With 'astar': 0.0029 /
+    0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
     reform_fresh_start: bool = True
-    """While re-forming (``reform_s``): ``fresh_alternative``. Measured on the demo's fast-time
+    """While re-forming (``reform_s``): ``fresh_alternative`` 'astar' (with 'line' the twin
+    below gave 4 of 12 within 10 s, against 7 with 'astar'). Measured on the demo's fast-time
     twin (``bench demo --fastsim-only``, hexagon-7 -> rectangle-7 20 s after the start,
     forest-medium seeds 1-24, mapped at 3 frames/s): the new shape within 10 s in 10 of 24
     against 5, within 15 s in 17 against 11; faster in 18 of the 24 seeds; mean e_sim 0.0282 /
@@ -508,6 +517,10 @@ class PlannerParams:
             raise ValueError(
                 f"swarm_target must be one of {SWARM_TARGETS}, got {self.swarm_target!r}"
             )
+        if self.fresh_alternative not in FRESH_STARTS:
+            raise ValueError(
+                f"fresh_alternative must be one of {FRESH_STARTS}, got {self.fresh_alternative!r}"
+            )
         if self.formation_penalty not in FORMATION_PENALTIES:
             raise ValueError(
                 f"formation_penalty must be one of {FORMATION_PENALTIES}, "
@@ -557,7 +570,7 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     p = dataclasses.replace(
         params,
         w_formation=params.w_formation * params.reform_formation_scale,
-        fresh_alternative=params.fresh_alternative or params.reform_fresh_start,
+        fresh_alternative="astar" if params.reform_fresh_start else params.fresh_alternative,
     )
     if params.reform_lead_from_centroid:
         return dataclasses.replace(p, lead_from_slowest=False, lead_slowest_beyond_m=0.0)
@@ -568,7 +581,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with while recovering the shape (``recover_e_sim``): those
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
     ``recover_formation_scale``, a member far behind waited for (``lead_slowest_beyond_m``), and
-    the warm start alone unless ``fresh_alternative`` is on throughout."""
+    the fresh start of ``fresh_alternative`` (not re-forming's)."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),

@@ -501,14 +501,14 @@ class FormationPlanner:
         horizon_m: float,
         peers: Sequence[PeerTrajectory] = (),
     ) -> tuple[np.ndarray, np.ndarray, float]:
-        """(local target, solver start x0, clearance of the A* path or NaN). The initial path
-        is the previous trajectory (the warm start keeps its timing), else a straight line,
-        else an A* path (at the largest of the clearances ``ladder`` that finds one) when the
-        line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``. The
-        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``). The A*
-        search treats the peers outside the formation term (avoided only: silent, stuck,
-        expired, the hovers where a silent one may have stopped) that hold still
-        (``_still_peers``) as obstacles too; formation peers move on with the swarm."""
+        """(local target, solver start x0, clearance of the A* path or NaN). The initial path is the
+        previous trajectory (the warm start keeps its timing), else a straight line, else an A* path
+        (at the largest of the clearances ``ladder`` that finds one; none when the ladder is empty)
+        when the line is blocked; it is resampled into MINCO pieces of about ``piece_length_m``. The
+        local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``). The A* search
+        treats the peers outside the formation term (avoided only: silent, stuck, expired, the
+        hovers where a silent one may have stopped) that hold still (``_still_peers``) as obstacles
+        too; formation peers move on with the swarm."""
         p = self.params
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
@@ -535,7 +535,20 @@ class FormationPlanner:
             p.tau_scale,
         )
         clearance = math.nan
-        if code == kn.GUESS_NEEDS_ASTAR:
+        if code == kn.GUESS_NEEDS_ASTAR and not ladder:
+            # no clearance to search at: the line, as a search that finds nothing gives
+            x0 = kn.path_guess(
+                np.vstack([sp, target]),
+                _NO_DURATIONS,
+                False,
+                sv,
+                p.v_max_m_s,
+                p.a_max_m_s2,
+                p.piece_length_m,
+                p.max_pieces,
+                p.tau_scale,
+            )
+        elif code == kn.GUESS_NEEDS_ASTAR:
             row = self.mask[self.slot]
             still = _still_peers([pt for pt in peers if not row[pt.slot] > 0.0], t_start)
             if still.shape[0]:
@@ -997,8 +1010,8 @@ class FormationPlanner:
             fresh: bool = False,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
             """Prepare and solve one attempt (cancellable meanwhile), counting its work;
-            ``fresh``: from the straight line (an A* path where it is blocked), not from
-            ``previous``."""
+            ``fresh``: from the straight line, not from ``previous`` (where the line is blocked,
+            an A* path on ``ladder``; an empty ladder keeps the line)."""
             nonlocal iters, evals
             problem = self._prepare(
                 t_start_s,
@@ -1024,13 +1037,21 @@ class FormationPlanner:
             return problem, x, status
 
         def alternative(
-            use_formation: bool, force_astar: bool, astar_margin_m: float = 3.0, fresh: bool = False
+            use_formation: bool,
+            force_astar: bool,
+            astar_margin_m: float = 3.0,
+            ladder: tuple[float, ...] = self.params.astar_ladder_m,
+            fresh: bool = False,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus, Trajectory, float, float] | None:
             """A second solve of an accepted attempt (``solve``'s arguments): (problem, x,
             status, trajectory, clearance, ahead) when the check accepts it outright, else None
             (refused, a last resort, not finite or canceled)."""
             alt, x_alt, st_alt = solve(
-                use_formation, force_astar, astar_margin_m=astar_margin_m, fresh=fresh
+                use_formation,
+                force_astar,
+                astar_margin_m=astar_margin_m,
+                ladder=ladder,
+                fresh=fresh,
             )
             if st_alt == LbfgsStatus.CANCELED:
                 return None
@@ -1093,10 +1114,16 @@ class FormationPlanner:
                 and use_formation
                 and not force_astar
                 and previous is not None
-                and self.params.fresh_alternative
+                and self.params.fresh_alternative != "never"
                 and not (give_up is not None and give_up())
             ):
-                fresh = alternative(use_formation, False, fresh=True)
+                line = self.params.fresh_alternative == "line"
+                fresh = alternative(
+                    use_formation,
+                    False,
+                    ladder=() if line else self.params.astar_ladder_m,
+                    fresh=True,
+                )
                 if fresh is not None:
                     f_warm = problem.objective(x)[0]
                     f_alt = fresh[0].objective(fresh[1])[0]
