@@ -588,6 +588,37 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     assert res.cost_terms is not None and res.cost_terms()["formation"] > 0.0
 
 
+def test_a_refused_formation_plan_is_tried_softened_before_none() -> None:
+    """``soft_formation_scale``: where the formation's pull takes the middle drone of a line
+    past the check's distance to a thin trunk (refused, and so is the A* retry), one more
+    attempt with the formation weight times the scale keeps the formation term and the check's
+    distance, where the defaults fly without the term ('ok-no-formation')."""
+    field = AnalyticField(_world([[3.0, 0.44, 0.15, 0.0, 3.0]]))
+    args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)
+    goal, peers = np.array([12.0, 0.0, 1.0]), _peers_flying_along_x(0.4)
+    assert PlannerParams().soft_formation_scale == 0.0
+    before = FormationPlanner(PlannerParams(), LINE3, slot=1).plan(*args, goal, peers, field)
+    assert before.status == PlanStatus.OK_NO_FORMATION, before.message
+    assert "formation x" not in before.message
+    params = PlannerParams(soft_formation_scale=0.3)
+    res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
+    assert res.status == PlanStatus.OK, res.message
+    assert res.message.startswith("formation: obstacle clearance"), res.message
+    assert "a* retry: obstacle clearance" in res.message
+    assert res.message.endswith("flown: formation x0.3"), res.message
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    count_refusals(res.message, counts)
+    assert counts["attempts"] == 2, counts
+    terms = res.cost_terms() if res.cost_terms is not None else {}
+    assert terms["formation"] > 0.0
+    tr = res.trajectory
+    pts = tr.sample(np.linspace(tr.t0_s, tr.t_end_s, 4000))
+    assert float(field.distance(pts)[0].min()) >= params.check_obstacle_m
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="soft_formation_scale"):
+            PlannerParams(soft_formation_scale=bad)
+
+
 def test_the_refine_settings_are_validated() -> None:
     for bad in (0, 9, 1.5, True):
         with pytest.raises(ValueError, match="refine_kappa_factor"):

@@ -218,6 +218,13 @@ class PlannerParams:
     no trial over 0.02; unseen seeds 0.0025 / 0.0049 / 0.0104 against 0.0038 / 0.0067 /
     0.0160; ``bench planner``'s median plan 2.6 ms against 0.9 ms. With 'astar': 0.0029 /
     0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
+    soft_formation_scale: float = 0.0
+    """When the plan with the formation term (and its A* retry) is refused, one more attempt
+    with the formation weight times this, before the plan without it (0: off). The refusals
+    come where the formation's pull takes the drone past the check's distance to a trunk; a
+    drone without the term flies its own way for as long as that lasts (real stack,
+    forest-medium seed 3: drone 1 planned without it for 12 s and the hexagon folded, e_sim
+    up to 0.41)."""
     reform_fresh_start: bool = True
     """While re-forming (``reform_s``): ``fresh_alternative`` 'astar' (with 'line' the twin
     below gave 4 of 12 within 10 s, against 7 with 'astar'). Measured on the demo's fast-time
@@ -516,6 +523,10 @@ class PlannerParams:
         if self.swarm_target not in SWARM_TARGETS:
             raise ValueError(
                 f"swarm_target must be one of {SWARM_TARGETS}, got {self.swarm_target!r}"
+            )
+        if not (0.0 <= self.soft_formation_scale < 1.0):
+            raise ValueError(
+                f"soft_formation_scale must be in [0, 1), got {self.soft_formation_scale!r}"
             )
         if self.fresh_alternative not in FRESH_STARTS:
             raise ValueError(

@@ -709,8 +709,10 @@ class FormationPlanner:
         force_astar: bool,
         astar_margin_m: float,
         ladder: tuple[float, ...],
+        formation_scale: float = 1.0,
     ) -> Problem:
-        """``prepare`` on validated inputs, the peers packed and the field's kernel tuple."""
+        """``prepare`` on validated inputs, the peers packed and the field's kernel tuple;
+        ``formation_scale``: the formation weight times this (with ``use_formation``)."""
         p = self.params
         want_lead = (
             use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0
@@ -743,6 +745,9 @@ class FormationPlanner:
             sdes = np.zeros((1, 1))
             fpts = np.zeros((1, 3))
         prm = self._prm_formation if use_formation else self._prm_no_formation
+        if use_formation and formation_scale != 1.0:
+            prm = prm.copy()
+            prm[obj.P_W_FORM] *= formation_scale
         if want_lead:
             lead -= p.lead_deadband_m
             if lead > 0.0:
@@ -1008,10 +1013,12 @@ class FormationPlanner:
             astar_margin_m: float = 3.0,
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
             fresh: bool = False,
+            formation_scale: float = 1.0,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
             """Prepare and solve one attempt (cancellable meanwhile), counting its work;
             ``fresh``: from the straight line, not from ``previous`` (where the line is blocked,
-            an A* path on ``ladder``; an empty ladder keeps the line)."""
+            an A* path on ``ladder``; an empty ladder keeps the line); ``formation_scale``: of
+            the formation weight."""
             nonlocal iters, evals
             problem = self._prepare(
                 t_start_s,
@@ -1028,6 +1035,7 @@ class FormationPlanner:
                 force_astar,
                 astar_margin_m,
                 ladder,
+                formation_scale,
             )
             self._active = problem
             x, status = problem.solve()
@@ -1042,6 +1050,7 @@ class FormationPlanner:
             astar_margin_m: float = 3.0,
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
             fresh: bool = False,
+            formation_scale: float = 1.0,
         ) -> tuple[Problem, np.ndarray, LbfgsStatus, Trajectory, float, float] | None:
             """A second solve of an accepted attempt (``solve``'s arguments): (problem, x,
             status, trajectory, clearance, ahead) when the check accepts it outright, else None
@@ -1052,6 +1061,7 @@ class FormationPlanner:
                 astar_margin_m=astar_margin_m,
                 ladder=ladder,
                 fresh=fresh,
+                formation_scale=formation_scale,
             )
             if st_alt == LbfgsStatus.CANCELED:
                 return None
@@ -1068,6 +1078,7 @@ class FormationPlanner:
             ok_status: PlanStatus,
             what: str,
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
+            formation_scale: float = 1.0,
         ) -> tuple[PlanResult | None, Problem, bool]:
             """One attempt: (its result when the check accepts it, else None with the reason
             in ``messages``; its problem; whether it was canceled). An accepted rescue says so
@@ -1076,7 +1087,9 @@ class FormationPlanner:
             and the attempt counts as refused."""
             nonlocal last_status, last_resort
             label = what if use_formation else f"{what} without formation"
-            problem, x, last_status = solve(use_formation, force_astar, ladder=ladder)
+            problem, x, last_status = solve(
+                use_formation, force_astar, ladder=ladder, formation_scale=formation_scale
+            )
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
                 return None, problem, True
@@ -1123,6 +1136,7 @@ class FormationPlanner:
                     False,
                     ladder=() if line else self.params.astar_ladder_m,
                     fresh=True,
+                    formation_scale=formation_scale,
                 )
                 if fresh is not None:
                     f_warm = problem.objective(x)[0]
@@ -1137,7 +1151,12 @@ class FormationPlanner:
                 # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
                 if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
-                    roomy = alternative(use_formation, True, astar_margin_m=COMFORT_ASTAR_MARGIN_M)
+                    roomy = alternative(
+                        use_formation,
+                        True,
+                        astar_margin_m=COMFORT_ASTAR_MARGIN_M,
+                        formation_scale=formation_scale,
+                    )
                     if roomy is not None and roomy[4] > clearance:
                         problem, x, last_status, traj = roomy[:4]
                         messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
@@ -1145,6 +1164,8 @@ class FormationPlanner:
                 assert traj is not None
                 if what == _RESCUE:
                     messages.append(f"a* rescue: path at {problem.astar_clearance_m:.2f} m")
+                elif formation_scale != 1.0:
+                    messages.append(f"flown: {label}")
                 result = PlanResult(
                     ok_status,
                     traj,
@@ -1192,10 +1213,14 @@ class FormationPlanner:
                     return flown(entry, APPROACH)
             return None
 
-        attempts = [(True, False, PlanStatus.OK, "formation")]
+        attempts = [(True, False, PlanStatus.OK, "formation", 1.0)]
         if self.params.astar_keeps_formation and self.params.w_formation > 0 and peers:
-            attempts.append((True, True, PlanStatus.OK, "a* retry"))
-        attempts.append((False, True, PlanStatus.OK_NO_FORMATION, "a* retry"))
+            attempts.append((True, True, PlanStatus.OK, "a* retry", 1.0))
+        soft = self.params.soft_formation_scale
+        if soft > 0.0 and self.params.w_formation > 0 and peers:
+            # the pull of the shape that took the drone too close, softened, before none
+            attempts.append((True, False, PlanStatus.OK, f"formation x{soft:g}", soft))
+        attempts.append((False, True, PlanStatus.OK_NO_FORMATION, "a* retry", 1.0))
         canceled = False
         kept_checked = False  # ``previous`` checked already (safe: ``kept``)
         kept: Trajectory | None = None
@@ -1227,10 +1252,12 @@ class FormationPlanner:
                 PlanStatus.OVER_BUDGET, safe_prev, iters, evals, last_status, "; ".join(messages)
             )
 
-        for k, (use_formation, force_astar, ok_status, what) in enumerate(attempts):
+        for k, (use_formation, force_astar, ok_status, what, scale) in enumerate(attempts):
             if k > 0 and (stop := over_budget()) is not None:
                 return stop
-            result, problem, canceled = attempt(use_formation, force_astar, ok_status, what)
+            result, problem, canceled = attempt(
+                use_formation, force_astar, ok_status, what, formation_scale=scale
+            )
             if result is not None:
                 return result
             if canceled:
