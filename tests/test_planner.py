@@ -643,8 +643,8 @@ def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk(mode: str) -> Non
     one. When the warm start is already the short way, the flown plan costs no more than it."""
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([6.0, 0.0, 1.0])
-    base = PlannerParams(v_max_m_s=0.5)
-    assert base.fresh_alternative == "never" and base.reform_fresh_start
+    assert PlannerParams().fresh_alternative == "line"  # the default
+    base = PlannerParams(v_max_m_s=0.5, fresh_alternative="never")
     wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
     far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
     assert far_way.status == PlanStatus.OK and _y_where_x(far_way.trajectory, 3.0) > 0.3
@@ -710,14 +710,14 @@ def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() 
 
 
 def test_reform_fresh_start_acts_while_re_forming_only() -> None:
-    params = PlannerParams(reform_fresh_start=True)
-    assert params.fresh_alternative == "never"
+    params = PlannerParams(reform_fresh_start=True, fresh_alternative="never")
     assert reform_params(params).fresh_alternative == "astar"
     assert recover_params(params).fresh_alternative == "never"
     assert reform_params(PlannerParams()).fresh_alternative == "astar"  # the default
-    off = PlannerParams(reform_fresh_start=False)
+    off = PlannerParams(reform_fresh_start=False, fresh_alternative="never")
     assert reform_params(off).fresh_alternative == "never"
-    line = PlannerParams(fresh_alternative="line")
+    line = PlannerParams()
+    assert line.fresh_alternative == "line" and line.reform_fresh_start
     assert reform_params(line).fresh_alternative == "astar"
     assert recover_params(line).fresh_alternative == "line"
     assert reform_params(dataclasses.replace(line, reform_fresh_start=False)).fresh_alternative == (

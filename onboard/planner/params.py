@@ -203,28 +203,36 @@ class PlannerParams:
     drones that were in their place (twin seed 8: e_sim 0.041 -> 0.059 with it; with recovery
     only, the twin's mean e_sim 0.0237 and worst 0.033 against 0.0252 and 0.059). 0: off (the
     centroid only; the slowest member throughout is ``lead_from_slowest``)."""
-    fresh_alternative: str = "never"
+    fresh_alternative: str = "line"
     """A plan accepted from the warm start (the previous trajectory) is solved once more from a
     fresh start, and of the two the one of lower cost that the check accepts outright is flown.
     The warm start keeps the way round each trunk that the last plan took; when the local target
     moves (a new slot, the swarm turning), the way that was best for the old target may cost the
-    drone a long slide along a trunk or a place out of its slot. 'line': the fresh start is the
-    straight line to the local target, also where a trunk blocks it (the solver's obstacle term
-    pushes it off); 'astar': an A* path where the line is blocked (the search costs more than
-    the second solve); 'never' (not 'off', which YAML reads as false): the warm start alone.
-    ``reform_params`` uses 'astar' while re-forming (``reform_fresh_start``). Measured with
-    'line' (BENCHMARKS.md section 8, ninth and tenth sessions of 2026-11-30): seeded table mean
-    e_sim 0.0026 / 0.0045 / 0.0102 against 0.0029 / 0.0063 / 0.0131 with the warm start alone,
-    no trial over 0.02; unseen seeds 0.0025 / 0.0049 / 0.0104 against 0.0038 / 0.0067 /
-    0.0160; ``bench planner``'s median plan 2.6 ms against 0.9 ms. With 'astar': 0.0029 /
-    0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
+    drone a long slide along a trunk or a place out of its slot. 'line' (the default since the
+    tenth session of 2026-11-30): the fresh start is the straight line to the local target, also
+    where a trunk blocks it (the solver's obstacle term pushes it off); 'astar': an A* path where
+    the line is blocked (the search costs more than the second solve); 'never' (not 'off', which
+    YAML reads as false): the warm start alone. ``reform_params`` uses 'astar' while re-forming
+    (``reform_fresh_start``). 'line' against 'never' (BENCHMARKS.md section 8, ninth and tenth
+    sessions of 2026-11-30): seeded table mean e_sim 0.0026 / 0.0045 / 0.0102 against 0.0029 /
+    0.0063 / 0.0131, no trial over 0.02 (two dense ones); unseen seeds 0.0025 / 0.0049 / 0.0104
+    against 0.0038 / 0.0067 / 0.0160; fault trials e_sim 0.0060 against 0.0076 with no collision
+    either way; the demo's mapped twin in plain flight 0.0281 against 0.0305 (seeds 1-12), with
+    a change in flight 0.0244 against 0.0332 (seeds 1-24; the new shape within 10 s in 8 of 24
+    against 10). The price: ``bench planner``'s median plan 2.6 ms against 0.9 ms. 'astar':
+    0.0029 / 0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals
     come where the formation's pull takes the drone past the check's distance to a trunk; a
     drone without the term flies its own way for as long as that lasts (real stack,
     forest-medium seed 3: drone 1 planned without it for 12 s and the hexagon folded, e_sim
-    up to 0.41)."""
+    up to 0.41). Measured at 0.3 with ``fresh_alternative`` 'line' (BENCHMARKS.md section 8,
+    tenth session of 2026-11-30): no consistent gain. The demo's mapped twin, plain flight
+    (seeds 1-12), mean e_sim 0.0262 against 0.0281 (alone, with 'never': 0.0309 against
+    0.0305, flights 4 s longer); with a change in flight (seeds 1-24) the new shape within 10
+    s in 11 of 24 against 8 but mean e_sim 0.0282 against 0.0244; seeded table 0.0024 / 0.0046
+    / 0.0094 against 0.0026 / 0.0045 / 0.0102."""
     reform_fresh_start: bool = True
     """While re-forming (``reform_s``): ``fresh_alternative`` 'astar' (with 'line' the twin
     below gave 4 of 12 within 10 s, against 7 with 'astar'). Measured on the demo's fast-time
