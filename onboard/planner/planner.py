@@ -4,11 +4,14 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 (the previous trajectory, else a straight line, else an A* path when the line is blocked),
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
-peers' trajectories. A refused solution is first solved again from where it is (tight
+peers' trajectories. An accepted solution from the previous trajectory is solved once more from
+a fresh start (``fresh_alternative``: the straight line by default) and the cheaper of the two
+that the check accepts is flown. A refused solution is first solved again from where it is (tight
 tolerances; where it passes too close to an obstacle, also on denser constraint points with
 stiffer obstacle and limit penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
 failed attempt is retried from an A* path with the formation term
-(``astar_keeps_formation``), then from an A* path without it (A* paths keep the optimiser's
+(``astar_keeps_formation``), optionally once more with the formation weight scaled down
+(``soft_formation_scale``), then from an A* path without it (A* paths keep the optimiser's
 clearance, else the check's: ``astar_ladder_m``). When every attempt was refused, a safe
 previous trajectory that still moves the drone (``KEEP_MOVING_M``) is kept. Otherwise, if the
 A* path kept only the check's distance, one rescue attempt without the formation term starts
