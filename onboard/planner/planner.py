@@ -538,27 +538,17 @@ class FormationPlanner:
             p.tau_scale,
         )
         clearance = math.nan
-        if code == kn.GUESS_NEEDS_ASTAR and not ladder:
-            # no clearance to search at: the line, as a search that finds nothing gives
-            x0 = kn.path_guess(
-                np.vstack([sp, target]),
-                _NO_DURATIONS,
-                False,
-                sv,
-                p.v_max_m_s,
-                p.a_max_m_s2,
-                p.piece_length_m,
-                p.max_pieces,
-                p.tau_scale,
-            )
-        elif code == kn.GUESS_NEEDS_ASTAR:
-            row = self.mask[self.slot]
-            still = _still_peers([pt for pt in peers if not row[pt.slot] > 0.0], t_start)
-            if still.shape[0]:
-                radius = max(p.swarm_clearance_m, p.check_drone_m) - p.obstacle_clearance_m
-                field = _WithPoints(field, still, max(radius, 0.0))
-            path, clearance = self._astar(sp, target, field, astar_margin_m, ladder)
-            path[0] = sp
+        if code == kn.GUESS_NEEDS_ASTAR:
+            if ladder:
+                row = self.mask[self.slot]
+                still = _still_peers([pt for pt in peers if not row[pt.slot] > 0.0], t_start)
+                if still.shape[0]:
+                    radius = max(p.swarm_clearance_m, p.check_drone_m) - p.obstacle_clearance_m
+                    field = _WithPoints(field, still, max(radius, 0.0))
+                path, clearance = self._astar(sp, target, field, astar_margin_m, ladder)
+                path[0] = sp
+            else:  # no clearance to search at: the line, as a search that finds nothing gives
+                path = np.vstack([sp, target])
             x0 = kn.path_guess(
                 path,
                 _NO_DURATIONS,
@@ -1048,24 +1038,12 @@ class FormationPlanner:
             return problem, x, status
 
         def alternative(
-            use_formation: bool,
-            force_astar: bool,
-            astar_margin_m: float = 3.0,
-            ladder: tuple[float, ...] = self.params.astar_ladder_m,
-            fresh: bool = False,
-            formation_scale: float = 1.0,
+            solved: tuple[Problem, np.ndarray, LbfgsStatus],
         ) -> tuple[Problem, np.ndarray, LbfgsStatus, Trajectory, float, float] | None:
-            """A second solve of an accepted attempt (``solve``'s arguments): (problem, x,
+            """A second solve of an accepted attempt (what ``solve`` returned): (problem, x,
             status, trajectory, clearance, ahead) when the check accepts it outright, else None
             (refused, a last resort, not finite or canceled)."""
-            alt, x_alt, st_alt = solve(
-                use_formation,
-                force_astar,
-                astar_margin_m=astar_margin_m,
-                ladder=ladder,
-                fresh=fresh,
-                formation_scale=formation_scale,
-            )
+            alt, x_alt, st_alt = solved
             if st_alt == LbfgsStatus.CANCELED:
                 return None
             traj_alt, ok_alt, why_alt, clr_alt, ahead_alt = self._finish(
@@ -1135,11 +1113,13 @@ class FormationPlanner:
             ):
                 line = self.params.fresh_alternative == "line"
                 fresh = alternative(
-                    use_formation,
-                    False,
-                    ladder=() if line else self.params.astar_ladder_m,
-                    fresh=True,
-                    formation_scale=formation_scale,
+                    solve(
+                        use_formation,
+                        False,
+                        ladder=() if line else self.params.astar_ladder_m,
+                        fresh=True,
+                        formation_scale=formation_scale,
+                    )
                 )
                 if fresh is not None:
                     f_warm = problem.objective(x)[0]
@@ -1155,10 +1135,12 @@ class FormationPlanner:
                 start_d = float(field.distance(sp[None, :])[0][0])
                 if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
                     roomy = alternative(
-                        use_formation,
-                        True,
-                        astar_margin_m=COMFORT_ASTAR_MARGIN_M,
-                        formation_scale=formation_scale,
+                        solve(
+                            use_formation,
+                            True,
+                            astar_margin_m=COMFORT_ASTAR_MARGIN_M,
+                            formation_scale=formation_scale,
+                        )
                     )
                     if roomy is not None and roomy[4] > clearance:
                         problem, x, last_status, traj = roomy[:4]
