@@ -1,6 +1,7 @@
 """Planner API: plans that arrive and stay clear, fallbacks, failure as a value, bad inputs."""
 
 import dataclasses
+import functools
 from typing import Any
 
 import numpy as np
@@ -670,6 +671,68 @@ def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk(mode: str) -> Non
     assert again.status == kept.status == PlanStatus.OK
     assert sum(again.costs.values()) <= sum(kept.costs.values()) + 1e-9
     assert _y_where_x(again.trajectory, 3.0) < -0.2
+
+
+def test_fresh_in_parallel_flies_the_same_plans_as_one_solve_after_the_other() -> None:
+    """``fresh_in_parallel``: the fresh start's solve on the side thread changes no plan: the
+    trajectory, status and message are those of the two solves one after the other, where the
+    fresh start wins by a long way and by a little, and where the time budget runs out after the
+    warm solve (the side solve is then stopped, not flown)."""
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    assert PlannerParams().fresh_in_parallel  # the default
+    base = PlannerParams(v_max_m_s=0.5, fresh_in_parallel=False)
+    wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
+    far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
+    field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
+    short_way = FormationPlanner(base, LINE3, slot=1).plan(
+        0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
+    )
+    assert "fresh start: cost" in short_way.message
+    budgets: dict[bool, list[bool]] = {False: [True], True: [False, True]}  # give_up's answers
+    for previous, budget in ((far_way, False), (short_way, False), (far_way, True)):
+        plans = {}
+        for parallel in (False, True):
+            planner = FormationPlanner(
+                dataclasses.replace(base, fresh_in_parallel=parallel), LINE3, slot=1
+            )
+            give_up = functools.partial(next, iter(budgets[parallel]))
+            plans[parallel] = planner.plan(
+                0.0,
+                start,
+                ZERO,
+                ZERO,
+                goal,
+                [],
+                field,
+                previous.trajectory,
+                give_up=give_up if budget else None,
+            )
+            assert planner._aside is None
+        one, two = plans[False], plans[True]
+        assert one.status == two.status == PlanStatus.OK
+        assert one.message == two.message
+        assert ("fresh start" in one.message) != budget
+        np.testing.assert_array_equal(one.trajectory.coeffs, two.trajectory.coeffs)
+        np.testing.assert_array_equal(one.trajectory.durations_s, two.trajectory.durations_s)
+        # the work of a side solve stopped as not wanted is not counted
+        assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
+
+
+def test_cancel_reaches_the_side_solve_too() -> None:
+    """``cancel`` stops the solve on the side thread (``fresh_in_parallel``) as well as the one
+    in the planning thread."""
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    field = AnalyticField(_world([]))
+    problems = [
+        planner.prepare(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], field)
+        for _ in range(2)
+    ]
+    planner._active, planner._aside = problems
+    planner.cancel()
+    for problem in problems:
+        assert problem.cancel_flag[0] == 1
+        assert problem.solve()[1] == LbfgsStatus.CANCELED
 
 
 def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() -> None:

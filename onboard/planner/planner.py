@@ -5,8 +5,8 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. An accepted solution from the previous trajectory is solved once more from
-a fresh start (``fresh_alternative``: the straight line by default) and the cheaper of the two
-that the check accepts is flown. A refused solution is first solved again from where it is (tight
+a fresh start (``fresh_alternative``: the straight line by default; on a side thread beside the
+warm solve, ``fresh_in_parallel``) and the cheaper of the two that the check accepts is flown. A refused solution is first solved again from where it is (tight
 tolerances; where it passes too close to an obstacle, also on denser constraint points with
 stiffer obstacle and limit penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
 failed attempt is retried from an A* path with the formation term
@@ -40,8 +40,10 @@ import dataclasses
 import enum
 import functools
 import math
+import threading
 import weakref
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -397,6 +399,35 @@ def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     return a
 
 
+_SIDE_POOL: ThreadPoolExecutor | None = None
+_SIDE_POOL_LOCK = threading.Lock()
+
+
+def _side_pool() -> ThreadPoolExecutor:
+    """The process's one side thread for ``fresh_in_parallel`` (made at its first use)."""
+    global _SIDE_POOL
+    with _SIDE_POOL_LOCK:
+        if _SIDE_POOL is None:
+            _SIDE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plan-side")
+        return _SIDE_POOL
+
+
+class _SideSolve:
+    """A problem solved on the side thread (``fresh_in_parallel``)."""
+
+    def __init__(self, problem: Problem) -> None:
+        self.problem = problem
+        self.taken = False
+        self._future: Future[tuple[np.ndarray, LbfgsStatus]] = _side_pool().submit(problem.solve)
+
+    def take(self, stop: bool) -> tuple[np.ndarray, LbfgsStatus]:
+        """(x, status) once the solve is done; ``stop``: cancel it first."""
+        self.taken = True
+        if stop:
+            self.problem.cancel_flag[0] = 1
+        return self._future.result()
+
+
 class FormationPlanner:
     """Plans one drone's trajectory in the formation (its ``slot`` of ``formation``)."""
 
@@ -420,6 +451,7 @@ class FormationPlanner:
         self.slot = slot
         self.mask = mask
         self._active: Problem | None = None
+        self._aside: Problem | None = None  # the problem on the side thread
         self._prm_formation = self._param_vector(use_formation=True)
         self._prm_no_formation = self._param_vector(use_formation=False)
         self._lb_prm = params.lbfgs.to_array()
@@ -483,9 +515,11 @@ class FormationPlanner:
         return point
 
     def cancel(self) -> None:
-        """Ask a running solve (in another thread) to stop at its next evaluation."""
-        if self._active is not None:
-            self._active.cancel_flag[0] = 1
+        """Ask a running solve (in another thread), and one on the side thread, to stop at its
+        next evaluation."""
+        for problem in (self._active, self._aside):
+            if problem is not None:
+                problem.cancel_flag[0] = 1
 
     # --- problem set-up ---------------------------------------------------------------------
 
@@ -1000,20 +1034,18 @@ class FormationPlanner:
         last_resort = None
         refused: list[tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]] = []
 
-        def solve(
+        def prepare(
             use_formation: bool,
             force_astar: bool,
             astar_margin_m: float = 3.0,
             ladder: tuple[float, ...] = self.params.astar_ladder_m,
             fresh: bool = False,
             formation_scale: float = 1.0,
-        ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
-            """Prepare and solve one attempt (cancellable meanwhile), counting its work;
-            ``fresh``: from the straight line, not from ``previous`` (where the line is blocked,
-            an A* path on ``ladder``; an empty ladder keeps the line); ``formation_scale``: of
-            the formation weight."""
-            nonlocal iters, evals
-            problem = self._prepare(
+        ) -> Problem:
+            """The problem of one attempt; ``fresh``: from the straight line, not from
+            ``previous`` (where the line is blocked, an A* path on ``ladder``; an empty ladder
+            keeps the line); ``formation_scale``: of the formation weight."""
+            return self._prepare(
                 t_start_s,
                 sp,
                 sv,
@@ -1030,12 +1062,54 @@ class FormationPlanner:
                 ladder,
                 formation_scale,
             )
+
+        def solve(
+            use_formation: bool,
+            force_astar: bool,
+            astar_margin_m: float = 3.0,
+            ladder: tuple[float, ...] = self.params.astar_ladder_m,
+            fresh: bool = False,
+            formation_scale: float = 1.0,
+        ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
+            """Prepare (``prepare``) and solve one attempt (cancellable meanwhile), counting
+            its work."""
+            nonlocal iters, evals
+            problem = prepare(
+                use_formation, force_astar, astar_margin_m, ladder, fresh, formation_scale
+            )
             self._active = problem
             x, status = problem.solve()
             self._active = None
             iters += problem.iterations
             evals += problem.evaluations
             return problem, x, status
+
+        def fresh_ladder() -> tuple[float, ...]:
+            return () if self.params.fresh_alternative == "line" else self.params.astar_ladder_m
+
+        def wants_fresh(use_formation: bool, force_astar: bool) -> bool:
+            """Whether an attempt accepted from the warm start is solved again from a fresh
+            start (``fresh_alternative``), but for the time budget."""
+            return (
+                use_formation
+                and not force_astar
+                and previous is not None
+                and self.params.fresh_alternative != "never"
+            )
+
+        def collect(side: _SideSolve, stop: bool) -> tuple[Problem, np.ndarray, LbfgsStatus]:
+            """What the side thread made of its problem; ``stop``: cancel it first, as not
+            wanted any more (its work is then not counted: one solve after the other would not
+            have started it, and how far it got depends on the timing)."""
+            nonlocal iters, evals
+            try:
+                x, status = side.take(stop)
+            finally:
+                self._aside = None
+            if not stop:
+                iters += side.problem.iterations
+                evals += side.problem.evaluations
+            return side.problem, x, status
 
         def alternative(
             solved: tuple[Problem, np.ndarray, LbfgsStatus],
@@ -1068,6 +1142,51 @@ class FormationPlanner:
             and the attempt counts as refused."""
             nonlocal last_status, last_resort
             label = what if use_formation else f"{what} without formation"
+            # the fresh start's solve runs beside the warm one when it is wanted (the same
+            # result as one after the other: neither reads the other's work)
+            side: _SideSolve | None = None
+            if (
+                self.params.fresh_in_parallel
+                and wants_fresh(use_formation, force_astar)
+                and not (give_up is not None and give_up())
+            ):
+                side_problem = prepare(
+                    use_formation,
+                    False,
+                    ladder=fresh_ladder(),
+                    fresh=True,
+                    formation_scale=formation_scale,
+                )
+                self._aside = side_problem
+                side = _SideSolve(side_problem)
+            try:
+                return attempt_on(
+                    use_formation,
+                    force_astar,
+                    ok_status,
+                    label,
+                    what,
+                    ladder,
+                    formation_scale,
+                    side,
+                )
+            finally:
+                if side is not None and not side.taken:  # not used: stopped, its work counted
+                    collect(side, stop=True)
+
+        def attempt_on(
+            use_formation: bool,
+            force_astar: bool,
+            ok_status: PlanStatus,
+            label: str,
+            what: str,
+            ladder: tuple[float, ...],
+            formation_scale: float,
+            side: _SideSolve | None,
+        ) -> tuple[PlanResult | None, Problem, bool]:
+            """``attempt`` with the fresh start's solve, when wanted, already running on the
+            side thread (``side``)."""
+            nonlocal last_status, last_resort
             problem, x, last_status = solve(
                 use_formation, force_astar, ladder=ladder, formation_scale=formation_scale
             )
@@ -1085,9 +1204,13 @@ class FormationPlanner:
                 # and stiffer (NaN: the test stopped before the distances); a last resort is
                 # replaced only by a trajectory the check accepts outright
                 close = clearance < self.params.check_obstacle_m
-                x2, st2 = problem.solve(
-                    x, self._lb_prm_refine, problem.refine_prob() if close else None
-                )
+                self._active = problem  # cancellable meanwhile
+                try:
+                    x2, st2 = problem.solve(
+                        x, self._lb_prm_refine, problem.refine_prob() if close else None
+                    )
+                finally:
+                    self._active = None
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
                     if refined[0] is not None and (not safe or (refined[1] and not refined[2])):
@@ -1105,18 +1228,16 @@ class FormationPlanner:
                 return None, problem, False
             if (
                 safe
-                and use_formation
-                and not force_astar
-                and previous is not None
-                and self.params.fresh_alternative != "never"
+                and wants_fresh(use_formation, force_astar)
                 and not (give_up is not None and give_up())
             ):
-                line = self.params.fresh_alternative == "line"
                 fresh = alternative(
-                    solve(
+                    collect(side, stop=False)
+                    if side is not None
+                    else solve(
                         use_formation,
                         False,
-                        ladder=() if line else self.params.astar_ladder_m,
+                        ladder=fresh_ladder(),
                         fresh=True,
                         formation_scale=formation_scale,
                     )
