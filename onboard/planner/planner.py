@@ -6,9 +6,10 @@ optimises waypoints and durations of a MINCO trajectory with L-BFGS over the sev
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. An accepted solution from the previous trajectory is solved once more from
 a fresh start (``fresh_alternative``: the straight line by default; on a side thread beside the
-warm solve, ``fresh_in_parallel``) and the cheaper of the two that the check accepts is flown. A refused solution is first solved again from where it is (tight
-tolerances; where it passes too close to an obstacle, also on denser constraint points with
-stiffer obstacle and limit penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
+warm solve, ``fresh_in_parallel``) and the cheaper of the two that the check accepts is flown.
+A refused solution is first solved again from where it is (tight tolerances; where it passes
+too close to an obstacle, also on denser constraint points with stiffer obstacle and limit
+penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
 failed attempt is retried from an A* path with the formation term
 (``astar_keeps_formation``), optionally once more with the formation weight scaled down
 (``soft_formation_scale``), then from an A* path without it (A* paths keep the optimiser's
