@@ -12,6 +12,7 @@ fastest of several batches.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import pickle
@@ -22,6 +23,7 @@ import tempfile
 import textwrap
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -206,8 +208,13 @@ def bench_planner(
     startup: bool = True,
     sim_progress: Callable[[float, float], None] | None = None,
     replay_progress: Callable[[int, int], None] | None = None,
+    side_thread: bool = True,
 ) -> dict[str, Any]:
     """Record the flight ``cfg``, replay the chosen replans and return the report (JSON-able).
+
+    ``side_thread``: the replayed planners solve the fresh start on a second thread beside the
+    warm one, as the flight service does by default (``planning.side_thread``); the recorded
+    flight is the same either way.
 
     Per problem: ``prepare(...) + solve()`` timed ``repeats`` times after one untimed run
     (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
@@ -239,7 +246,48 @@ def bench_planner(
         flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
         chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
     params = cfg.params
-    planners = [FormationPlanner(params, cfg.formation.points, i) for i in range(cfg.formation.n)]
+    with contextlib.ExitStack() as stack:
+        side = (
+            stack.enter_context(ThreadPoolExecutor(max_workers=1, thread_name_prefix="side"))
+            if side_thread
+            else None
+        )
+        planners = [
+            FormationPlanner(params, cfg.formation.points, i, side=side)
+            for i in range(cfg.formation.n)
+        ]
+        return _replay(
+            cfg,
+            params,
+            planners,
+            chosen,
+            calls,
+            flight,
+            repeats,
+            skip_s,
+            eval_calls,
+            startup,
+            replay_progress,
+            side_thread,
+        )
+
+
+def _replay(
+    cfg: SimConfig,
+    params: Any,
+    planners: list[Any],
+    chosen: list[PlanCall],
+    calls: list[PlanCall],
+    flight: Any,
+    repeats: int,
+    skip_s: float,
+    eval_calls: int,
+    startup: bool,
+    replay_progress: Callable[[int, int], None] | None,
+    side_thread: bool,
+) -> dict[str, Any]:
+    """``bench_planner``'s replay of ``chosen`` on ``planners`` and its report."""
+    mapped = cfg.perception == "mapped"
 
     replan_ms: list[float] = []  # the whole plan() call
     solve_ms: list[float] = []  # Problem.solve() alone
@@ -311,6 +359,7 @@ def bench_planner(
             "flight_success": flight.success,
             "flight_replans": len(calls),
             "skip_s": skip_s,
+            "side_thread": side_thread,
         },
         "problems": len(chosen),
         "repeats": repeats,

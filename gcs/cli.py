@@ -746,6 +746,13 @@ def bench_table(
     help="Measure a fresh process's import + first plan.",
 )
 @click.option(
+    "--side-thread/--no-side-thread",
+    default=True,
+    show_default=True,
+    help="Solve the fresh start on a second thread beside the warm one, as the flight service "
+    "does (planning.side_thread).",
+)
+@click.option(
     "--time-limit",
     type=float,
     default=None,
@@ -768,6 +775,7 @@ def bench_planner(
     max_problems: int,
     eval_calls: int,
     startup: bool,
+    side_thread: bool,
     time_limit: float | None,
     json_path: Path | None,
     perception: str,
@@ -826,6 +834,7 @@ def bench_planner(
                 startup=startup,
                 sim_progress=sim_cb,
                 replay_progress=replay_cb,
+                side_thread=side_thread,
             )
         except (RuntimeError, ConfigError) as e:
             raise click.ClickException(str(e)) from e

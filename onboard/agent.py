@@ -95,6 +95,7 @@ from onboard.planner.planner import (
     FormationPlanner,
     PeerTrajectory,
     PlanStatus,
+    SideExecutor,
 )
 from onboard.planner.trajectory import Trajectory, braking_distance_m
 
@@ -628,7 +629,8 @@ class DroneAgent:
     trajectory goes out again this long after it unless a newer one went out first, as
     ``resend`` is called (``RESEND_S`` in the flight service and fast time; () none);
     resend_plans: False: only what ``announce`` publishes (braking stops, hovers) is sent
-    again, not the replans' plans.
+    again, not the replans' plans; side: where each planner solves its fresh start beside the
+    warm one (``FormationPlanner``'s ``side``; None: one after the other).
     """
 
     def __init__(
@@ -668,7 +670,9 @@ class DroneAgent:
         plan_budget_s: float = math.inf,
         resend_s: Sequence[float] = (),
         resend_plans: bool = True,
+        side: SideExecutor | None = None,
     ) -> None:
+        self._side = side
         self.resend_s = resend_delays(resend_s)
         self.resend_plans = bool(resend_plans)
         if not (math.isfinite(replan_period_s) and replan_period_s > 0.0):
@@ -1690,7 +1694,7 @@ class DroneAgent:
         if unheard:
             params = unheard_params(params)
         if n_avoided == 0:
-            planner = FormationPlanner(params, formation, slot)
+            planner = FormationPlanner(params, formation, slot, side=self._side)
         else:
             n = formation.shape[0]
             F = np.vstack([formation, np.zeros((n_avoided, 3))])
@@ -1699,6 +1703,6 @@ class DroneAgent:
             if params.formation_penalty == "relative":
                 # fixed offsets ignore the edge mask: no formation term while some are avoided
                 params = dataclasses.replace(params, w_formation=0.0)
-            planner = FormationPlanner(params, F, slot, edge_mask=mask)
+            planner = FormationPlanner(params, F, slot, edge_mask=mask, side=self._side)
         self._planners[key] = planner
         return planner

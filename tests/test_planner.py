@@ -2,6 +2,8 @@
 
 import dataclasses
 import functools
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -673,15 +675,14 @@ def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk(mode: str) -> Non
     assert _y_where_x(again.trajectory, 3.0) < -0.2
 
 
-def test_fresh_in_parallel_flies_the_same_plans_as_one_solve_after_the_other() -> None:
-    """``fresh_in_parallel``: the fresh start's solve on the side thread changes no plan: the
-    trajectory, status and message are those of the two solves one after the other, where the
-    fresh start wins by a long way and by a little, and where the time budget runs out after the
-    warm solve (the side solve is then stopped, not flown)."""
+def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> None:
+    """``side``: the fresh start's solve on a second thread changes no plan: the trajectory,
+    status, message and work counted are those of the two solves one after the other, where the
+    fresh start wins by a long way and by a little, and where the time budget runs out after
+    the warm solve (the side solve is then stopped, not flown, and not counted)."""
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([6.0, 0.0, 1.0])
-    assert PlannerParams().fresh_in_parallel  # the default
-    base = PlannerParams(v_max_m_s=0.5, fresh_in_parallel=False)
+    base = PlannerParams(v_max_m_s=0.5)
     wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
     far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
     field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
@@ -689,39 +690,48 @@ def test_fresh_in_parallel_flies_the_same_plans_as_one_solve_after_the_other() -
         0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
     )
     assert "fresh start: cost" in short_way.message
-    budgets: dict[bool, list[bool]] = {False: [True], True: [False, True]}  # give_up's answers
-    for previous, budget in ((far_way, False), (short_way, False), (far_way, True)):
-        plans = {}
-        for parallel in (False, True):
-            planner = FormationPlanner(
-                dataclasses.replace(base, fresh_in_parallel=parallel), LINE3, slot=1
-            )
-            give_up = functools.partial(next, iter(budgets[parallel]))
-            plans[parallel] = planner.plan(
-                0.0,
-                start,
-                ZERO,
-                ZERO,
-                goal,
-                [],
-                field,
-                previous.trajectory,
-                give_up=give_up if budget else None,
-            )
-            assert planner._aside is None
-        one, two = plans[False], plans[True]
-        assert one.status == two.status == PlanStatus.OK
-        assert one.message == two.message
-        assert ("fresh start" in one.message) != budget
-        np.testing.assert_array_equal(one.trajectory.coeffs, two.trajectory.coeffs)
-        np.testing.assert_array_equal(one.trajectory.durations_s, two.trajectory.durations_s)
-        # the work of a side solve stopped as not wanted is not counted
-        assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
+    submitted: list[str] = []
+    with ThreadPoolExecutor(max_workers=1) as pool:
+
+        class Counting:
+            def submit(self, fn: Callable[[], Any], /) -> Future[Any]:
+                submitted.append("side")
+                return pool.submit(fn)
+
+        budgets: dict[bool, list[bool]] = {False: [True], True: [False, True]}  # give_up's
+        for previous, budget in ((far_way, False), (short_way, False), (far_way, True)):
+            plans = {}
+            for parallel in (False, True):
+                planner = FormationPlanner(
+                    base, LINE3, slot=1, side=Counting() if parallel else None
+                )
+                give_up = functools.partial(next, iter(budgets[parallel]))
+                n0 = len(submitted)
+                plans[parallel] = planner.plan(
+                    0.0,
+                    start,
+                    ZERO,
+                    ZERO,
+                    goal,
+                    [],
+                    field,
+                    previous.trajectory,
+                    give_up=give_up if budget else None,
+                )
+                assert planner._aside is None
+                assert len(submitted) - n0 == (1 if parallel else 0)
+            one, two = plans[False], plans[True]
+            assert one.status == two.status == PlanStatus.OK
+            assert one.message == two.message
+            assert ("fresh start" in one.message) != budget
+            np.testing.assert_array_equal(one.trajectory.coeffs, two.trajectory.coeffs)
+            np.testing.assert_array_equal(one.trajectory.durations_s, two.trajectory.durations_s)
+            assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
 
 
 def test_cancel_reaches_the_side_solve_too() -> None:
-    """``cancel`` stops the solve on the side thread (``fresh_in_parallel``) as well as the one
-    in the planning thread."""
+    """``cancel`` stops the solve on the side executor as well as the one in the planning
+    thread."""
     planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
     field = AnalyticField(_world([]))
     problems = [

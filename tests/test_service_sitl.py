@@ -115,6 +115,9 @@ def test_service_flies_the_mock(
         truth = f.latest_truth()[1]
         own_goal = start + [3.0, 0.0, 0.0]
         assert np.linalg.norm(np.array(truth.position_m) - own_goal) < 0.4
+        # the fresh starts were solved on the planner's side thread (planning.side_thread)
+        assert cfg.planning.side_thread
+        assert any(t.name.startswith("svc-side") for t in threading.enumerate())
         c4 = bus.send(Land())
         poll(lambda: svc.machine.state is S.LANDED, 30.0, "landed")
         assert bus.ack_of(c4) == (True, "")
@@ -127,6 +130,7 @@ def test_service_flies_the_mock(
         runner.join(10.0)
         svc.stop()
         ap.close()
+    assert not any(t.name.startswith("svc-side") for t in threading.enumerate())  # shut down
     recs = list(tmp_path.glob("*.mcap"))
     assert len(recs) == 1
     rec = read_record(recs[0])

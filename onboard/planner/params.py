@@ -221,12 +221,6 @@ class PlannerParams:
     a change in flight 0.0244 against 0.0332 (seeds 1-24; the new shape within 10 s in 8 of 24
     against 10). The price: ``bench planner``'s median plan 2.6 ms against 0.9 ms. 'astar':
     0.0029 / 0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
-    fresh_in_parallel: bool = True
-    """The second solve of ``fresh_alternative`` runs on a side thread beside the warm one
-    (the compiled solver releases the GIL) rather than after it: the same plans, sooner where
-    a core is free (the side solve is stopped when the warm attempt is refused). ``bench
-    planner``'s median plan 1.59-1.60 ms against 2.09-2.10 ms one after the other (BENCHMARKS.md
-    section 1, 2026-12-01)."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals

@@ -5,8 +5,8 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. An accepted solution from the previous trajectory is solved once more from
-a fresh start (``fresh_alternative``: the straight line by default; on a side thread beside the
-warm solve, ``fresh_in_parallel``) and the cheaper of the two that the check accepts is flown.
+a fresh start (``fresh_alternative``: the straight line by default; beside the warm solve on a
+``SideExecutor`` when given one) and the cheaper of the two that the check accepts is flown.
 A refused solution is first solved again from where it is (tight tolerances; where it passes
 too close to an obstacle, also on denser constraint points with stiffer obstacle and limit
 penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
@@ -41,11 +41,10 @@ import dataclasses
 import enum
 import functools
 import math
-import threading
 import weakref
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -400,37 +399,43 @@ def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     return a
 
 
-_SIDE_POOL: ThreadPoolExecutor | None = None
-_SIDE_POOL_LOCK = threading.Lock()
+class Pending(Protocol):
+    """A call started elsewhere (``concurrent.futures.Future`` is one)."""
+
+    def result(self) -> Any: ...
 
 
-def _side_pool() -> ThreadPoolExecutor:
-    """The process's one side thread for ``fresh_in_parallel`` (made at its first use)."""
-    global _SIDE_POOL
-    with _SIDE_POOL_LOCK:
-        if _SIDE_POOL is None:
-            _SIDE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plan-side")
-        return _SIDE_POOL
+class SideExecutor(Protocol):
+    """Where the fresh start's solve runs beside the warm one: anything that starts a call
+    and hands back its ``Pending`` result (``concurrent.futures.ThreadPoolExecutor`` is one; the
+    compiled solver releases the GIL). The caller owns it: the planner starts no thread."""
+
+    def submit(self, fn: Callable[[], Any], /) -> Pending: ...
 
 
 class _SideSolve:
-    """A problem solved on the side thread (``fresh_in_parallel``)."""
+    """A problem solved on a ``SideExecutor``."""
 
-    def __init__(self, problem: Problem) -> None:
+    def __init__(self, problem: Problem, side: SideExecutor) -> None:
         self.problem = problem
         self.taken = False
-        self._future: Future[tuple[np.ndarray, LbfgsStatus]] = _side_pool().submit(problem.solve)
+        self._pending = side.submit(problem.solve)
 
     def take(self, stop: bool) -> tuple[np.ndarray, LbfgsStatus]:
         """(x, status) once the solve is done; ``stop``: cancel it first."""
         self.taken = True
         if stop:
             self.problem.cancel_flag[0] = 1
-        return self._future.result()
+        x, status = self._pending.result()
+        return x, status
 
 
 class FormationPlanner:
-    """Plans one drone's trajectory in the formation (its ``slot`` of ``formation``)."""
+    """Plans one drone's trajectory in the formation (its ``slot`` of ``formation``).
+
+    ``side``: where the fresh start's solve (``fresh_alternative``) runs beside the warm one
+    (None: after it, in the calling thread). The plans are the same either way; with a free
+    core they come sooner."""
 
     def __init__(
         self,
@@ -438,6 +443,7 @@ class FormationPlanner:
         formation: np.ndarray,
         slot: int,
         edge_mask: np.ndarray | None = None,
+        side: SideExecutor | None = None,
     ) -> None:
         F = np.asarray(formation, dtype=np.float64)
         if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] < 1 or not np.all(np.isfinite(F)):
@@ -452,7 +458,8 @@ class FormationPlanner:
         self.slot = slot
         self.mask = mask
         self._active: Problem | None = None
-        self._aside: Problem | None = None  # the problem on the side thread
+        self._side = side
+        self._aside: Problem | None = None  # the problem on the side executor
         self._prm_formation = self._param_vector(use_formation=True)
         self._prm_no_formation = self._param_vector(use_formation=False)
         self._lb_prm = params.lbfgs.to_array()
@@ -516,7 +523,7 @@ class FormationPlanner:
         return point
 
     def cancel(self) -> None:
-        """Ask a running solve (in another thread), and one on the side thread, to stop at its
+        """Ask a running solve (in another thread), and one on the side executor, to stop at its
         next evaluation."""
         for problem in (self._active, self._aside):
             if problem is not None:
@@ -1099,7 +1106,7 @@ class FormationPlanner:
             )
 
         def collect(side: _SideSolve, stop: bool) -> tuple[Problem, np.ndarray, LbfgsStatus]:
-            """What the side thread made of its problem; ``stop``: cancel it first, as not
+            """What the side executor made of its problem; ``stop``: cancel it first, as not
             wanted any more (its work is then not counted: one solve after the other would not
             have started it, and how far it got depends on the timing)."""
             nonlocal iters, evals
@@ -1147,7 +1154,7 @@ class FormationPlanner:
             # result as one after the other: neither reads the other's work)
             side: _SideSolve | None = None
             if (
-                self.params.fresh_in_parallel
+                self._side is not None
                 and wants_fresh(use_formation, force_astar)
                 and not (give_up is not None and give_up())
             ):
@@ -1159,7 +1166,7 @@ class FormationPlanner:
                     formation_scale=formation_scale,
                 )
                 self._aside = side_problem
-                side = _SideSolve(side_problem)
+                side = _SideSolve(side_problem, self._side)
             try:
                 return attempt_on(
                     use_formation,
@@ -1186,7 +1193,7 @@ class FormationPlanner:
             side: _SideSolve | None,
         ) -> tuple[PlanResult | None, Problem, bool]:
             """``attempt`` with the fresh start's solve, when wanted, already running on the
-            side thread (``side``)."""
+            side executor (``side``)."""
             nonlocal last_status, last_resort
             problem, x, last_status = solve(
                 use_formation, force_astar, ladder=ladder, formation_scale=formation_scale

@@ -46,6 +46,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,7 +105,7 @@ from onboard.service.state import (
     Transition,
     Waypoints,
 )
-from onboard.threadname import named_thread
+from onboard.threadname import named_thread, set_os_thread_name
 
 log = logging.getLogger("onboard.service")
 
@@ -185,6 +186,17 @@ class FlightService:
         )
         pc = config.planning
         rc = config.reactions.peer_lost
+        # the planner's side thread (``planning.side_thread``), owned here, shut down in stop()
+        self._side_pool = (
+            ThreadPoolExecutor(
+                max_workers=1,
+                thread_name_prefix="svc-side",
+                initializer=set_os_thread_name,
+                initargs=("svc-side",),
+            )
+            if pc.side_thread
+            else None
+        )
         # the per-drone cycle: the same class the fast-time simulator runs. Until a formation is
         # assigned it holds a one-point template; until take-off nothing is in control.
         self.agent = DroneAgent(
@@ -212,6 +224,7 @@ class FlightService:
             plan_budget_s=pc.plan_budget_s,
             resend_s=pc.resend_s,
             resend_plans=pc.resend_plans,
+            side=self._side_pool,
         )
         self._frame_reject_reason = ""
         self._relay = StateRelay(bus, self.agent)  # the peers' states: their signs of life
@@ -1379,6 +1392,9 @@ class FlightService:
         # cannot be interrupted: the caller must not run the interpreter's teardown under it
         self.stuck_threads = [t.name for t in self._threads if t.is_alive()]
         self._threads.clear()
+        if self._side_pool is not None:
+            # idle once the planner thread has stopped; not waited for behind a stuck one
+            self._side_pool.shutdown(wait=not self.stuck_threads, cancel_futures=True)
         self.ap.stream(None)
         if self.recorder is not None:
             self.recorder.flush()
