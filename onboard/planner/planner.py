@@ -766,15 +766,23 @@ class FormationPlanner:
         astar_margin_m: float,
         ladder: tuple[float, ...],
         formation_scale: float = 1.0,
+        setups: dict[bool, tuple[np.ndarray, float, float]] | None = None,
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple;
-        ``formation_scale``: the formation weight times this (with ``use_formation``)."""
+        ``formation_scale``: the formation weight times this (with ``use_formation``);
+        ``setups``: the swarm set-up (``_swarm_setup``) of the same start and peers, by its
+        ``lead`` flag, kept from one attempt of a replan to the next (filled here)."""
         p = self.params
         want_lead = (
             use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0
         )
         if len(peers) > 0:
-            goal_t, horizon, lead = self._swarm_setup(t_start_s, sp, gl, peers, pack, want_lead)
+            known = None if setups is None else setups.get(want_lead)
+            if known is None:
+                known = self._swarm_setup(t_start_s, sp, gl, peers, pack, want_lead)
+                if setups is not None:
+                    setups[want_lead] = known
+            goal_t, horizon, lead = known[0].copy(), known[1], known[2]
         else:
             goal_t, horizon, lead = gl, p.horizon_m, 0.0
         target, x0, astar_clearance = self._initial_x(
@@ -1062,6 +1070,8 @@ class FormationPlanner:
         last_resort: tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray] | None
         last_resort = None
         refused: list[tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]] = []
+        # the swarm set-up of this start and these peers, shared by the attempts
+        setups: dict[bool, tuple[np.ndarray, float, float]] = {}
 
         def prepare(
             use_formation: bool,
@@ -1090,6 +1100,7 @@ class FormationPlanner:
                 astar_margin_m,
                 ladder,
                 formation_scale,
+                setups,
             )
 
         def solve(
