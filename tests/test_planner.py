@@ -17,12 +17,10 @@ from onboard.planner.params import PlannerParams, recover_params, reform_params
 from onboard.planner.planner import (
     APPROACH,
     LAST_RESORT,
-    SPEED_TOLERANCE,
     FormationPlanner,
     PeerTrajectory,
     PlanStatus,
     _pack_peers,
-    _top_speed,
 )
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
@@ -745,34 +743,6 @@ def test_cancel_reaches_the_side_solve_too() -> None:
     for problem in problems:
         assert problem.cancel_flag[0] == 1
         assert problem.solve()[1] == LbfgsStatus.CANCELED
-
-
-def test_speed_refine_factor_solves_a_plan_too_fast_between_its_points_again() -> None:
-    """``speed_refine_factor``: a plan whose speed peaks between its constraint points (here
-    only two a piece) more than 1.5 % over the limit is solved again on denser points and flown
-    slower; off (0), the fast one is flown."""
-    trunks = [
-        [7.84, 0.53, 0.25, 0.0, 3.0],
-        [3.70, -0.95, 0.25, 0.0, 3.0],
-        [6.61, -0.18, 0.25, 0.0, 3.0],
-    ]
-    field = AnalyticField(_world(trunks))
-    start, goal = np.array([0.0, 0.0, 1.0]), np.array([11.0, 0.0, 1.0])
-    assert PlannerParams().speed_refine_factor == 0  # the default: off
-    top = {}
-    for k in (0, 4):
-        params = PlannerParams(v_max_m_s=0.5, kappa=2, formation_stride=1, speed_refine_factor=k)
-        res = FormationPlanner(params, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], field)
-        assert res.status == PlanStatus.OK
-        assert ("refined for speed" in res.message) == (k > 0)
-        top[k] = _top_speed(res.trajectory)
-        d, _ = field.distance(res.trajectory.sample(np.linspace(0.0, res.trajectory.t_end_s, 800)))
-        assert d.min() >= params.check_obstacle_m
-    assert top[0] > 0.5 * (1.0 + SPEED_TOLERANCE) + 0.01  # the sparse points let it speed
-    assert top[4] <= 0.5 * (1.0 + SPEED_TOLERANCE)
-    for bad in (-1, 9, 1.5, True):
-        with pytest.raises(ValueError, match="speed_refine_factor must be an integer"):
-            PlannerParams(speed_refine_factor=bad)  # type: ignore[arg-type]
 
 
 def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() -> None:

@@ -221,11 +221,6 @@ class PlannerParams:
     a change in flight 0.0244 against 0.0332 (seeds 1-24; the new shape within 10 s in 8 of 24
     against 10). The price: ``bench planner``'s median plan 2.6 ms against 0.9 ms. 'astar':
     0.0029 / 0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
-    speed_refine_factor: int = 0
-    """> 0: an accepted plan faster than ``v_max_m_s`` by more than 1.5 % somewhere (between
-    its constraint points, where the limit penalties do not look) is solved again from where it
-    is on this many times the constraint points, and flown when the check accepts it and it is
-    slower (0: off)."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals
@@ -541,9 +536,6 @@ class PlannerParams:
             raise ValueError(
                 f"soft_formation_scale must be in [0, 1), got {self.soft_formation_scale!r}"
             )
-        n = self.speed_refine_factor
-        if not (isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= 8):
-            raise ValueError(f"speed_refine_factor must be an integer 0-8, got {n!r}")
         if self.fresh_alternative not in FRESH_STARTS:
             raise ValueError(
                 f"fresh_alternative must be one of {FRESH_STARTS}, got {self.fresh_alternative!r}"

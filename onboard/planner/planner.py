@@ -246,12 +246,6 @@ class Problem:
             prm.setflags(write=False)  # as the planner's: one compiled version
         return (head, tail, kappa * p.refine_kappa_factor, prm, *rest)
 
-    def speed_prob(self) -> tuple:
-        """The problem a solution too fast between its constraint points is solved again on:
-        ``speed_refine_factor`` times the constraint points."""
-        head, tail, kappa, *rest = self.prob
-        return (head, tail, kappa * self.params.speed_refine_factor, *rest)
-
     def solve(
         self,
         x_start: np.ndarray | None = None,
@@ -403,21 +397,6 @@ def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     if a.shape != (3,) or not all(map(math.isfinite, a.tolist())):
         raise ValueError(f"{name} must be a finite 3-vector, got {v!r}")
     return a
-
-
-SPEED_TOLERANCE = 0.015
-"""``speed_refine_factor``: a solution faster than ``v_max_m_s`` times (1 + this) somewhere is
-solved again on denser constraint points (#11 allows a top speed 2 % over the limit)."""
-SPEED_SAMPLES_PER_PIECE = 32
-"""A trajectory's top speed is taken over this many instants of each piece."""
-
-
-def _top_speed(traj: Trajectory) -> float:
-    """The highest speed of ``traj`` at ``SPEED_SAMPLES_PER_PIECE`` instants of each piece."""
-    u = np.linspace(0.0, 1.0, SPEED_SAMPLES_PER_PIECE)
-    starts = np.concatenate(([0.0], np.cumsum(traj.durations_s)[:-1]))
-    ts = traj.t0_s + (starts[:, None] + u[None, :] * traj.durations_s[:, None]).ravel()
-    return float(np.max(np.linalg.norm(traj.sample(ts, order=1), axis=1)))
 
 
 class Pending(Protocol):
@@ -1167,30 +1146,6 @@ class FormationPlanner:
                 return None
             return alt, x_alt, st_alt, traj_alt, clr_alt, ahead_alt
 
-        def refine_speed(
-            problem: Problem, x: np.ndarray, traj: Trajectory
-        ) -> tuple[Problem, np.ndarray, LbfgsStatus, Trajectory, float, float] | None:
-            """An accepted solution faster than ``v_max_m_s`` by more than ``SPEED_TOLERANCE``
-            somewhere, solved again from where it is on ``speed_refine_factor`` times the
-            constraint points (the speed peaked between them) with tight tolerances: (as
-            ``alternative``) when the check accepts that outright and it is slower, else None."""
-            limit = self.params.v_max_m_s * (1.0 + SPEED_TOLERANCE)
-            top = _top_speed(traj)
-            if top <= limit:
-                return None
-            self._active = problem  # cancellable meanwhile
-            try:
-                x2, st2 = problem.solve(x, self._lb_prm_refine, problem.speed_prob())
-            finally:
-                self._active = None
-            if st2 == LbfgsStatus.CANCELED:
-                return None
-            again = alternative((problem, x2, st2))
-            if again is None or _top_speed(again[3]) >= top:
-                return None
-            messages.append(f"refined for speed: {top:.3f} -> {_top_speed(again[3]):.3f} m/s")
-            return again
-
         def attempt(
             use_formation: bool,
             force_astar: bool,
@@ -1330,11 +1285,6 @@ class FormationPlanner:
                     if roomy is not None and roomy[4] > clearance:
                         problem, x, last_status, traj = roomy[:4]
                         messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
-            if safe and self.params.speed_refine_factor > 0:
-                assert traj is not None
-                slower = refine_speed(problem, x, traj)
-                if slower is not None:
-                    problem, x, last_status, traj = slower[:4]
             if safe:
                 assert traj is not None
                 if what == _RESCUE:
