@@ -1082,20 +1082,10 @@ class FormationPlanner:
                 setups,
             )
 
-        def solve(
-            use_formation: bool,
-            force_astar: bool,
-            astar_margin_m: float = 3.0,
-            ladder: tuple[float, ...] = self.params.astar_ladder_m,
-            fresh: bool = False,
-            formation_scale: float = 1.0,
-        ) -> tuple[Problem, np.ndarray, LbfgsStatus]:
-            """Prepare (``prepare``) and solve one attempt (cancellable meanwhile), counting
-            its work."""
+        def solve(problem: Problem) -> tuple[Problem, np.ndarray, LbfgsStatus]:
+            """Solve one attempt's problem (``prepare``; cancellable meanwhile), counting its
+            work."""
             nonlocal iters, evals
-            problem = prepare(
-                use_formation, force_astar, astar_margin_m, ladder, fresh, formation_scale
-            )
             self._active = problem
             x, status = problem.solve()
             self._active = None
@@ -1207,7 +1197,7 @@ class FormationPlanner:
             side executor (``side``)."""
             nonlocal last_status, last_resort
             problem, x, last_status = solve(
-                use_formation, force_astar, ladder=ladder, formation_scale=formation_scale
+                prepare(use_formation, force_astar, ladder=ladder, formation_scale=formation_scale)
             )
             if last_status == LbfgsStatus.CANCELED:
                 messages.append("canceled")
@@ -1254,11 +1244,13 @@ class FormationPlanner:
                     collect(side, stop=False)
                     if side is not None
                     else solve(
-                        use_formation,
-                        False,
-                        ladder=fresh_ladder(),
-                        fresh=True,
-                        formation_scale=formation_scale,
+                        prepare(
+                            use_formation,
+                            False,
+                            ladder=fresh_ladder(),
+                            fresh=True,
+                            formation_scale=formation_scale,
+                        )
                     )
                 )
                 if fresh is not None:
@@ -1276,10 +1268,12 @@ class FormationPlanner:
                 if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
                     roomy = alternative(
                         solve(
-                            use_formation,
-                            True,
-                            astar_margin_m=COMFORT_ASTAR_MARGIN_M,
-                            formation_scale=formation_scale,
+                            prepare(
+                                use_formation,
+                                True,
+                                astar_margin_m=COMFORT_ASTAR_MARGIN_M,
+                                formation_scale=formation_scale,
+                            )
                         )
                     )
                     if roomy is not None and roomy[4] > clearance:
