@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -780,6 +781,23 @@ def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() 
         d, _ = field.distance(res.trajectory.sample(np.linspace(0.5, res.trajectory.t_end_s, 400)))
         assert d.min() >= PlannerParams().check_obstacle_m
     assert searched == {"line": 0, "astar": 1}
+
+
+def test_recover_limit_scale_stiffens_the_limits_while_recovering_only() -> None:
+    base = PlannerParams()
+    assert base.recover_limit_scale == 1.0  # the default: the limits as in normal flight
+    same = recover_params(base)
+    assert (same.w_feasibility, same.w_limit_hard) == (base.w_feasibility, base.w_limit_hard)
+    on = dataclasses.replace(base, recover_limit_scale=3.0)
+    rec = recover_params(on)
+    assert rec.w_feasibility == 3.0 * base.w_feasibility
+    assert rec.w_limit_hard == 3.0 * base.w_limit_hard
+    assert rec.w_formation == base.recover_formation_scale * base.w_formation
+    normal = reform_params(on)  # re-forming keeps its own weights
+    assert (normal.w_feasibility, normal.w_limit_hard) == (base.w_feasibility, base.w_limit_hard)
+    for bad in (0.5, math.nan, math.inf):
+        with pytest.raises(ValueError, match="recover_limit_scale must be a number >= 1"):
+            PlannerParams(recover_limit_scale=bad)
 
 
 def test_reform_fresh_start_acts_while_re_forming_only() -> None:

@@ -300,6 +300,18 @@ class PlannerParams:
     stronger pull dipped a drone of ``tests/test_altitude_hold.py``'s triangle 0.19 m, against
     0.05 m): 2, 3 and 4 measured alike on sparse and medium forests; 3 kept the dense ones
     best."""
+    recover_limit_scale: float = 1.0
+    """While recovering the shape (``recover_e_sim``), ``w_feasibility`` and ``w_limit_hard``
+    are multiplied by this (1: as in normal flight). The formation weight is then x3
+    (``recover_formation_scale``), and its pull carries plan after plan (replanned every 0.25
+    s, each from the state the last one left) past the speed limit: the table's top speed,
+    0.511 m/s, is set there. Measured at 3 (BENCHMARKS.md section 8, 2026-12-01): top speed
+    0.5075 / 0.5049 / 0.5075 m/s on the seeded and two unseen sets of 60 worlds (the default
+    0.511 / 0.508 / 0.512), mean e_sim 0.0026 / 0.0047 / 0.0099, 0.0025 / 0.0059 / 0.0110 and
+    0.0024 / 0.0037 / 0.0100 (the default 0.0026 / 0.0045 / 0.0102, 0.0025 / 0.0049 / 0.0104,
+    0.0020 / 0.0036 / 0.0115), trials over 0.02: 3 against 1 (the worst 0.045 against 0.086);
+    fault trials e_sim 0.0075 against 0.0060. Off: the shape, not the last percent of speed,
+    decided it."""
     reform_formation_scale: float = 6.0
     """While re-forming (``reform_s``), ``w_formation`` is multiplied by this: the time term and
     the obstacle terms otherwise spread the move to the new slots over the whole horizon (7.5 m
@@ -498,6 +510,10 @@ class PlannerParams:
             raise ValueError(
                 f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"
             )
+        if not (np.isfinite(self.recover_limit_scale) and self.recover_limit_scale >= 1.0):
+            raise ValueError(
+                f"recover_limit_scale must be a number >= 1, got {self.recover_limit_scale!r}"
+            )
         if not (np.isfinite(self.recover_formation_scale) and self.recover_formation_scale > 0):
             raise ValueError(
                 "recover_formation_scale must be a positive number, "
@@ -599,13 +615,16 @@ def reform_params(params: PlannerParams) -> PlannerParams:
 def recover_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with while recovering the shape (``recover_e_sim``): those
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
-    ``recover_formation_scale``, a member far behind waited for (``lead_slowest_beyond_m``), and
-    the fresh start of ``fresh_alternative`` (not re-forming's)."""
+    ``recover_formation_scale``, the limit penalties by ``recover_limit_scale``, a member far
+    behind waited for (``lead_slowest_beyond_m``), and the fresh start of ``fresh_alternative``
+    (not re-forming's)."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),
         w_formation=params.w_formation * k,
         w_altitude_hold=params.w_altitude_hold * k,
+        w_feasibility=params.w_feasibility * params.recover_limit_scale,
+        w_limit_hard=params.w_limit_hard * params.recover_limit_scale,
         lead_slowest_beyond_m=params.lead_slowest_beyond_m,
         fresh_alternative=params.fresh_alternative,
     )
