@@ -1393,8 +1393,10 @@ class FlightService:
         self.stuck_threads = [t.name for t in self._threads if t.is_alive()]
         self._threads.clear()
         if self._side_pool is not None:
-            # idle once the planner thread has stopped; not waited for behind a stuck one
-            self._side_pool.shutdown(wait=not self.stuck_threads, cancel_futures=True)
+            # idle once the planner thread has stopped; not waited for behind a stuck one, and
+            # a solve it has queued is still run (not cancelled): that plan comes back as usual,
+            # and the planner thread's loop ends on the stop flag before starting another
+            self._side_pool.shutdown(wait=not self.stuck_threads, cancel_futures=False)
         self.ap.stream(None)
         if self.recorder is not None:
             self.recorder.flush()
