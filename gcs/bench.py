@@ -246,48 +246,6 @@ def bench_planner(
         flight = run_sim(cfg, recorder=calls.append, progress=sim_progress)
         chosen = select_calls(calls, cfg.formation.n, skip_s, max_problems)
     params = cfg.params
-    with contextlib.ExitStack() as stack:
-        side = (
-            stack.enter_context(ThreadPoolExecutor(max_workers=1, thread_name_prefix="side"))
-            if side_thread
-            else None
-        )
-        planners = [
-            FormationPlanner(params, cfg.formation.points, i, side=side)
-            for i in range(cfg.formation.n)
-        ]
-        return _replay(
-            cfg,
-            params,
-            planners,
-            chosen,
-            calls,
-            flight,
-            repeats,
-            skip_s,
-            eval_calls,
-            startup,
-            replay_progress,
-            side_thread,
-        )
-
-
-def _replay(
-    cfg: SimConfig,
-    params: Any,
-    planners: list[Any],
-    chosen: list[PlanCall],
-    calls: list[PlanCall],
-    flight: Any,
-    repeats: int,
-    skip_s: float,
-    eval_calls: int,
-    startup: bool,
-    replay_progress: Callable[[int, int], None] | None,
-    side_thread: bool,
-) -> dict[str, Any]:
-    """``bench_planner``'s replay of ``chosen`` on ``planners`` and its report."""
-    mapped = cfg.perception == "mapped"
 
     replan_ms: list[float] = []  # the whole plan() call
     solve_ms: list[float] = []  # Problem.solve() alone
@@ -302,51 +260,62 @@ def _replay(
     solver_statuses: dict[str, int] = {}
     rejected = 0  # first-attempt solutions the safety check refused
     clearance: list[float] = []  # their closest approach to an obstacle
-    for k_call, call in enumerate(chosen):
-        planner = planners[call.slot]
-        args = replay_inputs(call)  # the distance field is built here, outside the timing
-        t_prep: list[float] = []
-        t_solve: list[float] = []
-        t_plan: list[float] = []
-        problem = None
-        res = None
-        x_end = np.zeros(0)
-        for k in range(repeats + 1):  # the first round is a warm-up, not timed
-            t0 = time.perf_counter()
-            problem = planner.prepare(*args)
-            t1 = time.perf_counter()
-            x_end, _ = problem.solve()
-            t2 = time.perf_counter()
-            res = planner.plan(*args)
-            t3 = time.perf_counter()
-            if k > 0:
-                t_prep.append((t1 - t0) * 1e3)
-                t_solve.append((t2 - t1) * 1e3)
-                t_plan.append((t3 - t2) * 1e3)
-        assert problem is not None and res is not None
-        statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
-        sname = res.solver_status.name if res.solver_status is not None else "none"
-        solver_statuses[sname] = solver_statuses.get(sname, 0) + 1
-        first = problem.trajectory(x_end)
-        t_from = float(args[0])
-        if not planner.check(first, t_from, args[6], args[5])[0]:
-            rejected += 1
-        ts = np.append(np.arange(t_from, first.t_end_s, params.check_step_s), first.t_end_s)
-        clearance.append(float(np.min(args[6].distance(first.sample(ts))[0])))
-        e_us = _eval_us(problem, x_end, eval_calls)
-        s_ms = float(np.median(t_solve))
-        c_ms = problem.evaluations * e_us * 1e-3
-        replan_ms.append(float(np.median(t_plan)))
-        solve_ms.append(s_ms)
-        setup_ms.append(float(np.median(t_prep)))
-        iters.append(res.iterations)
-        evals.append(res.evaluations)
-        eval_us.append(e_us)
-        cost_ms.append(c_ms)
-        overhead_ms.append(s_ms - c_ms)
-        pieces.append(problem.M)
-        if replay_progress is not None:
-            replay_progress(k_call + 1, len(chosen))
+    # the flight service's side thread for the fresh start's solve (planning.side_thread)
+    side_pool = (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="side")
+        if side_thread
+        else contextlib.nullcontext()
+    )
+    with side_pool as side:
+        planners = [
+            FormationPlanner(params, cfg.formation.points, i, side=side)
+            for i in range(cfg.formation.n)
+        ]
+        for k_call, call in enumerate(chosen):
+            planner = planners[call.slot]
+            args = replay_inputs(call)  # the distance field is built here, outside the timing
+            t_prep: list[float] = []
+            t_solve: list[float] = []
+            t_plan: list[float] = []
+            problem = None
+            res = None
+            x_end = np.zeros(0)
+            for k in range(repeats + 1):  # the first round is a warm-up, not timed
+                t0 = time.perf_counter()
+                problem = planner.prepare(*args)
+                t1 = time.perf_counter()
+                x_end, _ = problem.solve()
+                t2 = time.perf_counter()
+                res = planner.plan(*args)
+                t3 = time.perf_counter()
+                if k > 0:
+                    t_prep.append((t1 - t0) * 1e3)
+                    t_solve.append((t2 - t1) * 1e3)
+                    t_plan.append((t3 - t2) * 1e3)
+            assert problem is not None and res is not None
+            statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
+            sname = res.solver_status.name if res.solver_status is not None else "none"
+            solver_statuses[sname] = solver_statuses.get(sname, 0) + 1
+            first = problem.trajectory(x_end)
+            t_from = float(args[0])
+            if not planner.check(first, t_from, args[6], args[5])[0]:
+                rejected += 1
+            ts = np.append(np.arange(t_from, first.t_end_s, params.check_step_s), first.t_end_s)
+            clearance.append(float(np.min(args[6].distance(first.sample(ts))[0])))
+            e_us = _eval_us(problem, x_end, eval_calls)
+            s_ms = float(np.median(t_solve))
+            c_ms = problem.evaluations * e_us * 1e-3
+            replan_ms.append(float(np.median(t_plan)))
+            solve_ms.append(s_ms)
+            setup_ms.append(float(np.median(t_prep)))
+            iters.append(res.iterations)
+            evals.append(res.evaluations)
+            eval_us.append(e_us)
+            cost_ms.append(c_ms)
+            overhead_ms.append(s_ms - c_ms)
+            pieces.append(problem.M)
+            if replay_progress is not None:
+                replay_progress(k_call + 1, len(chosen))
 
     report: dict[str, Any] = {
         "scenario": {
