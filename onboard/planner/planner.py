@@ -1093,8 +1093,16 @@ class FormationPlanner:
             evals += problem.evaluations
             return problem, x, status
 
-        def fresh_ladder() -> tuple[float, ...]:
-            return () if self.params.fresh_alternative == "line" else self.params.astar_ladder_m
+        def prepare_fresh(use_formation: bool, formation_scale: float) -> Problem:
+            """The problem of ``fresh_alternative``'s second solve of an attempt."""
+            line = self.params.fresh_alternative == "line"
+            return prepare(
+                use_formation,
+                False,
+                ladder=() if line else self.params.astar_ladder_m,
+                fresh=True,
+                formation_scale=formation_scale,
+            )
 
         def wants_fresh(use_formation: bool, force_astar: bool) -> bool:
             """Whether an attempt accepted from the warm start is solved again from a fresh
@@ -1159,13 +1167,7 @@ class FormationPlanner:
                 and wants_fresh(use_formation, force_astar)
                 and not (give_up is not None and give_up())
             ):
-                side_problem = prepare(
-                    use_formation,
-                    False,
-                    ladder=fresh_ladder(),
-                    fresh=True,
-                    formation_scale=formation_scale,
-                )
+                side_problem = prepare_fresh(use_formation, formation_scale)
                 self._aside = side_problem
                 side = _SideSolve(side_problem, self._side)
             try:
@@ -1180,7 +1182,7 @@ class FormationPlanner:
                     side,
                 )
             finally:
-                if side is not None and not side.taken:  # not used: stopped, its work counted
+                if side is not None and not side.taken:  # not wanted: stopped, not counted
                     collect(side, stop=True)
 
         def attempt_on(
@@ -1243,15 +1245,7 @@ class FormationPlanner:
                 fresh = alternative(
                     collect(side, stop=False)
                     if side is not None
-                    else solve(
-                        prepare(
-                            use_formation,
-                            False,
-                            ladder=fresh_ladder(),
-                            fresh=True,
-                            formation_scale=formation_scale,
-                        )
-                    )
+                    else solve(prepare_fresh(use_formation, formation_scale))
                 )
                 if fresh is not None:
                     f_warm = problem.objective(x)[0]
