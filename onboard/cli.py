@@ -96,9 +96,6 @@ def run(
     SIGTERM or SIGINT."""
     import logging
     import os
-    import queue
-    import signal
-    import threading
 
     from onboard.config import ConfigError, parse_overrides
     from onboard.service.adapters import open_autopilot, open_bus, open_depth
@@ -107,6 +104,7 @@ def run(
     from onboard.service.planning import WarmUp
     from onboard.service.sdnotify import Notifier
     from onboard.service.service import FlightService
+    from onboard.stopsignal import SignalStop
 
     try:
         cfg = load_onboard_config(config_file, drone_id, parse_overrides(sets))
@@ -145,47 +143,22 @@ def run(
     # millisecond instead of 5 while mapping, planning and decoding threads are busy
     sys.setswitchinterval(0.001)
 
-    stop_deadline_s = 10.0
-
     def give_up() -> None:
-        # an orderly stop that hangs (a thread or a session close blocking on a vanished peer)
-        # must not leave the process behind: systemd would SIGKILL it after TimeoutStopSec, a
-        # demo or a test has nobody to do that
-        event(log, "stop_timeout", logging.ERROR, after_s=stop_deadline_s)
-        os._exit(1)
+        event(log, "stop_timeout", logging.ERROR, after_s=stopping.deadline_s)
 
-    # The handler only hands the signal to a thread started beforehand: it runs in the main
-    # thread between two bytecodes, possibly while that thread holds the lock of the very
-    # Event the stop sets (inside Event.wait), and taking it there would deadlock (seen: a
-    # service silent for 20 s after SIGTERM). SimpleQueue.put is safe in a signal handler.
-    signals: queue.SimpleQueue[int] = queue.SimpleQueue()
-
-    def stopper() -> None:
-        signals.get()
-        svc.request_stop()
-        try:
-            signals.get(timeout=stop_deadline_s)
-        except queue.Empty:
-            give_up()
-        os._exit(1)  # a second signal: stop now
-
-    threading.Thread(target=stopper, name="svc-stopper", daemon=True).start()
-
-    def on_signal(signum: int, _frame: object) -> None:
-        signals.put(signum)
-
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # SIGTERM / SIGINT stop the service in order, a second one or 10 s without an end stop the
+    # process (onboard/stopsignal.py: why the handler itself takes no lock)
+    stopping = SignalStop(svc.request_stop, 10.0, give_up, thread_name="svc-stopper")
     rc = 1
-    try:
-        rc = svc.run(duration_s=duration)
-    finally:
-        notifier.stopping()
-        svc.stop()
-        for c in reversed(closers):
-            c()
-        for sig, h in old.items():
-            signal.signal(sig, h)
-        event(log, "stopped", code=rc)
+    with stopping:
+        try:
+            rc = svc.run(duration_s=duration)
+        finally:
+            notifier.stopping()
+            svc.stop()
+            for c in reversed(closers):
+                c()
+            event(log, "stopped", code=rc)
     if svc.stuck_threads or (warming is not None and warming.running()):
         # the interpreter's teardown with a thread inside numba's compiler (a stop before a
         # cold warm-up ended) crashed the process (SIGSEGV, "corrupted double-linked list"):

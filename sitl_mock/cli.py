@@ -24,6 +24,7 @@ import click
 import numpy as np
 
 from onboard.config import ConfigError, from_mapping, merge_mappings, parse_overrides, read_yaml
+from onboard.stopsignal import SignalStop
 
 
 def build_world(
@@ -246,38 +247,46 @@ def main(
         fleet.close()
         raise click.ClickException(f"cannot bind the vehicles' ports: {e}") from e
 
-    def on_signal(signum: int, _frame: FrameType | None) -> None:
-        fleet.request_stop()
-
     def on_usr1(signum: int, _frame: FrameType | None) -> None:
-        fleet.request_stats_reset()
+        fleet.request_stats_reset()  # sets a flag, takes no lock (safe in a handler)
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    if hasattr(signal, "SIGUSR1"):
-        old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
-    if not quiet:
+    def give_up() -> None:
         click.echo(
-            f"swarm-sitl: {count} vehicle(s), speedup {speedup:g}"
-            + (f", world {world} ({w.n_primitives} obstacles)" if w is not None else "")
+            f"swarm-sitl: the fleet did not stop within {stopping.deadline_s:.0f} s of the "
+            "signal: exiting",
+            err=True,
         )
-        for link, sp in zip(fleet.links, fleet.spawns, strict=True):
+
+    # SIGTERM / SIGINT stop the loop in order, a second one or 10 s without an end stop the
+    # process (onboard/stopsignal.py: a handler that took Event.set's lock once left the mock
+    # running for ever after the demo that started it was killed)
+    stopping = SignalStop(fleet.request_stop, 10.0, give_up, thread_name="sitl-stopper")
+    usr1 = getattr(signal, "SIGUSR1", None)
+    old_usr1 = signal.signal(usr1, on_usr1) if usr1 is not None else None
+    with stopping:
+        if not quiet:
             click.echo(
-                f"  sysid {link.system_id}: listens {link.host}:{link.local_port}, sends to "
-                f"{link.partner[0]}:{link.partner[1]}, spawn ENU ({sp[0]:.2f}, {sp[1]:.2f}, "
-                f"{sp[2]:.2f})"
+                f"swarm-sitl: {count} vehicle(s), speedup {speedup:g}"
+                + (f", world {world} ({w.n_primitives} obstacles)" if w is not None else "")
             )
-        click.echo("Ctrl-C to stop")
-    try:
-        if cameras:
-            assert fleet._depth is not None
-            fleet._depth.start()
-        fleet.run(duration)
-    finally:
-        if fleet._depth is not None:
-            fleet._depth.stop()
-        fleet.close()
-        for signum, handler in old.items():
-            signal.signal(signum, handler)
+            for link, sp in zip(fleet.links, fleet.spawns, strict=True):
+                click.echo(
+                    f"  sysid {link.system_id}: listens {link.host}:{link.local_port}, sends to "
+                    f"{link.partner[0]}:{link.partner[1]}, spawn ENU ({sp[0]:.2f}, "
+                    f"{sp[1]:.2f}, {sp[2]:.2f})"
+                )
+            click.echo("Ctrl-C to stop")
+        try:
+            if cameras:
+                assert fleet._depth is not None
+                fleet._depth.start()
+            fleet.run(duration)
+        finally:
+            if fleet._depth is not None:
+                fleet._depth.stop()
+            fleet.close()
+            if usr1 is not None:
+                signal.signal(usr1, old_usr1)
     summary = fleet.summary()
     summary["process_cpu_s"] = _process_cpu_s()
     if stats_json is not None:

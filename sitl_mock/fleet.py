@@ -260,7 +260,7 @@ class Fleet:
         self.truth_sink_errors = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._reset_stats = threading.Event()
+        self._reset_stats = False  # a plain flag: set from a signal handler, no lock
         self._thread: threading.Thread | None = None
         self._selector: selectors.BaseSelector | None = None
         self.stats = FleetStats()
@@ -348,11 +348,13 @@ class Fleet:
 
     def request_stats_reset(self) -> None:
         """Restart the loop counters (ticks, lateness, CPU, wall and simulated time) at the
-        next iteration: a benchmark's measurement window (safe from signal handlers)."""
-        self._reset_stats.set()
+        next iteration: a benchmark's measurement window. Safe in a signal handler: it sets a
+        flag and takes no lock (``Event.set`` does, and the loop's ``clear`` could hold it)."""
+        self._reset_stats = True
 
     def request_stop(self) -> None:
-        """Ask the loop to end (safe from signal handlers and other threads)."""
+        """Ask the loop to end (from another thread; a signal handler should not call it:
+        ``Event.set`` takes a lock, see ``onboard/stopsignal.py``)."""
         self._stop.set()
 
     def __enter__(self) -> Fleet:
@@ -381,8 +383,8 @@ class Fleet:
         sel = self._selector
         assert sel is not None
         while not self._stop.is_set():
-            if self._reset_stats.is_set():
-                self._reset_stats.clear()
+            if self._reset_stats:
+                self._reset_stats = False
                 self.stats = st = FleetStats(sim_s=self.t_s, sim_start_s=self.t_s)
                 cpu0 = time.thread_time()
                 wall0 = time.monotonic()

@@ -67,3 +67,25 @@ def test_bench_sitl_small(tmp_path: Path) -> None:
     step = data["step"]
     assert step["samples"] > 10 and step["rise_time_s"] > 0
     assert data["step_model"]["rise_time_s"] > 0
+
+
+def test_a_burst_of_signals_still_stops_the_fleet(tmp_path: Path) -> None:
+    """SIGTERMs and SIGUSR1s close together (a killed demo's children get SIGTERM from the
+    kernel, an operator presses Ctrl-C twice): the mock ends. Its handlers used to take
+    ``Event.set``'s lock, and one nested in another left the process running for ever."""
+    (sock,) = bind_consecutive_udp(1)
+    client = MavClient(sock=sock)
+    cmd = [sys.executable, "-m", "sitl_mock.cli", "--base-port", str(client.port),
+           "--local-port-offset", "-1", "--quiet"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        client.connect(timeout_s=30.0)
+        for i in range(40):
+            proc.send_signal(signal.SIGUSR1 if i % 4 else signal.SIGTERM)
+        proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        client.close()
+    assert proc.returncode in (0, 1)  # in order, or at once on the second SIGTERM
