@@ -21,6 +21,7 @@ from onboard.planner.planner import (
     FormationPlanner,
     PeerTrajectory,
     PlanStatus,
+    Problem,
     _pack_peers,
 )
 from onboard.planner.trajectory import Trajectory
@@ -817,3 +818,19 @@ def test_reform_fresh_start_acts_while_re_forming_only() -> None:
     for bad in ("off", "", "A*", True):
         with pytest.raises(ValueError, match="fresh_alternative must be one of"):
             PlannerParams(fresh_alternative=bad)  # type: ignore[arg-type]
+
+
+def test_a_solve_that_raises_leaves_no_problem_to_cancel(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A solve that ends in an exception is not left as the planner's running one (``cancel``
+    would then flag a dead problem, and the next plan's would not be the one flagged)."""
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    field = AnalyticField(_world([]))
+
+    def broken(self: Problem) -> Any:
+        assert planner._active is self  # it was the running one while it ran
+        raise RuntimeError("solver failed")
+
+    monkeypatch.setattr(Problem, "solve", broken)
+    with pytest.raises(RuntimeError, match="solver failed"):
+        planner.plan(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], field)
+    assert planner._active is None and planner._aside is None

@@ -1087,8 +1087,10 @@ class FormationPlanner:
             work."""
             nonlocal iters, evals
             self._active = problem
-            x, status = problem.solve()
-            self._active = None
+            try:
+                x, status = problem.solve()
+            finally:
+                self._active = None
             iters += problem.iterations
             evals += problem.evaluations
             return problem, x, status
