@@ -37,16 +37,15 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import IO, Any
 
 import numpy as np
 
 from gcs.formations import FormationError, load_template
+from gcs.pools import sigterm_interrupts
 from gcs.station import CommandOutcome, GroundStation, StationConfig
 from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
 from onboard.config import Formation
@@ -56,10 +55,6 @@ log = logging.getLogger(__name__)
 
 class DemoError(RuntimeError):
     """The demo cannot go on (a process died, a step timed out, a command was refused)."""
-
-
-class Interrupted(BaseException):
-    """SIGTERM received (handled like Ctrl-C)."""
 
 
 @dataclass(frozen=True)
@@ -1212,24 +1207,10 @@ def _json_safe(x: Any) -> Any:
     return x
 
 
-@contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM ends the demo like Ctrl-C (the cleanup runs)."""
-
-    def on_term(signum: int, frame: FrameType | None) -> None:
-        raise Interrupted()
-
-    old = signal.signal(signal.SIGTERM, on_term)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
 def run_demo(cfg: DemoConfig, progress: Progress | None = None) -> dict[str, Any]:
     """Run the whole demo; returns the result (``success`` False on any failure, with
     ``error``). Raises KeyboardInterrupt after the cleanup when interrupted."""
-    with _sigterm_as_interrupt():
+    with sigterm_interrupts():  # SIGTERM ends the demo like Ctrl-C: the cleanup runs
         demo = Demo(cfg, progress)
         error: str | None = None
         try:
@@ -1239,9 +1220,9 @@ def run_demo(cfg: DemoConfig, progress: Progress | None = None) -> dict[str, Any
         except DemoError as e:
             error = str(e)
             result = demo.finish()
-        except (KeyboardInterrupt, Interrupted):
+        except KeyboardInterrupt:
             demo.close()
-            raise KeyboardInterrupt from None
+            raise
         finally:
             demo.close()
     if error is not None:
