@@ -199,6 +199,55 @@ def _eval_us(problem: Any, x_end: np.ndarray, calls: int) -> float:
     return float(np.mean(out)) * 1e6
 
 
+# each cost term's packed weights (``objective.P_*``): zeroed, the kernel skips that term
+_TERM_WEIGHTS: dict[str, tuple[str, ...]] = {
+    "obstacle": ("P_W_OBS",),
+    "formation": ("P_W_FORM",),
+    "swarm": ("P_W_SWARM",),
+    "feasibility": ("P_W_FEAS", "P_W_HARD"),
+    "uniformity": ("P_W_UNIF",),
+    "altitude": ("P_W_ALT", "P_W_HOLD"),
+}
+
+
+def _term_eval_us(problem: Any, x_end: np.ndarray, calls: int) -> dict[str, float]:
+    """Where an objective evaluation's time goes, at the solution: ``all``, then each term's
+    share (``all`` less the time with that term's weights at zero, so that the kernel skips
+    it), ``peers`` (the peers' positions sampled at every constraint point, done whatever the
+    weights: the time with every weight zero less that with no peer either) and ``base`` (the
+    rest: MINCO's coefficients, the own samples, the gradient's way back). Each time is the
+    median of 5 batches of ``calls / 10`` evaluations [us]."""
+    from onboard.planner import objective as obj
+
+    head, tail, kappa, prm, peer_c, peer_T, peer_t0, *rest = problem.prob
+    per = max(1, calls // 10)
+
+    def timed(zero: tuple[str, ...], peers: bool = True) -> float:
+        w = prm.copy()
+        for name in zero:
+            w[getattr(obj, name)] = 0.0
+        w.setflags(write=False)  # as the planner's: the same compiled version
+        pc, pT, p0 = (peer_c, peer_T, peer_t0) if peers else (peer_c[:0], peer_T[:0], peer_t0[:0])
+        prob = (head, tail, kappa, w, pc, pT, p0, *rest)
+        x = x_end.copy()
+        obj.repeat_objective(x, prob, problem.fld, problem.work, 1)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            obj.repeat_objective(x, prob, problem.fld, problem.work, per)
+            times.append((time.perf_counter() - t0) / per)
+        return float(np.median(times)) * 1e6
+
+    every = tuple(n for names in _TERM_WEIGHTS.values() for n in names)
+    out = {"all": timed(())}
+    for term, names in _TERM_WEIGHTS.items():
+        out[term] = out["all"] - timed(names)
+    bare = timed(every)
+    out["base"] = timed(every, peers=False)
+    out["peers"] = bare - out["base"]
+    return out
+
+
 def bench_planner(
     cfg: SimConfig,
     repeats: int = 5,
@@ -206,6 +255,7 @@ def bench_planner(
     max_problems: int = 300,
     eval_calls: int = 200,
     startup: bool = True,
+    term_costs: bool = False,
     sim_progress: Callable[[float, float], None] | None = None,
     replay_progress: Callable[[int, int], None] | None = None,
     side_thread: bool = True,
@@ -214,7 +264,8 @@ def bench_planner(
 
     ``side_thread``: the replayed planners solve the fresh start on a second thread beside the
     warm one, as the flight service does by default (``planning.side_thread``); the recorded
-    flight is the same either way.
+    flight is the same either way. ``term_costs``: also where an evaluation's time goes, by
+    cost term (``_term_eval_us``; ``eval_us_by_term``, medians over the problems).
 
     Per problem: ``prepare(...) + solve()`` timed ``repeats`` times after one untimed run
     (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
@@ -255,6 +306,7 @@ def bench_planner(
     eval_us: list[float] = []
     cost_ms: list[float] = []
     overhead_ms: list[float] = []
+    term_us: list[dict[str, float]] = []  # --term-costs: one evaluation's time by term
     pieces: list[float] = []
     statuses: dict[str, int] = {}
     solver_statuses: dict[str, int] = {}
@@ -303,6 +355,8 @@ def bench_planner(
             ts = np.append(np.arange(t_from, first.t_end_s, params.check_step_s), first.t_end_s)
             clearance.append(float(np.min(args[6].distance(first.sample(ts))[0])))
             e_us = _eval_us(problem, x_end, eval_calls)
+            if term_costs:
+                term_us.append(_term_eval_us(problem, x_end, eval_calls))
             s_ms = float(np.median(t_solve))
             c_ms = problem.evaluations * e_us * 1e-3
             replan_ms.append(float(np.median(t_plan)))
@@ -364,6 +418,10 @@ def bench_planner(
         "machine": machine_info(),
         "startup_s": None,
     }
+    if term_costs and term_us:
+        report["eval_us_by_term"] = {
+            k: summary([t[k] for t in term_us])["median"] for k in term_us[0]
+        }
     if startup and chosen:
         # (on the exact field of the first problem's obstacles: the probe times the import and
         # the first plan, whatever the field)

@@ -753,6 +753,11 @@ def bench_table(
     "does (planning.side_thread).",
 )
 @click.option(
+    "--term-costs",
+    is_flag=True,
+    help="Also time one evaluation with each cost term off: where its microseconds go.",
+)
+@click.option(
     "--time-limit",
     type=float,
     default=None,
@@ -776,6 +781,7 @@ def bench_planner(
     eval_calls: int,
     startup: bool,
     side_thread: bool,
+    term_costs: bool,
     time_limit: float | None,
     json_path: Path | None,
     perception: str,
@@ -835,6 +841,7 @@ def bench_planner(
                 sim_progress=sim_cb,
                 replay_progress=replay_cb,
                 side_thread=side_thread,
+                term_costs=term_costs,
             )
         except (RuntimeError, ConfigError) as e:
             raise click.ClickException(str(e)) from e
@@ -865,6 +872,12 @@ def bench_planner(
         f"{_fmt(b['check_and_rest_ms_median'], '.2f')} ms; pieces median "
         f"{_fmt(report['pieces']['median'], '.0f')}"
     )
+    if "eval_us_by_term" in report:
+        by = report["eval_us_by_term"]
+        console.print(
+            "one evaluation at the solution, median us: "
+            + ", ".join(f"{k} {_fmt(v, '.1f')}" for k, v in by.items())
+        )
     console.print(
         f"solver statuses: {report['solver_status_counts']}; "
         f"plan statuses: {report['plan_status_counts']}"

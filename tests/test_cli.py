@@ -108,12 +108,17 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     js = tmp_path / "bench.json"
     args = [
         "bench", "planner", *SMALL, "--repeats", "1", "--max-problems", "4", "--skip-s", "2",
-        "--eval-calls", "10", "--json", str(js),
+        "--eval-calls", "10", "--term-costs", "--json", str(js),
     ]  # fmt: skip
     out = CliRunner().invoke(main, args)
     assert out.exit_code == 0, out.output
     data = json.loads(js.read_text())
     assert data["problems"] == 4
+    by_term = data["eval_us_by_term"]  # --term-costs
+    assert set(by_term) == {"all", "obstacle", "formation", "swarm", "feasibility", "uniformity",
+                            "altitude", "base", "peers"}  # fmt: skip
+    assert by_term["all"] > 0 and by_term["base"] > 0
+    assert "one evaluation at the solution" in out.output
     for key in ("replan_ms", "iterations", "evaluations"):
         assert {"median", "p90", "max"} <= set(data[key])
     assert data["replan_ms"]["median"] > 0 and data["eval_us"] > 0
