@@ -95,40 +95,35 @@ CHILD = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("burst", [1, 30])
-def test_a_process_stops_in_order_also_under_a_burst_of_signals(burst: int) -> None:
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, "run"], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == "ready"
-        for _ in range(burst):
-            proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=20.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    if burst == 1:
-        assert proc.returncode == 0 and "stopped" in out  # its own order, to the end
-    else:
-        assert proc.returncode in (0, 1)  # the second signal may end it first
-
-
-def test_a_process_whose_stop_hangs_ends_at_the_deadline() -> None:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", CHILD, "hang"], stdout=subprocess.PIPE, text=True
-    )
+def _signalled_child(mode: str, signals: int) -> tuple[int, str, float]:
+    """CHILD in ``mode``, sent ``signals`` SIGTERMs once ready: (exit status, output, seconds
+    from the first signal to its end). Killed if it outlives the test."""
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, mode], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
         assert proc.stdout.readline().strip() == "ready"
         t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
+        for _ in range(signals):
+            proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=20.0)
-        waited = time.monotonic() - t0
+        return proc.returncode, out, time.monotonic() - t0
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 1
+
+
+@pytest.mark.parametrize("burst", [1, 30])
+def test_a_process_stops_in_order_also_under_a_burst_of_signals(burst: int) -> None:
+    rc, out, _ = _signalled_child("run", burst)
+    if burst == 1:
+        assert rc == 0 and "stopped" in out  # its own order, to the end
+    else:
+        assert rc in (0, 1)  # the second signal may end it first
+
+
+def test_a_process_whose_stop_hangs_ends_at_the_deadline() -> None:
+    rc, out, waited = _signalled_child("hang", 1)
+    assert rc == 1
     assert "deadline" in out and "stopped" not in out
     assert waited >= 1.0
