@@ -4,6 +4,8 @@ every reaction, each tested by cutting its input."""
 from __future__ import annotations
 
 import math
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -1382,3 +1384,42 @@ def test_a_drone_its_peers_do_not_hear_keeps_a_wider_berth(tmp_path: Path) -> No
     assert h.svc.agent.unheard_by == frozenset()
     assert h.svc.counters["peers_stopped_hearing_us"] == 2
     assert h.bus.statuses[-1]["counters"]["service.peers_stopped_hearing_us"] == 2
+
+
+def test_stop_behind_a_stuck_planner_thread_returns_and_its_side_solve_still_comes_back(
+    tmp_path: Path,
+) -> None:
+    """``stop()`` with the planner thread stuck inside a replan (numba compiling, a slow solve)
+    returns (its join times out), names the thread, and does not wait for the side executor
+    behind it; the fresh start's solve the replan had queued there is run, not cancelled, so
+    that the replan, once the thread resumes, gets its result instead of an exception, and the
+    thread then ends on the stop flag."""
+    h = Harness(tmp_path, depth=False)
+    svc = h.svc
+    pool = svc._side_pool
+    assert pool is not None  # planning.side_thread: the default
+    entered = threading.Event()
+    release = threading.Event()
+    got: list[Any] = []
+
+    def stuck_plan_step() -> None:
+        pool.submit(release.wait, 30.0)  # the executor's one worker busy: the next one queues
+        side = pool.submit(lambda: "side solve")
+        entered.set()
+        release.wait(30.0)
+        got.append(side.result(timeout=10.0))
+
+    svc.plan_step = stuck_plan_step  # type: ignore[method-assign]
+    svc.start_threads()
+    svc._wake.set()
+    assert entered.wait(10.0), "the planner thread never started a replan"
+    t0 = time.monotonic()
+    svc.stop()
+    assert time.monotonic() - t0 < 20.0  # 5 s per thread's join at most
+    assert svc.stuck_threads == ["svc-planner"]
+    planner = next(t for t in threading.enumerate() if t.name == "svc-planner")
+    release.set()
+    planner.join(10.0)
+    assert not planner.is_alive()
+    assert got == ["side solve"]
+    assert svc.counters.get("planner_errors", 0) == 0
