@@ -247,18 +247,24 @@ def test_zenoh_clients_behind_proxies_hear_each_other_only_through_them() -> Non
                 pub.put(str(i).encode())
             poll_until(lambda: first + n - 1 in heard["g"], 5.0, "the direct session's copy")
 
-        # the declarations travel once: wait until the router forwards to client 1
+        # the declarations travel once: probe until the router forwards to client 1 and to the
+        # direct session (a probe put before a subscriber's declaration reached the router is
+        # lost for that subscriber: waiting for each probe's copy failed CI once)
         probes: list[int] = []
 
-        def b_hears() -> bool:
+        def both_hear() -> bool:
             probes.append(1000 + len(probes))
-            burst(probes[-1], 1)
-            return bool(heard["b"])
+            pub.put(str(probes[-1]).encode())
+            return bool(heard["b"]) and bool(heard["g"])
 
-        poll_until(b_hears, 10.0, "client 1 hears client 0", period_s=0.1)
+        poll_until(both_hear, 10.0, "client 1 and the direct session hear client 0", period_s=0.1)
         # a probe sent after the first one heard may still be in the proxy: the link keeps the
         # order, so once the last probe is heard nothing more of them is on its way
-        poll_until(lambda: probes[-1] in heard["b"], 5.0, "client 1 hears the last probe")
+        poll_until(
+            lambda: probes[-1] in heard["b"] and probes[-1] in heard["g"],
+            5.0,
+            "client 1 and the direct session hear the last probe",
+        )
         star.proxies[1].set_faults(LinkFaults(loss=1.0), "down")
         heard["b"].clear()
         burst(0)
