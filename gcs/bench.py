@@ -213,13 +213,14 @@ _TERM_WEIGHTS: dict[str, tuple[str, ...]] = {
 def _term_eval_us(problem: Any, x_end: np.ndarray, calls: int) -> dict[str, float]:
     """Where an objective evaluation's time goes, at the solution: ``all``, then each term's
     share (``all`` less the time with that term's weights at zero, so that the kernel skips
-    it), ``peers`` (the peers' positions sampled at every constraint point, done whatever the
-    weights: the time with every weight zero less that with no peer either) and ``base`` (the
+    it), ``peers`` (the peers' positions sampled where no term reads them: the time with every
+    weight zero less that with no peer either; about 0 since the objective samples a peer only
+    where a term may read it, and that sampling counts in the term's share) and ``base`` (the
     rest: MINCO's coefficients, the own samples, the gradient's way back). Each time is the
     median of 5 batches of ``calls / 10`` evaluations [us]."""
     from onboard.planner import objective as obj
 
-    head, tail, kappa, prm, peer_c, peer_T, peer_t0, *rest = problem.prob
+    head, tail, kappa, prm, peer_c, peer_T, peer_t0, sdes, fmask, fpts, peer_vb = problem.prob
     per = max(1, calls // 10)
 
     def timed(zero: tuple[str, ...], peers: bool = True) -> float:
@@ -227,8 +228,12 @@ def _term_eval_us(problem: Any, x_end: np.ndarray, calls: int) -> dict[str, floa
         for name in zero:
             w[getattr(obj, name)] = 0.0
         w.setflags(write=False)  # as the planner's: the same compiled version
-        pc, pT, p0 = (peer_c, peer_T, peer_t0) if peers else (peer_c[:0], peer_T[:0], peer_t0[:0])
-        prob = (head, tail, kappa, w, pc, pT, p0, *rest)
+        pc, pT, p0, vb = (
+            (peer_c, peer_T, peer_t0, peer_vb)
+            if peers
+            else (peer_c[:0], peer_T[:0], peer_t0[:0], peer_vb[:0])
+        )
+        prob = (head, tail, kappa, w, pc, pT, p0, sdes, fmask, fpts, vb)
         x = x_end.copy()
         obj.repeat_objective(x, prob, problem.fld, problem.work, 1)
         times = []

@@ -9,6 +9,7 @@ import pytest
 from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.formation import complete_mask, normalized_adjacency
+from onboard.planner.kernels import peer_speed_bounds
 from onboard.planner.minco import BAND_COLS, Minco
 from onboard.planner.timemap import tau_from_T
 from onboard.world import World
@@ -84,7 +85,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     ):
         prm[idx] = weights.get(key, 0.0)
     prm.setflags(write=False)  # as the planner's (numba compiles a writable one anew)
-    prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation)
+    prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation, peer_speed_bounds(pc, pT))
     world = World(
         cylinders=np.array([[1.5, 0.6, 0.3, 0.0, 3.0], [3.2, -0.2, 0.25, 0.0, 3.0]]),
         rings=np.array([[4.2, 0.4, 1.3, 0.3, 0.7, 0.5, 0.05]]),
@@ -263,3 +264,53 @@ def test_altitude_term_is_active_below_and_above_the_band() -> None:
     inside = (*prob[:3], prm, *prob[4:])
     obj.cost_c_T(m.c, T, inside, fld, np.zeros_like(m.c), np.zeros(M), costs)
     assert costs[obj.C_Z] == 0.0
+
+
+def test_peer_speed_bounds_bound_the_sampled_speeds() -> None:
+    rng = np.random.default_rng(5)
+    peers = [_peer(rng, rng.normal(size=3), n) for n in (2, 3, 5)]
+    K = 6  # padded: hovers at the end point, which stand still
+    pc = np.zeros((3, K, 6, 3))
+    pT = np.ones((3, K))
+    for k, p in enumerate(peers):
+        pc[k, : p.M] = p.coeffs
+        pT[k, : p.M] = p.T
+        pc[k, p.M :, 0] = p.tail[0]
+    vb = peer_speed_bounds(pc, pT)
+    for k, p in enumerate(peers):
+        top = 0.0
+        for i in range(p.M):
+            t = np.linspace(0.0, p.T[i], 400)
+            c = p.coeffs[i]
+            v = sum(m * np.outer(t ** (m - 1), c[m]) for m in range(1, 6))
+            top = max(top, float(np.max(np.linalg.norm(v, axis=1))))
+        assert top <= vb[k] < 10.0 * top  # a bound, and not a useless one
+    assert np.array_equal(peer_speed_bounds(pc[:, 5:], pT[:, 5:]), np.zeros(3))  # hovers
+
+
+@pytest.mark.parametrize("seed", [31, 32, 33, 34])
+@pytest.mark.parametrize("stride", [0, 1, 2])
+def test_peers_skipped_where_no_term_reads_them_change_nothing(seed: int, stride: int) -> None:
+    """The objective leaves a peer's position unevaluated at a point where J_f does not read it
+    and J_r cannot reach it (from the peer's speed bound): with an infinite bound, every peer
+    is evaluated everywhere, as before; costs and gradients must be the same to the bit, with
+    J_r active near the peers."""
+    # stride 0: no formation term, so that J_r alone decides at every point
+    weights = {"swarm": 1e3, "formation": 10.0 if stride else 0.0, "obstacle": 1.0}
+    M, head, tail, q, T, prob, fld = _setup(seed, weights, "linear", max(stride, 1))
+    assert np.all(prob[10] > 0.0) and np.all(np.isfinite(prob[10]))
+    every = (*prob[:10], np.full_like(prob[10], np.inf))
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+    got = []
+    for pr in (prob, every):
+        costs = np.zeros(obj.N_TERMS)
+        gc = np.zeros_like(m.c)
+        gT = np.zeros(M)
+        f = obj.cost_c_T(m.c.copy(), T, pr, fld, gc, gT, costs)
+        got.append((f, gc, gT, costs))
+    assert got[0][3][obj.C_R] > 0.0  # J_r active: peers within reach somewhere
+    assert got[0][0] == got[1][0]
+    for a, b in zip(got[0][1:], got[1][1:], strict=True):
+        assert a.tobytes() == b.tobytes()

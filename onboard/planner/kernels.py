@@ -312,6 +312,33 @@ def pad_peers(
 
 
 @njit(cache=True, nogil=True)
+def peer_speed_bounds(c: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """An upper bound of each packed peer's speed at any time (P,): over its pieces (c (P, K,
+    6, 3), T (P, K)), per axis sum_k k |c_k| T^(k-1), the bound of that axis' velocity
+    polynomial on [0, T]; the norm of the three. Outside its pieces a peer stands still. The
+    objective skips a peer's position at a constraint point that no term reads unless it is
+    near (``objective.sampled_costs``), from where it was at an earlier point."""
+    P = c.shape[0]
+    K = c.shape[1]
+    out = np.zeros(P)
+    for k in range(P):
+        for i in range(K):
+            Ti = T[k, i]
+            sq = 0.0
+            for d in range(3):
+                b = 0.0
+                tp = 1.0
+                for m in range(1, 6):
+                    b += m * abs(c[k, i, m, d]) * tp
+                    tp *= Ti
+                sq += b * b
+            v = np.sqrt(sq)
+            if v > out[k]:
+                out[k] = v
+    return out
+
+
+@njit(cache=True, nogil=True)
 def peer_positions(
     c: np.ndarray, T: np.ndarray, n: np.ndarray, t0: np.ndarray, t: float
 ) -> np.ndarray:

@@ -19,7 +19,8 @@ trapezoid weights of that coarser grid: the formation error varies slowly along 
 obstacles need the dense sampling.
 
 - ``prob``: (head (3,3), tail (3,3), kappa int, prm (N_PRM,), peer_c (P,K,6,3), peer_T (P,K),
-  peer_t0 (P,), Sdes (n,n), fmask (n,n)). Peer times are relative to the own start time; a
+  peer_t0 (P,), Sdes (n,n), fmask (n,n), fpts (n,3), peer_vb (P,): a bound of each peer's
+  speed, ``kernels.peer_speed_bounds``). Peer times are relative to the own start time; a
   peer's unused pieces have zero coefficients. The formation graph is [own, peer 0, ...],
   n = 1 + P when the formation term is on, else n may be 1.
 - ``fld``: (kind int, grid (nx,ny,nz), origin (3,), res float, cylinders (K,5), rings (R,7),
@@ -102,6 +103,7 @@ C_E, C_T, C_O, C_F, C_R, C_D, C_U, C_Z = range(8)
 N_TERMS = 8
 
 EVALUATE = int(LbfgsStatus.EVALUATE)
+SKIP_M = 1e-6  # metres beyond J_r's reach before a peer's position is skipped (rounding)
 
 
 def field_args(fd: FieldData) -> tuple:
@@ -153,7 +155,7 @@ def sampled_costs(
     a level formation level once tracking errors break the symmetry; linear beyond the knee,
     its pull is bounded where an obstacle asks for a climb or a descent).
     """
-    head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask, fpts = prob
+    head, tail, kappa, prm, peer_c, peer_T, peer_t0, Sdes, fmask, fpts, peer_vb = prob
     kind, grid, origin, res, cyl, rings, boxes, ground_z = fld
     M = T.shape[0]
     P = peer_T.shape[0]
@@ -183,6 +185,14 @@ def sampled_costs(
     a_hard = prm[P_A_HARD]
     j_hard = prm[P_J_HARD]
 
+    # a peer's position is needed where J_f reads it (every stride-th point) and where J_r
+    # may: at the other points one farther than d_sw (z scaled) from this drone, by at least
+    # what its speed bound allows since the point its position is from, is left unevaluated
+    # (its J_r is zero there for sure: the same costs and gradients to the bit)
+    d_sw = np.sqrt(d_sw2)
+    z_fac = max(1.0, np.sqrt(zs2))  # the scaled norm is at most this times the euclidean one
+    peer_t = np.full(max(P, 1), np.nan)  # the global time of each row of peer_pos
+    peer_on = np.zeros(max(P, 1), dtype=np.bool_)  # the row is at this point's time
     der = np.empty((5, 3))  # p, v, a, j, snap of the own trajectory
     gder = np.empty((4, 3))  # dpen/d(p, v, a, j)
     pst = np.empty((2, 3))  # a peer's p, v
@@ -303,15 +313,32 @@ def sampled_costs(
             # peers at the same global time
             if P > 0:
                 t_glob = t_piece0 + t
+                form_here = use_form and j % stride == 0
                 for ph in range(P):
+                    if not form_here:
+                        if w_sw <= 0.0:
+                            peer_on[ph] = False
+                            continue
+                        dx = der[0, 0] - peer_pos[ph, 0]
+                        dy = der[0, 1] - peer_pos[ph, 1]
+                        dz = der[0, 2] - peer_pos[ph, 2]
+                        # J_r's reach plus how far the peer may have gone (NaN: no row yet)
+                        lim = d_sw + SKIP_M + z_fac * peer_vb[ph] * abs(t_glob - peer_t[ph])
+                        if dx * dx + dy * dy + zs2 * dz * dz > lim * lim:
+                            peer_on[ph] = False
+                            continue
                     eval_position_velocity(peer_c[ph], peer_T[ph], t_glob - peer_t0[ph], pst)
                     for d in range(3):
                         peer_pos[ph, d] = pst[0, d]
                         peer_vel[ph, d] = pst[1, d]
+                    peer_t[ph] = t_glob
+                    peer_on[ph] = True
 
                 # J_r: reciprocal avoidance, max(D_r^2 - d^2, 0)^3 (Eq. 29-34)
                 if w_sw > 0.0:
                     for ph in range(P):
+                        if not peer_on[ph]:
+                            continue
                         dx = der[0, 0] - peer_pos[ph, 0]
                         dy = der[0, 1] - peer_pos[ph, 1]
                         dz = der[0, 2] - peer_pos[ph, 2]

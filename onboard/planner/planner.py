@@ -279,12 +279,14 @@ class Problem:
 class _PeerPack:
     """The peers' trajectories as the compiled code reads them: ``c (P, K, 6, 3)`` and
     ``T (P, K)``, the first ``n[k]`` pieces the peer's own, the rest a hover at its end point
-    (1 s each); ``t0 (P,)`` global start times."""
+    (1 s each); ``t0 (P,)`` global start times; ``vb (P,)`` a bound of each one's speed
+    (``kernels.peer_speed_bounds``)."""
 
     c: np.ndarray
     T: np.ndarray
     n: np.ndarray
     t0: np.ndarray
+    vb: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -302,7 +304,11 @@ class _FieldView:
 def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
     if not peers:  # writable arrays like a full pack's (one compiled signature)
         return _PeerPack(
-            np.zeros((0, 1, 6, 3)), np.ones((0, 1)), np.zeros(0, dtype=np.int64), np.zeros(0)
+            np.zeros((0, 1, 6, 3)),
+            np.ones((0, 1)),
+            np.zeros(0, dtype=np.int64),
+            np.zeros(0),
+            np.zeros(0),
         )
     trs = [pt.trajectory for pt in peers]
     ns = [tr.durations_s.shape[0] for tr in trs]
@@ -320,7 +326,7 @@ def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
         )
     # compiled also when no padding is needed, so that every replan with peers loads it
     pc, pT = kn.pad_peers(flat_c, flat_T, n, ends, K)
-    return _PeerPack(pc, pT, n, t0)
+    return _PeerPack(pc, pT, n, t0, kn.peer_speed_bounds(pc, pT))
 
 
 def _vectors(
@@ -814,7 +820,7 @@ class FormationPlanner:
             # (tens of seconds) at the first replan that copies, or does not copy, it
             prm.setflags(write=False)
         pt0 = pack.t0 - t_start_s
-        prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts)
+        prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts, pack.vb)
         problem = Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
         problem.astar_clearance_m = astar_clearance
         return problem
