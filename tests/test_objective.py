@@ -29,6 +29,17 @@ def _peer(rng: np.random.Generator, offset: np.ndarray, n_pieces: int) -> Minco:
     return m
 
 
+def _pack(peers: list[Minco], K: int) -> tuple[np.ndarray, np.ndarray]:
+    """The peers padded to K pieces as the planner packs them (hovers at the end point)."""
+    pc = np.zeros((len(peers), K, 6, 3))
+    pT = np.ones((len(peers), K))
+    for k, p in enumerate(peers):
+        pc[k, : p.M] = p.coeffs
+        pT[k, : p.M] = p.T
+        pc[k, p.M :, 0] = p.tail[0]
+    return pc, pT
+
+
 def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: int = 1):  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(seed)
     M = 4
@@ -42,13 +53,7 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         _peer(rng, np.array([-0.3, -0.4, 0.9]), 2),
         _peer(rng, np.array([0.5, 1.5, 1.0]), 4),
     ]
-    K = max(p.M for p in peers)
-    pc = np.zeros((3, K, 6, 3))
-    pT = np.ones((3, K))
-    for k, p in enumerate(peers):
-        pc[k, : p.M] = p.coeffs
-        pT[k, : p.M] = p.T
-        pc[k, p.M :, 0] = p.tail[0]
+    pc, pT = _pack(peers, max(p.M for p in peers))
     pt0 = np.array([-0.4, 0.3, 0.0])
     formation = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 2.0, 0.0]])
     mask = complete_mask(4)
@@ -269,13 +274,7 @@ def test_altitude_term_is_active_below_and_above_the_band() -> None:
 def test_peer_speed_bounds_bound_the_sampled_speeds() -> None:
     rng = np.random.default_rng(5)
     peers = [_peer(rng, rng.normal(size=3), n) for n in (2, 3, 5)]
-    K = 6  # padded: hovers at the end point, which stand still
-    pc = np.zeros((3, K, 6, 3))
-    pT = np.ones((3, K))
-    for k, p in enumerate(peers):
-        pc[k, : p.M] = p.coeffs
-        pT[k, : p.M] = p.T
-        pc[k, p.M :, 0] = p.tail[0]
+    pc, pT = _pack(peers, 6)  # padded: hovers at the end point, which stand still
     vb = peer_speed_bounds(pc, pT)
     for k, p in enumerate(peers):
         top = 0.0
