@@ -180,23 +180,30 @@ def _pick(values: Sequence[float], keys: Sequence[str] = ("median", "p90", "max"
     return {k: s[k] for k in keys}
 
 
-def _eval_us(problem: Any, x_end: np.ndarray, calls: int) -> float:
-    """Time [us] of one objective evaluation inside compiled code, as the solver sees it: the
-    mean of its cost at the initial guess and at the solution (penalties active at each differ),
-    each the median of 5 batches of ``calls / 10`` evaluations."""
+def _objective_us(x: np.ndarray, prob: tuple, problem: Any, calls: int) -> float:
+    """Time [us] of one evaluation of the objective ``prob`` (on ``problem``'s field and work
+    arrays) at x inside compiled code: one untimed call, then the median of 5 batches of
+    ``calls / 10`` evaluations."""
     from onboard.planner.objective import repeat_objective
 
     per = max(1, calls // 10)
-    out = []
-    for x in (problem.x0.copy(), x_end.copy()):
-        repeat_objective(x, problem.prob, problem.fld, problem.work, 1)
-        times = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            repeat_objective(x, problem.prob, problem.fld, problem.work, per)
-            times.append((time.perf_counter() - t0) / per)
-        out.append(float(np.median(times)))
-    return float(np.mean(out)) * 1e6
+    x = x.copy()
+    repeat_objective(x, prob, problem.fld, problem.work, 1)
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        repeat_objective(x, prob, problem.fld, problem.work, per)
+        times.append((time.perf_counter() - t0) / per)
+    return float(np.median(times)) * 1e6
+
+
+def _eval_us(problem: Any, x_end: np.ndarray, calls: int) -> float:
+    """Time [us] of one objective evaluation inside compiled code, as the solver sees it: the
+    mean of its cost at the initial guess and at the solution (penalties active at each differ;
+    ``_objective_us`` each)."""
+    return float(
+        np.mean([_objective_us(x, problem.prob, problem, calls) for x in (problem.x0, x_end)])
+    )
 
 
 # each cost term's packed weights (``objective.P_*``): zeroed, the kernel skips that term
@@ -216,12 +223,11 @@ def _term_eval_us(problem: Any, x_end: np.ndarray, calls: int) -> dict[str, floa
     it), ``peers`` (the peers' positions sampled where no term reads them: the time with every
     weight zero less that with no peer either; about 0 since the objective samples a peer only
     where a term may read it, and that sampling counts in the term's share) and ``base`` (the
-    rest: MINCO's coefficients, the own samples, the gradient's way back). Each time is the
-    median of 5 batches of ``calls / 10`` evaluations [us]."""
+    rest: MINCO's coefficients, the own samples, the gradient's way back). Each time is
+    ``_objective_us``'s [us]."""
     from onboard.planner import objective as obj
 
     head, tail, kappa, prm, peer_c, peer_T, peer_t0, sdes, fmask, fpts, peer_vb = problem.prob
-    per = max(1, calls // 10)
 
     def timed(zero: tuple[str, ...], peers: bool = True) -> float:
         w = prm.copy()
@@ -234,14 +240,7 @@ def _term_eval_us(problem: Any, x_end: np.ndarray, calls: int) -> dict[str, floa
             else (peer_c[:0], peer_T[:0], peer_t0[:0], peer_vb[:0])
         )
         prob = (head, tail, kappa, w, pc, pT, p0, sdes, fmask, fpts, vb)
-        x = x_end.copy()
-        obj.repeat_objective(x, prob, problem.fld, problem.work, 1)
-        times = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            obj.repeat_objective(x, prob, problem.fld, problem.work, per)
-            times.append((time.perf_counter() - t0) / per)
-        return float(np.median(times)) * 1e6
+        return _objective_us(x_end, prob, problem, calls)
 
     every = tuple(n for names in _TERM_WEIGHTS.values() for n in names)
     out = {"all": timed(())}

@@ -189,7 +189,7 @@ def sampled_costs(
     # may: at the other points one farther than d_sw (z scaled) from this drone, by at least
     # what its speed bound allows since the point its position is from, is left unevaluated
     # (its J_r is zero there for sure: the same costs and gradients to the bit)
-    d_sw = np.sqrt(d_sw2)
+    d_sw = prm[P_D_SWARM]
     z_fac = max(1.0, np.sqrt(zs2))  # the scaled norm is at most this times the euclidean one
     peer_t = np.full(max(P, 1), np.nan)  # the global time of each row of peer_pos
     peer_on = np.zeros(max(P, 1), dtype=np.bool_)  # the row is at this point's time
