@@ -1411,14 +1411,17 @@ def test_stop_behind_a_stuck_planner_thread_returns_and_its_side_solve_still_com
 
     svc.plan_step = stuck_plan_step  # type: ignore[method-assign]
     svc.start_threads()
-    svc._wake.set()
-    assert entered.wait(10.0), "the planner thread never started a replan"
-    t0 = time.monotonic()
-    svc.stop()
-    assert time.monotonic() - t0 < 20.0  # 5 s per thread's join at most
-    assert svc.stuck_threads == ["svc-planner"]
-    planner = next(t for t in threading.enumerate() if t.name == "svc-planner")
-    release.set()
+    try:
+        svc._wake.set()
+        assert entered.wait(10.0), "the planner thread never started a replan"
+        t0 = time.monotonic()
+        svc.stop()
+        assert time.monotonic() - t0 < 20.0  # 5 s per thread's join at most
+        assert svc.stuck_threads == ["svc-planner"]
+        planner = next(t for t in threading.enumerate() if t.name == "svc-planner")
+    finally:  # on a failure too: no thread left waiting for the test's 30 s
+        release.set()
+        svc.request_stop()
     planner.join(10.0)
     assert not planner.is_alive()
     assert got == ["side solve"]
