@@ -19,6 +19,11 @@ import click
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+STOP_DEADLINE_S = 8.0
+"""A stop that has not ended this long after SIGTERM ends the process (with a ``stop_timeout``
+log line). Below the unit's ``TimeoutStopSec`` (10 s, systemd/swarm-onboard@.service), so that
+the line is out before systemd's SIGKILL."""
+
 
 def _config_option(help_text: str) -> Callable[[F], F]:
     """The ``--config FILE`` option of the commands that read a flight-service config."""
@@ -146,9 +151,9 @@ def run(
     def give_up() -> None:
         event(log, "stop_timeout", logging.ERROR, after_s=stopping.deadline_s)
 
-    # SIGTERM / SIGINT stop the service in order, a second one or 10 s without an end stop the
-    # process (onboard/stopsignal.py: why the handler itself takes no lock)
-    stopping = SignalStop(svc.request_stop, 10.0, give_up, thread_name="svc-stopper")
+    # SIGTERM / SIGINT stop the service in order, a second one or STOP_DEADLINE_S without an
+    # end stop the process (onboard/stopsignal.py: why the handler itself takes no lock)
+    stopping = SignalStop(svc.request_stop, STOP_DEADLINE_S, give_up, thread_name="svc-stopper")
     rc = 1
     with stopping:
         try:

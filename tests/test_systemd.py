@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from onboard.cli import STOP_DEADLINE_S
 from onboard.service.sdnotify import Notifier, sd_notify, watchdog_period_s
 
 UNITS = Path(__file__).resolve().parents[1] / "systemd"
@@ -33,6 +34,8 @@ def test_service_unit_settings() -> None:
     assert svc["Type"] == ["notify"]
     assert svc["Restart"] == ["on-failure"]
     assert float(svc["WatchdogSec"][0]) > 0
+    # the service's own stop deadline ends it (and logs stop_timeout) before systemd's SIGKILL
+    assert float(svc["TimeoutStopSec"][0]) >= STOP_DEADLINE_S + 1.0
     assert "--id %i" in svc["ExecStart"][0]
     assert "/dev/ttyTHS0 rw" in svc["DeviceAllow"]
     assert "dialout" in svc["SupplementaryGroups"][0]
