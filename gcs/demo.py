@@ -970,6 +970,9 @@ class Demo:
         change = cfg.formation_change
         changed = change is None
         self.change_reached_s: float | None = None
+        # the same from the change's common switch time (its ``effective_s``, the station's
+        # lead_s after the command): the fast-time twin's clock, where the two coincide
+        self.change_reached_after_switch_s: float | None = None
         self.t_change: float | None = None
         deadline = time.monotonic() + limit
         last_sample = 0.0
@@ -985,10 +988,14 @@ class Demo:
                 self.progress("crossing", self._info(start, goal))
                 if self.t_change is not None and self.change_reached_s is None:
                     e = self.flight.e_sim[-1]
-                    if math.isfinite(e) and e < 0.01 and now > self.assignments[-1]["effective_s"]:
+                    switch = self.assignments[-1]["effective_s"]
+                    if math.isfinite(e) and e < 0.01 and now > switch:
                         self.change_reached_s = now - self.t_change
+                        self.change_reached_after_switch_s = now - switch
                         self._event(f"new formation reached (e_sim < 0.01) after "
-                                    f"{self.change_reached_s:.1f} s")  # fmt: skip
+                                    f"{self.change_reached_s:.1f} s, "
+                                    f"{self.change_reached_after_switch_s:.1f} s after "
+                                    f"the switch")  # fmt: skip
             if change is not None and not changed and now - self.t_goal >= change[1]:
                 self.t_change = time.time()
                 self._assign(change[0])
@@ -1181,7 +1188,11 @@ class Demo:
             if hasattr(self, "t_landed")
             else None,
             "crossing_time_s": (self.t_arrived - self.t_goal) if arrived else None,
+            # from the command (issue #10's figure) and from the common switch time
             "formation_change_reached_s": getattr(self, "change_reached_s", None),
+            "formation_change_reached_after_switch_s": getattr(
+                self, "change_reached_after_switch_s", None
+            ),
             "setpoint_period_ms": {k: sp.get(k) for k in ("median", "p99", "max", "count")},
             "peer_latency_ms": peer_latency,
             "bus_latency_ms": latency,
@@ -1417,7 +1428,11 @@ def result_text(r: dict[str, Any]) -> str:
     else:
         lines.append("security: off (MAVLink unsigned, swarm bus plain TCP; --secure turns it on)")
     if r.get("formation_change_reached_s") is not None:
-        lines.append(f"new formation reached after {f(r['formation_change_reached_s'], '.1f')} s")
+        lines.append(
+            f"new formation reached after {f(r['formation_change_reached_s'], '.1f')} s "
+            f"({f(r.get('formation_change_reached_after_switch_s'), '.1f')} s after the "
+            "common switch time)"
+        )
     lines.append(f"flight directory: {r['flight_dir']} (report in report/)")
     return "\n".join(lines)
 

@@ -17,6 +17,7 @@ import pytest
 
 from gcs.demo import Demo, DemoConfig, DemoError, parse_change, result_text, run_demo
 from gcs.report import DroneFlight
+from gcs.station import StationConfig
 from onboard.comm.latency import LatencyFigures, LatencyRecorder
 from onboard.record import FlightRecorder, read_record
 
@@ -317,6 +318,13 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     assert [a["name"] for a in mission["assignments"]] == ["triangle-3", "line-3"]
     e1, e2 = (a["epoch"] for a in mission["assignments"])
     assert e2 > e1
+    # the new shape's time from the command, and from the common switch time it carries
+    reached = result["formation_change_reached_s"]
+    after = result["formation_change_reached_after_switch_s"]
+    assert (reached is None) == (after is None)
+    if reached is not None:  # the switch: the station's lead after the command was sent
+        lead = StationConfig().lead_s
+        assert lead <= reached - after < lead + 1.0
     records = sorted(out.glob("drone*.mcap"))
     assert len(records) == 3
     for rec_path in records:
