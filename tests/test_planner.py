@@ -584,6 +584,10 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     # the plan flown is the refinement: the first solution's refusal is on record, and is not
     # counted as a refused attempt
     assert res.message.startswith("refined formation: obstacle clearance"), res.message
+    # the refinement's work counts in the result beside the first solve's (the only other)
+    first = FormationPlanner(params, LINE3, slot=1).prepare(*args, goal, peers, field)
+    first.solve()
+    assert res.iterations > first.iterations and res.evaluations > first.evaluations
     counts = dict.fromkeys(REFUSAL_KEYS, 0)
     count_refusals(res.message, counts)
     assert counts["attempts"] == 0, counts

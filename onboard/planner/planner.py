@@ -1058,6 +1058,10 @@ class FormationPlanner:
         # the swarm set-up of this start and these peers, shared by the attempts
         setups: dict[bool, tuple[np.ndarray, float, float]] = {}
 
+        def late() -> bool:
+            """Whether the caller's time budget (``give_up``) says stop trying."""
+            return give_up is not None and give_up()
+
         def prepare(
             use_formation: bool,
             force_astar: bool,
@@ -1170,11 +1174,7 @@ class FormationPlanner:
             # the fresh start's solve runs beside the warm one when it is wanted (the same
             # result as one after the other: neither reads the other's work)
             side: _SideSolve | None = None
-            if (
-                self._side is not None
-                and wants_fresh(use_formation, force_astar)
-                and not (give_up is not None and give_up())
-            ):
+            if self._side is not None and wants_fresh(use_formation, force_astar) and not late():
                 side_problem = prepare_fresh(use_formation, formation_scale)
                 self._aside = side_problem
                 side = _SideSolve(side_problem, self._side)
@@ -1205,7 +1205,7 @@ class FormationPlanner:
         ) -> tuple[PlanResult | None, Problem, bool]:
             """``attempt`` with the fresh start's solve, when wanted, already running on the
             side executor (``side``)."""
-            nonlocal last_status, last_resort
+            nonlocal last_status, last_resort, iters, evals
             problem, x, last_status = solve(
                 prepare(use_formation, force_astar, ladder=ladder, formation_scale=formation_scale)
             )
@@ -1224,12 +1224,16 @@ class FormationPlanner:
                 # replaced only by a trajectory the check accepts outright
                 close = clearance < self.params.check_obstacle_m
                 self._active = problem  # cancellable meanwhile
+                done = (problem.iterations, problem.evaluations)
                 try:
                     x2, st2 = problem.solve(
                         x, self._lb_prm_refine, problem.refine_prob() if close else None
                     )
                 finally:
                     self._active = None
+                    # the refinement's work counts in the result, as every solve's
+                    iters += problem.iterations - done[0]
+                    evals += problem.evaluations - done[1]
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
                     if refined[0] is not None and (not safe or (refined[1] and not refined[2])):
@@ -1245,11 +1249,7 @@ class FormationPlanner:
                     last_resort = (ok_status, traj, last_status, problem, x)
                 messages.append(f"{label}: {why}")
                 return None, problem, False
-            if (
-                safe
-                and wants_fresh(use_formation, force_astar)
-                and not (give_up is not None and give_up())
-            ):
+            if safe and wants_fresh(use_formation, force_astar) and not late():
                 fresh = alternative(
                     collect(side, stop=False)
                     if side is not None
@@ -1267,7 +1267,7 @@ class FormationPlanner:
                 # an A* path at the optimiser's clearance takes, with the same terms, and fly
                 # the roomier of the two
                 start_d = float(field.distance(sp[None, :])[0][0])
-                if ahead < start_d - 1e-3 and not (give_up is not None and give_up()):
+                if ahead < start_d - 1e-3 and not late():
                     roomy = alternative(
                         solve(
                             prepare(
@@ -1364,7 +1364,7 @@ class FormationPlanner:
 
         def over_budget() -> PlanResult | None:
             """The kept previous trajectory when ``give_up`` says stop and it moves on."""
-            if give_up is None or not give_up():
+            if not late():
                 return None
             safe_prev = keep_previous()
             if safe_prev is None or not moves_on(safe_prev):
