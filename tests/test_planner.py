@@ -325,6 +325,29 @@ def test_a_drone_ahead_of_its_slot_slows_down_for_the_swarm() -> None:
     assert _speeds(behind.trajectory).max() > 0.9
 
 
+def test_cost_of_the_solved_point_is_the_solvers_own_f() -> None:
+    """``Problem.cost`` hands back the solver's f of the point it returned, the same to the
+    bit as evaluating it (the comparison of the warm and fresh solutions reads it); any other
+    point, or a solve on another objective (the refinement's), is evaluated."""
+    planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    field = AnalyticField(_world([[2.5, 0.3, 0.2, 0.0, 3.0]]))
+    problem = planner.prepare(
+        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([6.0, 0, 1]), [], field
+    )
+    x, _ = problem.solve()
+    f_eval = problem.objective(x)[0]
+    assert problem.cost(x) == f_eval
+    assert problem._solved is not None and problem._solved[1] == f_eval
+    assert problem.cost(problem.x0) == problem.objective(problem.x0)[0] != f_eval
+    stiff = PlannerParams(refine_penalty_scale=100.0)
+    other = FormationPlanner(stiff, LINE3, slot=1).prepare(
+        0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([6.0, 0, 1]), [], field
+    )
+    x2, _ = other.solve(other.x0, None, other.refine_prob())
+    assert other._solved is None  # solved on the stiffer objective: cost() evaluates
+    assert other.cost(x2) == other.objective(x2)[0]
+
+
 def test_cancel_before_the_solve_returns_the_start() -> None:
     planner = FormationPlanner(PlannerParams(), LINE3, slot=1)
     problem = planner.prepare(

@@ -41,6 +41,7 @@ from onboard.planner.lbfgs import (
     lbfgs_evaluations,
     lbfgs_iterate,
     lbfgs_iterations,
+    lbfgs_result_f,
     lbfgs_start,
     lbfgs_workspace,
 )
@@ -575,12 +576,12 @@ def solve_counted(
     lb_prm: np.ndarray,
     mem_size: int,
     cancel: np.ndarray,
-) -> tuple[int, int, int]:
-    """``solve`` in a fresh workspace: (status, iterations, evaluations); x holds the best
-    point on return."""
+) -> tuple[int, int, int, float]:
+    """``solve`` in a fresh workspace: (status, iterations, evaluations, f at the point
+    returned); x holds the best point on return."""
     ws, iw = lbfgs_workspace(x.shape[0], mem_size)
     status = solve(x, prob, fld, work, lb_prm, ws, iw, cancel)
-    return status, lbfgs_iterations(iw), lbfgs_evaluations(iw)
+    return status, lbfgs_iterations(iw), lbfgs_evaluations(iw), lbfgs_result_f(ws)
 
 
 @njit(cache=True, nogil=True)

@@ -214,6 +214,7 @@ class Problem:
         self.cancel_flag = np.zeros(1, dtype=np.int64)
         self.iterations = 0
         self.evaluations = 0
+        self._solved: tuple[np.ndarray, float] | None = None  # (x, f) of the last solve
         self.astar_clearance_m = math.nan
         """The clearance [m] of the A* path the initial guess follows (NaN: no A* path)."""
 
@@ -258,12 +259,21 @@ class Problem:
         x = (self.x0 if x_start is None else x_start).copy()
         prm = self.lb_prm if lb_prm is None else lb_prm
         prob = self.prob if prob is None else prob
-        status, iters, evals = obj.solve_counted(
+        status, iters, evals, f = obj.solve_counted(
             x, prob, self.fld, self.work, prm, self.params.lbfgs.mem_size, self.cancel_flag
         )
         self.iterations += iters
         self.evaluations += evals
+        # the solver's f of the point it returns, on this problem's own objective
+        self._solved = (x.copy(), float(f)) if prob is self.prob else None
         return x, LbfgsStatus(status)
+
+    def cost(self, x: np.ndarray) -> float:
+        """f(x): the solver's own value when x is the point the last ``solve`` on this
+        problem's objective returned (the same arithmetic, so the same value), else evaluated."""
+        if self._solved is not None and np.array_equal(self._solved[0], x):
+            return self._solved[1]
+        return self.objective(x)[0]
 
     def trajectory(self, x: np.ndarray) -> Trajectory:
         """The trajectory that x describes."""
@@ -1256,8 +1266,8 @@ class FormationPlanner:
                     else solve(prepare_fresh(use_formation, formation_scale))
                 )
                 if fresh is not None:
-                    f_warm = problem.objective(x)[0]
-                    f_alt = fresh[0].objective(fresh[1])[0]
+                    f_warm = problem.cost(x)
+                    f_alt = fresh[0].cost(fresh[1])
                     if f_alt < f_warm:
                         problem, x, last_status, traj, clearance, ahead = fresh
                         messages.append(f"fresh start: cost {f_warm:.4g} -> {f_alt:.4g}")
