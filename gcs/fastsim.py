@@ -818,8 +818,9 @@ class SafetyMonitor:
             pp, vv, aa = agent.state(t)
             brake = braking_trajectory(t, pp, vv, aa, self.a_max, peak_fraction=1.0)
             self._problem, self._at, self._helps = peer_conflict(
-                view, t, ts, agent.planned(ts), self.limit_m, brake.sample(ts)
-            )
+                view, t, ts, agent.planned(ts), self.limit_m, brake.sample(ts),
+                agent.brake_reference_s,
+            )  # fmt: skip
         problem = self._problem
         if not problem:
             return ""

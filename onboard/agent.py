@@ -89,9 +89,14 @@ from onboard.comm.messages import TrajectoryMsg
 from onboard.planner.field import DistanceField
 from onboard.planner.formation import complete_mask, similarity
 from onboard.planner.kernels import BAND_MARGINAL, BAND_OK, band_state
-from onboard.planner.params import PlannerParams, recover_params, reform_params, unheard_params
-from onboard.planner.planner import (
+from onboard.planner.params import (
     BRAKE_REFERENCE_S,
+    PlannerParams,
+    recover_params,
+    reform_params,
+    unheard_params,
+)
+from onboard.planner.planner import (
     FormationPlanner,
     PeerTrajectory,
     PlanStatus,
@@ -360,7 +365,8 @@ def _first_conflict(d: np.ndarray, limit_m: float, brake_d: np.ndarray | None) -
     limit of ``limit_m``, -1 when none; whether braking instead would help), by the planner's
     rule (``kernels._band``, the safety check's): a plan that starts inside the limit, never
     comes closer than its start (or than the braking stop instead would: ``brake_d``, that
-    stop's distances on the first samples, those within ``BRAKE_REFERENCE_S``; None: the
+    stop's distances on the first samples, those within its window (``brake_reference_s``,
+    ``_brake_samples``); None: the
     start) and leaves the limit is the way out, not a conflict (braking there would hold the
     drone inside for good: every retry's plan backs out and every brake undoes it); a plan
     that starts outside and comes inside, but no closer than the stop, is a conflict that a
@@ -375,9 +381,9 @@ def _first_conflict(d: np.ndarray, limit_m: float, brake_d: np.ndarray | None) -
     return int(np.argmax(close)), band != BAND_MARGINAL
 
 
-def _brake_samples(ts: np.ndarray) -> int:
-    """How many of the samples ``ts`` lie within ``BRAKE_REFERENCE_S`` of the first."""
-    return max(1, int(np.searchsorted(ts, ts[0] + BRAKE_REFERENCE_S + 1e-9, side="right")))
+def _brake_samples(ts: np.ndarray, ref_s: float) -> int:
+    """How many of the samples ``ts`` lie within ``ref_s`` of the first."""
+    return max(1, int(np.searchsorted(ts, ts[0] + ref_s + 1e-9, side="right")))
 
 
 def peer_links(
@@ -404,6 +410,7 @@ def peer_conflict(
     pos: np.ndarray,
     limit_m: float,
     brake: np.ndarray | None = None,
+    ref_s: float = BRAKE_REFERENCE_S,
 ) -> tuple[str, float, bool]:
     """The earliest conflict of ``pos`` (our positions at the increasing times ``ts``, (K, 3))
     with ``view``: a peer trajectory (sampled at the same times), a quiet or silent peer's
@@ -411,12 +418,12 @@ def peer_conflict(
     the time of the first sample too close, whether a brake would help); ('', inf, True) when
     none. Judged by the planner's rule (``_first_conflict``) against ``brake``: the braking
     stop the monitor would fly instead, at ``ts`` (None: a start inside the limit against the
-    start). What a safety monitor checks between replans (the flight service's and the
-    fast-time one)."""
+    start), over its first ``ref_s`` (``DroneAgent.brake_reference_s``). What a safety monitor
+    checks between replans (the flight service's and the fast-time one)."""
     first = math.inf
     problem = ""
     helps = True
-    ref = None if brake is None else brake[: _brake_samples(ts)]
+    ref = None if brake is None else brake[: _brake_samples(ts, ref_s)]
     for pt in view.trajectories:
         peer = pt.trajectory.sample(ts)
         dd = np.linalg.norm(pos - peer, axis=1)
@@ -448,13 +455,15 @@ def obstacle_conflict(
     now_s: float,
     limit_m: float,
     brake_d: np.ndarray | None = None,
+    ref_s: float = BRAKE_REFERENCE_S,
 ) -> tuple[str, float, bool]:
     """The first sample closer than ``limit_m`` to an obstacle, from the distances ``d`` (K,)
     of our positions at the increasing times ``ts`` (d[0] where we are), as (what, its time,
     whether a brake would help); ('', inf, True) when none. Judged by the planner's rule
     (``_first_conflict``) against ``brake_d``: the distances of the braking stop the monitor
-    would fly instead, at ``ts`` (None: a start inside the limit against the start)."""
-    ref = None if brake_d is None else brake_d[: _brake_samples(ts)]
+    would fly instead, at ``ts`` (None: a start inside the limit against the start), over its
+    first ``ref_s``."""
+    ref = None if brake_d is None else brake_d[: _brake_samples(ts, ref_s)]
     k, helps = _first_conflict(d, limit_m, ref)
     if k < 0:
         return "", math.inf, True
@@ -961,6 +970,16 @@ class DroneAgent:
     def unheard_by(self) -> frozenset[int]:
         """The peers that last reported they do not hear us (``set_unheard``)."""
         return self._unheard
+
+    @property
+    def brake_reference_s(self) -> float:
+        """The window of the safety check's braking stop now: ``PlannerParams.brake_reference_s``,
+        or ``unheard_brake_reference_s`` (when longer) while a peer does not hear us, as the
+        planner's (``unheard_params``)."""
+        p = self.params
+        if self._unheard:
+            return max(p.brake_reference_s, p.unheard_brake_reference_s)
+        return p.brake_reference_s
 
     @property
     def check_drone_m(self) -> float:

@@ -21,6 +21,13 @@ from onboard.comm.hearing import (
 )
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams, unheard_params
+from onboard.planner.planner import (
+    LAST_RESORT,
+    FormationPlanner,
+    PeerTrajectory,
+    PlanResult,
+    PlanStatus,
+)
 from onboard.planner.trajectory import Trajectory
 from onboard.world import World
 
@@ -72,8 +79,9 @@ def test_the_planner_keeps_a_wider_berth_from_peers_while_one_does_not_hear_us()
     assert wide.swarm_clearance_m == pytest.approx(
         params.swarm_clearance_m + params.unheard_margin_m
     )
-    assert unheard_params(PlannerParams(unheard_margin_m=0.0)) == PlannerParams(
-        unheard_margin_m=0.0
+    assert wide.brake_reference_s == params.unheard_brake_reference_s > params.brake_reference_s
+    assert unheard_params(PlannerParams(unheard_margin_m=0.0, unheard_brake_reference_s=1.0)) == (
+        PlannerParams(unheard_margin_m=0.0, unheard_brake_reference_s=1.0)
     )
     with pytest.raises(ValueError, match="unheard_margin_m"):
         PlannerParams(unheard_margin_m=-0.1)
@@ -98,6 +106,7 @@ def test_the_planner_keeps_a_wider_berth_from_peers_while_one_does_not_hear_us()
             agent.set_unheard([1, 0])  # our own id is never a peer
         assert agent.unheard_by == ({1} if deaf else set())
         assert agent.check_drone_m == pytest.approx(wide.check_drone_m if deaf else 0.5)
+        assert agent.brake_reference_s == (3.0 if deaf else 1.0)
         flown = []
         reports = []
         for k in range(150):  # 15 s, replans on the agent's grid
@@ -111,6 +120,46 @@ def test_the_planner_keeps_a_wider_berth_from_peers_while_one_does_not_hear_us()
         gaps[deaf] = float(np.linalg.norm(np.array(flown) - peer.sample(ts), axis=1).min())
     assert params.check_drone_m <= gaps[False] < wide.check_drone_m
     assert gaps[True] >= wide.check_drone_m
+
+
+def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through() -> None:
+    """CI's bus-faults flight (2026-12-01): a drone its peers did not hear refused every way
+    (the closest 0.53 m from a peer, inside its widened 0.7 m check) and stopped, and the peer,
+    which planned around its last heard trajectory, flew through the stop 1.6 s later (0.315 m
+    apart). Here: our drone in a corridor of trunks, a peer on our line overtaking at 0.9 m/s.
+    While the peer does not hear us the stop is judged over ``unheard_brake_reference_s``: it
+    holds us where the peer passes, so a way that keeps more distance is flown (the one that
+    keeps farthest of those the check accepts only as a last resort), not the stop. With the
+    window of a heard peer (1 s) it stopped, and the peer flew through."""
+    xs = np.arange(-4.0, 8.0, 0.35)
+    trunks = [[x, s * 1.0, 0.15, 0.0, 3.0] for x in xs for s in (-1.0, 1.0)]
+    field = AnalyticField(World(np.array(trunks), np.zeros((0, 7)), np.zeros((0, 6)), 0.0))
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = (-1.5, 0.0, 1.0)
+    c[0, 1] = (0.9, 0.0, 0.0)
+    peer = PeerTrajectory(0, 0, Trajectory(0.0, c, np.array([30.0])))
+    line = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+    start = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.3, 0.0, 0.0]), np.zeros(3))
+    goal = np.array([10.0, 0.0, 1.0])
+    ts = np.arange(0.0, 6.0, 0.02)
+
+    def closest(res: PlanResult) -> float:  # held at its end after it (a stop holds)
+        return float(
+            np.linalg.norm(res.trajectory.sample(ts) - peer.trajectory.sample(ts), axis=1).min()
+        )
+
+    old = unheard_params(PlannerParams(unheard_brake_reference_s=1.0))
+    stopped = FormationPlanner(old, line, slot=1).plan(*start, goal, [peer], field)
+    assert stopped.status == PlanStatus.EMERGENCY, stopped.message
+    assert closest(stopped) < 0.1
+    wide = unheard_params(PlannerParams())
+    res = FormationPlanner(wide, line, slot=1).plan(*start, goal, [peer], field)
+    assert res.status != PlanStatus.EMERGENCY, res.message
+    assert res.message.endswith(LAST_RESORT), res.message
+    assert closest(res) > 0.5  # the bodies (0.4 m) apart, with room
+    # still clear of the trunks by the check's distance
+    pts = res.trajectory.sample(np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 2000))
+    assert float(field.distance(pts)[0].min()) >= wide.check_obstacle_m
 
 
 def test_in_fast_time_a_drone_whose_uplink_fails_learns_it_and_keeps_clear() -> None:

@@ -14,6 +14,10 @@ SWARM_TARGETS = ("own-goal", "centroid", "slowest")
 FRESH_STARTS = ("never", "line", "astar")
 
 
+BRAKE_REFERENCE_S = 1.0
+"""The default of ``PlannerParams.brake_reference_s``."""
+
+
 @dataclass(frozen=True)
 class PlannerParams:
     """Weights and limits of the spatial-temporal optimisation (paper Eq. 10) and its driver."""
@@ -294,6 +298,19 @@ class PlannerParams:
     two apart, against a peer's plan that may change toward it at every replan. In CI's
     bus-faults flight (a drone whose uplink was held for 7.5 s) that left 0.3997 m between two
     drones that crossed at 1.7 m/s closing speed, at the 0.45 m check of the time. 0: off."""
+    brake_reference_s: float = BRAKE_REFERENCE_S
+    """The safety check's rule for a way that comes inside its distance of an obstacle or a
+    peer: it may come as close as a braking stop from the same start would within this long
+    (``kernels._band``'s floor; a start inside the distance may back out that way, and when
+    every attempt is refused such a way is flown as a last resort rather than the stop).
+    Beyond it, a peer that hears this drone replans around the stop."""
+    unheard_brake_reference_s: float = 3.0
+    """``brake_reference_s`` while a peer reports that it does not hear this drone
+    (``unheard_params``): that peer flies on through the place where a stop would leave this
+    drone, so the stop is judged over the time it holds there: the stop itself (about 1 s),
+    the flight service's hover before it retries (1 s) and the retry's start. In CI's
+    bus-faults flight (2026-12-01) the unheard drone refused every way, the closest 0.53 m
+    from a peer, for a stop that the peer flew through 1.6 s later, 0.315 m apart."""
     recover_formation_scale: float = 3.0
     """While recovering the shape (``recover_e_sim``), ``w_formation`` is multiplied by this
     (in place of ``reform_formation_scale``), and so is ``w_altitude_hold`` (without it the
@@ -494,6 +511,8 @@ class PlannerParams:
             "recover_e_sim",
             "recover_hold_s",
             "unheard_margin_m",
+            "brake_reference_s",
+            "unheard_brake_reference_s",
             "w_altitude",
             "w_altitude_hold",
             "altitude_margin_m",
@@ -631,13 +650,16 @@ def recover_params(params: PlannerParams) -> PlannerParams:
 
 
 def unheard_params(params: PlannerParams) -> PlannerParams:
-    """``params`` for a drone that a peer does not hear (``unheard_margin_m``): the check
-    distance to peers and the optimiser's clearance to them widened by the margin."""
+    """``params`` for a drone that a peer does not hear: the check distance to peers and the
+    optimiser's clearance to them widened by ``unheard_margin_m``, and a braking stop judged
+    over ``unheard_brake_reference_s`` (when longer than ``brake_reference_s``)."""
     m = params.unheard_margin_m
-    if m == 0.0:
+    ref = max(params.brake_reference_s, params.unheard_brake_reference_s)
+    if m == 0.0 and ref == params.brake_reference_s:
         return params
     return dataclasses.replace(
         params,
         check_drone_m=params.check_drone_m + m,
         swarm_clearance_m=params.swarm_clearance_m + m,
+        brake_reference_s=ref,
     )

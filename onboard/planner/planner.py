@@ -68,10 +68,6 @@ the same start would (``kernels.BAND_MARGINAL``)."""
 LAST_RESORT = "flown as a last resort"
 """How the message of a plan flown as a last resort ends (a ``MARGINAL`` trajectory, when no
 attempt stayed outside the check's distances)."""
-BRAKE_REFERENCE_S = 1.0
-"""A start closer than the check's distance to an obstacle or a peer may fly a way out that
-comes as close as a braking stop would within this long (``kernels._band``'s floor): beyond
-it, a peer's motion says nothing about the moment the choice is made."""
 COMFORT_ASTAR_MARGIN_M = 1.5
 """The A* box of the comfort alternative grows the start-target box by this much (3 m for the
 fallbacks): a neighbouring gap, not a detour, and a quarter of the grid nodes."""
@@ -852,7 +848,7 @@ class FormationPlanner:
         ``check_drone_m`` to its end; a drone that is already closer than that
         at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
         inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
-        it starts (or than a braking stop from there would within ``BRAKE_REFERENCE_S``, if
+        it starts (or than a braking stop from there would within ``brake_reference_s``, if
         that is closer: still moving inward, or a peer coming on) and leaves the band, so it
         can always back out; a trajectory that starts outside and comes inside, but no closer
         than that stop, is accepted with a reason (``MARGINAL``), which ``plan`` flies only as
@@ -933,7 +929,7 @@ class FormationPlanner:
             brake.coeffs,
             brake.durations_s,
             brake.t0_s,
-            BRAKE_REFERENCE_S,
+            p.brake_reference_s,
         )
         return self._verdict(res, traj, t_from_s, field, view, peers)
 
@@ -1020,6 +1016,27 @@ class FormationPlanner:
         )
         return traj, safe, why, clearance, ahead
 
+    def _margin(
+        self,
+        traj: Trajectory,
+        t_from_s: float,
+        peers: Sequence[PeerTrajectory],
+        clearance: float,
+    ) -> float:
+        """How far ``traj`` keeps beyond the check's distances, the least over the obstacles
+        (its ``clearance`` from the check) and every peer (sampled every ``check_step_s`` from
+        ``t_from_s`` to its end): what ranks the trajectories accepted only as a last resort."""
+        p = self.params
+        margin = clearance - p.check_obstacle_m if math.isfinite(clearance) else math.inf
+        if peers:
+            t_end = max(traj.t_end_s, t_from_s)
+            ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
+            own = traj.sample(ts)
+            for pt in peers:
+                d = np.linalg.norm(own - pt.trajectory.sample(ts), axis=1)
+                margin = min(margin, float(d.min()) - p.check_drone_m)
+        return margin
+
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest (a gentle stop, as the service's)."""
         return Trajectory.braking(t_start, sp, sv, sa, self.params.a_max_m_s2)
@@ -1062,8 +1079,11 @@ class FormationPlanner:
         iters = evals = 0
         messages: list[str] = []
         last_status: LbfgsStatus | None = None
-        last_resort: tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray] | None
-        last_resort = None
+        # trajectories the check accepts only as a last resort (``MARGINAL``), with how far
+        # each keeps beyond the check's distances (``_margin``)
+        last_resorts: list[
+            tuple[float, tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]]
+        ] = []
         refused: list[tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]] = []
         # the swarm set-up of this start and these peers, shared by the attempts
         setups: dict[bool, tuple[np.ndarray, float, float]] = {}
@@ -1177,9 +1197,9 @@ class FormationPlanner:
             """One attempt: (its result when the check accepts it, else None with the reason
             in ``messages``; its problem; whether it was canceled). An accepted rescue says so
             in the message, with the clearance of its A* path. A trajectory the check accepts
-            only as a last resort (``MARGINAL``) is kept in ``last_resort`` (the first one)
+            only as a last resort (``MARGINAL``) is kept in ``last_resorts``
             and the attempt counts as refused."""
-            nonlocal last_status, last_resort
+            nonlocal last_status
             label = what if use_formation else f"{what} without formation"
             # the fresh start's solve runs beside the warm one when it is wanted (the same
             # result as one after the other: neither reads the other's work)
@@ -1215,7 +1235,7 @@ class FormationPlanner:
         ) -> tuple[PlanResult | None, Problem, bool]:
             """``attempt`` with the fresh start's solve, when wanted, already running on the
             side executor (``side``)."""
-            nonlocal last_status, last_resort, iters, evals
+            nonlocal last_status, iters, evals
             problem, x, last_status = solve(
                 prepare(use_formation, force_astar, ladder=ladder, formation_scale=formation_scale)
             )
@@ -1231,7 +1251,8 @@ class FormationPlanner:
             if not safe or why:
                 # tighter; where it passes too close to an obstacle also on denser points
                 # and stiffer (NaN: the test stopped before the distances); a last resort is
-                # replaced only by a trajectory the check accepts outright
+                # replaced by a trajectory the check accepts outright, or by a last resort
+                # that keeps farther beyond the check's distances
                 close = clearance < self.params.check_obstacle_m
                 self._active = problem  # cancellable meanwhile
                 done = (problem.iterations, problem.evaluations)
@@ -1246,7 +1267,15 @@ class FormationPlanner:
                     evals += problem.evaluations - done[1]
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
-                    if refined[0] is not None and (not safe or (refined[1] and not refined[2])):
+                    if refined[0] is not None and (
+                        not safe
+                        or (refined[1] and not refined[2])
+                        or (
+                            refined[1]
+                            and self._margin(refined[0], t_start_s, peers, refined[3])
+                            > self._margin(traj, t_start_s, peers, clearance)
+                        )
+                    ):
                         if refined[1] and not refined[2]:
                             # flown as refined: the first solution's refusal stays on record
                             # (not counted as a refused attempt: it names no attempt first)
@@ -1255,8 +1284,8 @@ class FormationPlanner:
                         traj, safe, why, clearance, ahead = refined
             if safe and why:  # a last resort
                 assert traj is not None
-                if last_resort is None:
-                    last_resort = (ok_status, traj, last_status, problem, x)
+                entry = (ok_status, traj, last_status, problem, x)
+                last_resorts.append((self._margin(traj, t_start_s, peers, clearance), entry))
                 messages.append(f"{label}: {why}")
                 return None, problem, False
             if safe and wants_fresh(use_formation, force_astar) and not late():
@@ -1420,7 +1449,9 @@ class FormationPlanner:
             return PlanResult(
                 PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
-        if last_resort is not None:
+        if last_resorts:
+            # the one that keeps farthest beyond the check's distances (the first of equals)
+            last_resort = max(last_resorts, key=lambda m_e: m_e[0])[1]
             # nothing stays outside the check's distances; this comes no closer than the stop
             return flown(last_resort, LAST_RESORT)
         return PlanResult(

@@ -769,12 +769,14 @@ class FlightService:
             if fld is not None:
                 d, _ = fld.distance(np.concatenate([pos, brake_pos]))
                 problem, at, helps = obstacle_conflict(
-                    d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :]
-                )
+                    d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :],
+                    self.agent.brake_reference_s,
+                )  # fmt: skip
             # the check the plans keep (wider while a peer does not hear us)
             peer, peer_at, peer_helps = peer_conflict(
-                view, now, ts, pos, self.agent.check_drone_m, brake_pos
-            )
+                view, now, ts, pos, self.agent.check_drone_m, brake_pos,
+                self.agent.brake_reference_s,
+            )  # fmt: skip
             if peer_at < at:
                 problem, at, helps = peer, peer_at, peer_helps
             lo = np.asarray(self.cfg.geofence.min_enu_m)
