@@ -1250,6 +1250,46 @@ def test_the_monitor_lets_a_drone_inside_a_peers_check_distance_back_out(tmp_pat
     assert h.svc.counters["monitor_no_better_stop"] == 1
 
 
+def test_a_peer_coming_at_the_hover_after_a_failed_plan_cuts_the_hover_short(
+    tmp_path: Path,
+) -> None:
+    """CI's bus-faults flight (2026-12-01): a drone whose peers did not hear it failed a plan
+    and hovered for ``retry_after_s`` before it retried, and a peer flew through the hover. A
+    peer coming at that hover makes the monitor retry the plan at once; a hover of another
+    kind (a goal reached) is not cut short."""
+    from onboard.agent import PeerView
+    from onboard.planner.planner import PeerTrajectory
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(10)
+    assert h.state is S.FORMATION_FLIGHT
+    h.svc.machine.plan_failed("emergency")
+    h.svc.main_step()  # the service takes the hover over
+    assert h.state is S.HOVER
+    t = h.clock.t
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    charging = moving(here - [1.0, 0.0, 0.0], here + [2.0, 0.0, 0.0], t, speed=1.0)
+    view = PeerView(t, (PeerTrajectory(5, 0, charging),), (), np.zeros((0, 3)), (), (), ())
+    h.svc.peers_now = lambda now, fresh=False: view  # type: ignore[method-assign]
+    h.svc.agent.reset(Trajectory.hover(here, t, 5.0))
+    h.svc._monitor_key = ()  # a new look
+    what = h.svc.monitor_step()
+    assert what.startswith("holding: drone 5"), what
+    h.svc.main_step()
+    assert h.state is S.FORMATION_FLIGHT  # at once, not retry_after_s (1 s) later
+    assert h.clock.t == t
+    # a hover that no failed plan holds (the goal reached) stays a hover
+    h.svc.machine.goal_reached()
+    h.svc.main_step()
+    assert h.state is S.HOVER
+    h.svc._monitor_key = ()
+    assert h.svc.monitor_step().startswith("holding: drone 5")
+    h.svc.main_step()
+    assert h.state is S.HOVER
+
+
 def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     from onboard.agent import obstacle_conflict
 

@@ -311,6 +311,26 @@ def test_failed_plans_hover_then_retry_then_emergency_then_land() -> None:
     assert m.state is S.LANDED
 
 
+def test_a_failed_plans_hover_is_cut_short_when_asked() -> None:
+    """``retry_now`` (the monitor: a peer comes at the hover) retries a failed plan at once,
+    not ``retry_after_s`` later; the failure clock runs on; no other hover is cut short."""
+    m, clock, _ = make(retry_after_s=1.0, max_failed_s=5.0)
+    airborne(m)
+    assert not m.retry_now("nothing failed")  # the hover after take-off: no goal, no hold
+    ok(m.command(Goal((5.0, 0, 1))))
+    m.plan_failed("emergency")
+    assert m.state is S.HOVER
+    clock.t += 0.1
+    assert m.retry_now("a peer comes at the hover")
+    assert m.state is S.FORMATION_FLIGHT
+    assert not m.retry_now("again")  # nothing held any more
+    clock.t += 4.95  # 5.05 s failing in a row: the clock ran on through the early retry
+    m.plan_failed("emergency")
+    assert m.state is S.EMERGENCY
+    assert not m.retry_now("an emergency is not a failed plan's hover")
+    assert m.state is S.EMERGENCY
+
+
 def test_abort_is_an_emergency_and_resume_clears_it() -> None:
     m, _, _ = make()
     airborne(m)

@@ -95,6 +95,7 @@ from onboard.service.sdnotify import Notifier
 from onboard.service.state import (
     AIRBORNE_CONTROLLED,
     COMMANDING,
+    HOLD_PLAN,
     Assignment,
     Command,
     CommandResult,
@@ -129,6 +130,9 @@ class Intent:
     slot: int = -1
     epoch: int = -1
     points: tuple[tuple[float, float, float], ...] = ()
+    held_for_retry: bool = False
+    """The hover of a failed plan, which is retried later (``FlightStateMachine.retry_now``
+    retries it at once)."""
 
 
 @dataclass
@@ -501,6 +505,7 @@ class FlightService:
             -1 if slot is None else slot,
             -1 if a is None else a.epoch,
             () if a is None else a.points,
+            HOLD_PLAN in m.holds,
         )
 
     # ---- actions (the actions thread) --------------------------------------------------------
@@ -812,6 +817,9 @@ class FlightService:
             self.counters["monitor_holding"] += 1
             if it.state is S.FORMATION_FLIGHT:
                 self._ask_replan()
+            elif it.held_for_retry:
+                # the hover after a failed plan is in the way: retry the plan now
+                self._results.put(("monitor_retry", problem))
             return f"holding: {problem}"
         if not helps:
             # the plan comes inside the check's distance, but a braking stop would come as
@@ -820,6 +828,8 @@ class FlightService:
             self.counters["monitor_no_better_stop"] += 1
             if it.state is S.FORMATION_FLIGHT:
                 self._ask_replan()
+            elif it.held_for_retry:
+                self._results.put(("monitor_retry", problem))
             return f"no better stop: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
@@ -1090,6 +1100,9 @@ class FlightService:
             elif kind == "monitor_brake":
                 event(log, "monitor_brake", logging.WARNING, why=payload)
                 m.plan_failed("emergency")
+            elif kind == "monitor_retry":
+                if m.retry_now(f"the hover is in a conflict: {payload}"):
+                    event(log, "plan_retry_early", logging.WARNING, why=payload)
             elif kind == "action_failed":
                 name, why = payload
                 event(log, "action_failed", logging.ERROR, action=name, why=why)

@@ -488,6 +488,16 @@ class FlightStateMachine:
             self._retry_at_s = now + self.params.retry_after_s
             self._hold(HOLD_PLAN, f"plan {status}: hover, retry")
 
+    def retry_now(self, reason: str) -> bool:
+        """The retry of a failed plan at once instead of ``retry_after_s`` into its hover: the
+        monitor found the hover in a conflict (a peer coming at it: one that does not hear us
+        flies through where we hold). True when a failed plan's hover was cut short (the
+        failure clock of ``max_failed_s`` runs on)."""
+        if HOLD_PLAN not in self.holds:
+            return False
+        self._release(HOLD_PLAN, reason)
+        return True
+
     def plan_ok(self) -> None:
         self._failing_since_s = None
 
