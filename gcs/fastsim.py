@@ -775,7 +775,6 @@ class SafetyMonitor:
     def __init__(self, cfg: SimConfig, state_period_s: float) -> None:
         self.horizon_s = cfg.monitor_horizon_s
         self.brake_after_s = cfg.monitor_brake_after_s
-        self.limit_m = cfg.params.check_drone_m
         self.a_max = cfg.params.a_max_m_s2
         self.view_age_s = 0.5 * state_period_s
         self.view: Any = None
@@ -810,15 +809,18 @@ class SafetyMonitor:
         # on a fixed grid: a look with the same view, plan and grid step finds what the
         # previous one found, so it is not computed again
         g = monitor_step_index(t)
-        key = (view, agent.plan_token, g)
+        # the service's check distance and stop window: wider while a peer does not hear us
+        key = (view, agent.plan_token, g, agent.unheard_by)
         last = self._key  # the same objects (not equal ones: views hold arrays), same step
-        if not (last and last[0] is view and last[1] is key[1] and last[2] == g):
+        if not (
+            last and last[0] is view and last[1] is key[1] and last[2] == g and last[3] == key[3]
+        ):
             self._key = key
             ts = monitor_times(g, self.horizon_s)
             pp, vv, aa = agent.state(t)
             brake = braking_trajectory(t, pp, vv, aa, self.a_max, peak_fraction=1.0)
             self._problem, self._at, self._helps = peer_conflict(
-                view, t, ts, agent.planned(ts), self.limit_m, brake.sample(ts),
+                view, t, ts, agent.planned(ts), agent.check_drone_m, brake.sample(ts),
                 agent.brake_reference_s,
             )  # fmt: skip
         problem = self._problem

@@ -130,6 +130,33 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
     assert mon.brakes == 1
 
 
+def test_the_fast_time_monitor_keeps_the_wider_distance_while_unheard() -> None:
+    """As the flight service's: while a peer does not hear us, the monitor judges peers at
+    ``check_drone_m`` plus ``unheard_margin_m`` (0.7 m), not the plain 0.5 m. A peer hovering
+    0.6 m beside our straight path is no conflict until it stops hearing us."""
+    bus = InMemoryBus(0.0)
+    cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
+    agent = DroneAgent(
+        0,
+        PARAMS,
+        TRIANGLE,
+        0,
+        _line(np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.0),
+        bus,
+        StaticMap(AnalyticField(World.empty(0.0))),
+        goal=np.array([10.0, 0.0, 1.0]),
+        first_replan_s=100.0,
+    )
+    mon = SafetyMonitor(cfg, 0.1)
+    beside = Trajectory.hover(np.array([1.0, 0.6, 1.0]), 0.0, 600.0)
+    bus.publish(TrajectoryMsg(1, 1, 0, beside), 0.0)
+    assert PARAMS.check_drone_m < 0.6 < PARAMS.check_drone_m + PARAMS.unheard_margin_m
+    assert mon.look(agent, 0.0) == ""
+    agent.set_unheard([1])
+    what = mon.look(agent, 0.0)  # the same view, plan and step: looked at again
+    assert what.startswith("replan: drone 1"), what
+
+
 def test_a_killed_drone_flies_px4s_failsafe_and_its_peers_keep_clear() -> None:
     """Drone 1 of the hexagon is killed 4 s into the small forest, in front of a follower; its
     vehicle carries on along its last setpoint for COM_OF_LOSS_T, brakes and holds: the
