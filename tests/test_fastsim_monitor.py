@@ -85,10 +85,9 @@ def test_planned_follows_the_queue() -> None:
         np.testing.assert_allclose(a.flying(float(t)).sample(float(t)), q)
 
 
-def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way() -> None:
-    """Drone 0 flies +x at 1 m/s; peer 1 stops 0.7 m ahead and announces its hover: the monitor
-    asks for a replan at once; if a plan made a moment ago still runs into it, it brakes as hard
-    as the planner's acceleration limit allows (peers hear the braking trajectory)."""
+def _flying_along_x() -> tuple[InMemoryBus, DroneAgent, SafetyMonitor]:
+    """Drone 0 of the triangle flying +x at 1 m/s from (0, 0, 1) in open space (its first
+    replan far off), on a bus of its own, with a fast-time monitor."""
     bus = InMemoryBus(0.0)
     cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
     agent = DroneAgent(
@@ -102,7 +101,14 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
         goal=np.array([10.0, 0.0, 1.0]),
         first_replan_s=100.0,
     )
-    mon = SafetyMonitor(cfg, 0.1)
+    return bus, agent, SafetyMonitor(cfg, 0.1)
+
+
+def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way() -> None:
+    """Drone 0 flies +x at 1 m/s; peer 1 stops 0.7 m ahead and announces its hover: the monitor
+    asks for a replan at once; if a plan made a moment ago still runs into it, it brakes as hard
+    as the planner's acceleration limit allows (peers hear the braking trajectory)."""
+    bus, agent, mon = _flying_along_x()
     far = Trajectory.hover(np.array([0.0, 5.0, 1.0]), 0.0, 600.0)
     bus.publish(TrajectoryMsg(1, 1, 0, far), 0.0)
     assert mon.look(agent, 0.0) == ""
@@ -134,20 +140,7 @@ def test_the_fast_time_monitor_keeps_the_wider_distance_while_unheard() -> None:
     """As the flight service's: while a peer does not hear us, the monitor judges peers at
     ``check_drone_m`` plus ``unheard_margin_m`` (0.7 m), not the plain 0.5 m. A peer hovering
     0.6 m beside our straight path is no conflict until it stops hearing us."""
-    bus = InMemoryBus(0.0)
-    cfg = SimConfig(load_formation("triangle-3"), load_world_spec("forest-small"))
-    agent = DroneAgent(
-        0,
-        PARAMS,
-        TRIANGLE,
-        0,
-        _line(np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.0),
-        bus,
-        StaticMap(AnalyticField(World.empty(0.0))),
-        goal=np.array([10.0, 0.0, 1.0]),
-        first_replan_s=100.0,
-    )
-    mon = SafetyMonitor(cfg, 0.1)
+    bus, agent, mon = _flying_along_x()
     beside = Trajectory.hover(np.array([1.0, 0.6, 1.0]), 0.0, 600.0)
     bus.publish(TrajectoryMsg(1, 1, 0, beside), 0.0)
     assert PARAMS.check_drone_m < 0.6 < PARAMS.check_drone_m + PARAMS.unheard_margin_m
