@@ -724,6 +724,7 @@ class DroneAgent:
             raise TypeError(f"initial must be a Trajectory, got {type(initial).__name__}")
         self.drone_id = int(drone_id)
         self.params = params
+        self._unheard_params = unheard_params(params)  # while a peer does not hear us
         self.bus = bus
         self.map_source = map_source
         self.replan_period_s = float(replan_period_s)
@@ -974,19 +975,15 @@ class DroneAgent:
     @property
     def brake_reference_s(self) -> float:
         """The window of the safety check's braking stop now: ``PlannerParams.brake_reference_s``,
-        or ``unheard_brake_reference_s`` (when longer) while a peer does not hear us, as the
-        planner's (``unheard_params``)."""
-        p = self.params
-        if self._unheard:
-            return max(p.brake_reference_s, p.unheard_brake_reference_s)
-        return p.brake_reference_s
+        longer while a peer does not hear us (``unheard_params``, as the planner's)."""
+        return (self._unheard_params if self._unheard else self.params).brake_reference_s
 
     @property
     def check_drone_m(self) -> float:
         """The distance to peers a plan keeps now: ``PlannerParams.check_drone_m``, plus
-        ``unheard_margin_m`` while a peer does not hear us."""
-        p = self.params
-        return p.check_drone_m + (p.unheard_margin_m if self._unheard else 0.0)
+        ``unheard_margin_m`` while a peer does not hear us (``unheard_params``, as the
+        planner's)."""
+        return (self._unheard_params if self._unheard else self.params).check_drone_m
 
     @staticmethod
     def _check_slot(slot: int, formation: np.ndarray) -> int:
