@@ -1248,6 +1248,7 @@ class FormationPlanner:
             if traj is None:
                 messages.append(why)
                 return None, problem, False
+            margin: float | None = None  # the last resort's ``_margin``, once computed
             if not safe or why:
                 # tighter; where it passes too close to an obstacle also on denser points
                 # and stiffer (NaN: the test stopped before the distances); a last resort is
@@ -1267,15 +1268,15 @@ class FormationPlanner:
                     evals += problem.evaluations - done[1]
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
-                    if refined[0] is not None and (
-                        not safe
-                        or (refined[1] and not refined[2])
-                        or (
-                            refined[1]
-                            and self._margin(refined[0], t_start_s, peers, refined[3])
-                            > self._margin(traj, t_start_s, peers, clearance)
-                        )
-                    ):
+                    take = refined[0] is not None and (not safe or (refined[1] and not refined[2]))
+                    if not take and refined[0] is not None and refined[1]:
+                        # both last resorts: the one that keeps farther
+                        margin = self._margin(traj, t_start_s, peers, clearance)
+                        margin_2 = self._margin(refined[0], t_start_s, peers, refined[3])
+                        take = margin_2 > margin
+                        if take:
+                            margin = margin_2
+                    if take:
                         if refined[1] and not refined[2]:
                             # flown as refined: the first solution's refusal stays on record
                             # (not counted as a refused attempt: it names no attempt first)
@@ -1284,8 +1285,9 @@ class FormationPlanner:
                         traj, safe, why, clearance, ahead = refined
             if safe and why:  # a last resort
                 assert traj is not None
-                entry = (ok_status, traj, last_status, problem, x)
-                last_resorts.append((self._margin(traj, t_start_s, peers, clearance), entry))
+                if margin is None:
+                    margin = self._margin(traj, t_start_s, peers, clearance)
+                last_resorts.append((margin, (ok_status, traj, last_status, problem, x)))
                 messages.append(f"{label}: {why}")
                 return None, problem, False
             if safe and wants_fresh(use_formation, force_astar) and not late():
