@@ -1231,10 +1231,7 @@ def run_demo(cfg: DemoConfig, progress: Progress | None = None) -> dict[str, Any
         except DemoError as e:
             error = str(e)
             result = demo.finish()
-        except KeyboardInterrupt:
-            demo.close()
-            raise
-        finally:
+        finally:  # also on KeyboardInterrupt (Ctrl-C, SIGTERM), which then goes on up
             demo.close()
     if error is not None:
         result["success"] = False
