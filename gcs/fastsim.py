@@ -793,6 +793,7 @@ class SafetyMonitor:
     def look(self, agent: DroneAgent, t: float) -> str:
         """'' when clear, else what was done ('replan: ...' or 'brake: ...')."""
         from onboard.agent import (
+            MONITOR_RETRY_S,
             monitor_action,
             monitor_step_index,
             monitor_times,
@@ -844,7 +845,8 @@ class SafetyMonitor:
             return f"{action}: {problem}"
         if not self._helps:  # a braking stop would come as close (``service.monitor_step``)
             self.no_better_stop += 1
-            agent.request_replan()
+            if t - self.last_plan_s >= MONITOR_RETRY_S:
+                agent.request_replan()
             return f"no better stop: {problem}"
         self.brake_at_s = t
         self.brakes += 1

@@ -179,6 +179,12 @@ LATE_JUMP_M = 0.2
 """A plan that comes back after its start time is flown only if its setpoint then lies within
 this of the trajectory in control's (replans of 1-4 s on a starved CPU moved setpoints by up to
 2.2 m: bench demo seeds 2 and 4 of 2026-11-28)."""
+MONITOR_RETRY_S = 0.1
+"""A safety monitor whose plan comes inside the check's distance where a braking stop would
+come as close (``monitor_action``'s 'brake' with no better stop: a last resort in flight, a
+peer that does not hear us coming on) asks for a new plan at most this often: each look
+(100 Hz) asking again replanned, and broadcast, a hundred times a second while such a plan
+was flown."""
 MONITOR_PLAN_WAIT_S = 0.2
 """A safety monitor that asked for a replan for a conflict less than ``MONITOR_BRAKE_WITHIN_S``
 ahead brakes if no plan begun after the request has come back within this time (replans take
@@ -360,7 +366,9 @@ def same_peers(a: PeerView, b: PeerView) -> bool:
     )
 
 
-def _first_conflict(d: np.ndarray, limit_m: float, brake_d: np.ndarray | None) -> tuple[int, bool]:
+def _first_conflict(
+    d: np.ndarray, limit_m: float, brake_d: np.ndarray | None, closer_marginal: bool = False
+) -> tuple[int, bool]:
     """(the index of the first sample of the distances ``d`` (K,) that is a conflict with a
     limit of ``limit_m``, -1 when none; whether braking instead would help), by the planner's
     rule (``kernels._band``, the safety check's): a plan that starts inside the limit, never
@@ -370,12 +378,13 @@ def _first_conflict(d: np.ndarray, limit_m: float, brake_d: np.ndarray | None) -
     start) and leaves the limit is the way out, not a conflict (braking there would hold the
     drone inside for good: every retry's plan backs out and every brake undoes it); a plan
     that starts outside and comes inside, but no closer than the stop, is a conflict that a
-    brake does not help (a replan may)."""
+    brake does not help (a replan may); with ``closer_marginal`` (peers, the planner's rule for
+    them), so is a start inside that comes closer before it backs out."""
     close = d < limit_m
     if not close.any():
         return -1, True
     floor = math.inf if brake_d is None else float(brake_d.min())
-    band = band_state(d, limit_m, floor)
+    band = band_state(d, limit_m, floor, closer_marginal)
     if band == BAND_OK:
         return -1, True
     return int(np.argmax(close)), band != BAND_MARGINAL
@@ -428,7 +437,7 @@ def peer_conflict(
         peer = pt.trajectory.sample(ts)
         dd = np.linalg.norm(pos - peer, axis=1)
         ref_d = None if ref is None else np.linalg.norm(ref - peer[: len(ref)], axis=1)
-        k, k_helps = _first_conflict(dd, limit_m, ref_d)
+        k, k_helps = _first_conflict(dd, limit_m, ref_d, True)
         if k >= 0 and ts[k] < first:
             first, helps = float(ts[k]), k_helps
             problem = f"drone {pt.drone_id} {float(dd.min()):.2f} m in {ts[k] - now_s:.1f} s"
@@ -436,7 +445,7 @@ def peer_conflict(
         point = view.hover_points[j]
         d = np.linalg.norm(pos - point, axis=1)
         ref_d = None if ref is None else np.linalg.norm(ref - point, axis=1)
-        k, k_helps = _first_conflict(d, limit_m, ref_d)
+        k, k_helps = _first_conflict(d, limit_m, ref_d, True)
         if k >= 0 and ts[k] < first:
             if pid in view.silent:
                 what = "a ghost of silent"

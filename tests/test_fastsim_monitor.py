@@ -244,3 +244,26 @@ def test_braking_stop_peaks_at_its_fraction_of_the_limit(fraction: float) -> Non
     assert float(slow.durations_s[0]) == pytest.approx(0.5)  # never shorter than 0.5 s
     with pytest.raises(ValueError, match="peak_fraction"):
         braking_trajectory(0.0, np.zeros(3), v, np.zeros(3), 3.0, peak_fraction=1.5)
+
+
+def test_with_no_better_stop_the_monitor_asks_for_a_plan_at_most_every_retry_period() -> None:
+    """A peer that does not see us runs through where a stop would leave us: our plan comes
+    inside the check's distance, but a brake would come closer still ('no better stop'). The
+    monitor does not brake; it asks for a new plan, but not at every look (100 Hz): a drone
+    flying a last resort replanned, and broadcast, a hundred times a second. At most every
+    ``MONITOR_RETRY_S`` after the last plan."""
+    from onboard.agent import MONITOR_RETRY_S
+
+    bus, agent, mon = _flying_along_x()
+    # across our way at x = 0.25 (where a hard stop from 1 m/s leaves us), at 1.5 m/s
+    charging = _line(np.array([0.25, 0.9, 1.0]), np.array([0.0, -1.5, 0.0]), 0.0)
+    bus.publish(TrajectoryMsg(1, 1, 0, charging), 0.0)
+    mon.last_plan_s = 0.0  # a plan made just now
+    what = mon.look(agent, 0.0)
+    assert what.startswith("no better stop: drone 1"), what
+    assert mon.brakes == 0 and mon.no_better_stop == 1
+    assert not agent.due(0.0)  # not asked again straight after a plan
+    t = MONITOR_RETRY_S
+    what = mon.look(agent, t)
+    assert what.startswith("no better stop: drone 1"), what
+    assert agent.due(t) and mon.brakes == 0

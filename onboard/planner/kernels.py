@@ -73,8 +73,9 @@ BAND_NO_BACK_OUT = 3
 """Started inside the threshold and never leaves it."""
 BAND_MARGINAL = 4
 """Started outside the threshold and comes inside it, but no closer than the braking stop
-from the same start would (``_band``'s floor): a way the planner takes only when no attempt
-stays outside (``FormationPlanner.plan``)."""
+from the same start would (``_band``'s floor); for a peer, also a start inside that backs
+out but first comes closer than it starts, no closer than the stop: a way the planner takes
+only when no attempt stays outside (``FormationPlanner.plan``)."""
 
 GUESS_SAMPLES = 24
 """Points sampled along the previous trajectory for the warm start."""
@@ -587,15 +588,18 @@ def trajectory_from_x(
     return c.reshape((M, 6, 3)), T, finite
 
 
-def band_state(d: np.ndarray, threshold: float, floor: float = math.inf) -> int:
+def band_state(
+    d: np.ndarray, threshold: float, floor: float = math.inf, closer_marginal: bool = False
+) -> int:
     """``_band`` from Python (BAND_*): the safety check's rule for a trajectory's distances
-    to obstacles or a peer, which the flight service's monitor applies too (``floor``: see
-    ``_band``; inf: the start)."""
-    return int(_band(np.ascontiguousarray(d, dtype=np.float64), float(threshold), float(floor)))
+    to obstacles or a peer, which the flight service's monitor applies too (``floor``,
+    ``closer_marginal``: see ``_band``; floor inf: the start)."""
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    return int(_band(d, float(threshold), float(floor), bool(closer_marginal)))
 
 
 @njit(cache=True, nogil=True)
-def _band(d: np.ndarray, threshold: float, floor: float) -> int:
+def _band(d: np.ndarray, threshold: float, floor: float, closer_marginal: bool) -> int:
     """Distances d (K,) along a trajectory, d[0] at its start, against ``threshold``: clear of
     it everywhere; or, starting inside it, never closer than the start or ``floor`` if that is
     less (1 mm tolerance), and outside it at some point (the trajectory backs out). That holds
@@ -609,7 +613,13 @@ def _band(d: np.ndarray, threshold: float, floor: float) -> int:
     them all leaves the drone to the stop, which comes closer still (the real stack's bus
     faults test, 2026-11-29: two drones 0.42 m apart refused every plan apart, and touched).
     A start outside the threshold that comes inside it but no closer than ``floor`` is
-    BAND_MARGINAL (no better way may exist: a peer that does not hear us coming on)."""
+    BAND_MARGINAL (no better way may exist: a peer that does not hear us coming on).
+    ``closer_marginal`` (the rule for peers): a start inside that comes closer than it starts,
+    though no closer than ``floor``, is BAND_MARGINAL too, not a way out: the floor is low
+    when the peer comes on through the stop, and a way that only matches a stop is no way
+    out from a peer that flies on (a drone its peers do not hear flew such ways, accepted
+    outright, to 0.32 m of a peer that could not see it: ``bench hidden`` seed 13).
+    Obstacles keep the plain rule: they do not come on."""
     d0 = d[0]
     lo = d[0]
     hi = d[0]
@@ -624,6 +634,8 @@ def _band(d: np.ndarray, threshold: float, floor: float) -> int:
         return BAND_COMES_CLOSER
     if hi < threshold:
         return BAND_NO_BACK_OUT
+    if closer_marginal and lo < d0 - 1e-3:
+        return BAND_MARGINAL
     return BAND_OK
 
 
@@ -794,7 +806,7 @@ def check_trajectory(
         ref = _positions(ref_c, ref_T, ts[:n_ref] - ref_t0)
         for i in range(n_ref):
             floor = min(floor, _dist(fld, ref[i, 0], ref[i, 1], ref[i, 2]))
-    band = _band(judged, check_obstacle, floor)
+    band = _band(judged, check_obstacle, floor, False)
     if band == BAND_MARGINAL:
         m_band, m_k, m_value, m_floor = band, k, dist[k], floor
     elif band != BAND_OK:
@@ -816,7 +828,7 @@ def check_trajectory(
             for i in range(n_ref):
                 x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
                 floor = min(floor, norm3(ref[i, 0] - x, ref[i, 1] - y, ref[i, 2] - z))
-        band = _band(dd, check_drone, floor)
+        band = _band(dd, check_drone, floor, True)
         if band == BAND_MARGINAL:
             if m_band == BAND_OK:
                 m_band, m_k, m_ph, m_value, m_floor = band, k, ph, dd[k], floor

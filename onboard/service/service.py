@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from onboard.agent import (
+    MONITOR_RETRY_S,
     DroneAgent,
     PeerView,
     PlanReport,
@@ -827,7 +828,8 @@ class FlightService:
             # replan may be
             self.counters["monitor_no_better_stop"] += 1
             if it.state is S.FORMATION_FLIGHT:
-                self._ask_replan()
+                if now - self._last_plan_s >= MONITOR_RETRY_S:
+                    self._ask_replan()
             elif it.held_for_retry:
                 self._results.put(("monitor_retry", problem))
             return f"no better stop: {problem}"
