@@ -22,6 +22,7 @@ from onboard.comm.hearing import (
 from onboard.planner.field import AnalyticField
 from onboard.planner.params import PlannerParams, unheard_params
 from onboard.planner.planner import (
+    EVADE,
     LAST_RESORT,
     FormationPlanner,
     PeerTrajectory,
@@ -160,6 +161,35 @@ def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through() -> None:
     # still clear of the trunks by the check's distance
     pts = res.trajectory.sample(np.linspace(res.trajectory.t0_s, res.trajectory.t_end_s, 2000))
     assert float(field.distance(pts)[0].min()) >= wide.check_obstacle_m
+
+
+def test_an_unheard_drone_evades_a_peer_coming_at_it_when_no_optimised_way_keeps_clear() -> None:
+    """A peer that does not hear us flies across our way at 0.5 m/s, 0.75 m off: every
+    optimised way comes inside the check's distance (the optimiser starts from the way to
+    the goal and stays near it), and the best of them kept 0.35 m. A move straight aside, as
+    fast as the limits allow, keeps farther: it is flown (as a last resort: it too comes inside
+    the widened 0.7 m, but no closer than a stop would)."""
+    field = AnalyticField(World.empty(0.0))
+    line = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+    prm = unheard_params(PlannerParams(v_max_m_s=1.0))
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = (0.6, -0.45, 1.0)
+    c[0, 1] = (0.0, 0.5, 0.0)
+    peer = PeerTrajectory(0, 0, Trajectory(0.0, c, np.array([30.0])))
+    start = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.8, 0.0, 0.0]), np.zeros(3))
+    res = FormationPlanner(prm, line, slot=2).plan(
+        *start, np.array([10.0, -1.0, 1.0]), [peer], field
+    )
+    assert res.status == PlanStatus.OK_NO_FORMATION, res.message
+    assert f"; {EVADE} " in res.message and res.message.endswith(LAST_RESORT), res.message
+    tr = res.trajectory
+    ts = np.linspace(0.0, 6.0, 601)
+    assert float(np.linalg.norm(tr.sample(ts) - peer.trajectory.sample(ts), axis=1).min()) > 0.4
+    inside = np.linspace(tr.t0_s, tr.t_end_s, 400)
+    assert np.linalg.norm(tr.sample(inside, 1), axis=1).max() <= prm.v_max_m_s + 1e-9
+    assert np.linalg.norm(tr.sample(inside, 2), axis=1).max() <= prm.a_max_m_s2 + 1e-9
+    np.testing.assert_allclose(tr.sample(tr.t0_s), start[1], atol=1e-12)
+    np.testing.assert_allclose(tr.sample(tr.t0_s, 1), start[2], atol=1e-12)
 
 
 def test_in_fast_time_a_drone_whose_uplink_fails_learns_it_and_keeps_clear() -> None:

@@ -244,7 +244,8 @@ def _oracle_check(
     field: DistanceField,
     peers: Sequence[PeerTrajectory],
 ) -> tuple[bool, str, float, float]:
-    t_end = max(traj.t_end_s, t_from)
+    # held at its end to the stop window at least
+    t_end = max(traj.t_end_s, t_from + p.brake_reference_s)
     ts = np.append(np.arange(t_from, t_end, p.check_step_s), t_end)
     pos = traj.sample(ts)
     nan = float("nan")
@@ -776,3 +777,33 @@ def test_a_way_out_that_first_comes_closer_to_a_peer_is_only_a_last_resort() -> 
                               np.array([0.0, -0.4, 1.0]), 2.0)  # fmt: skip
     ok, why = planner.check(ours, 0.0, field, [PeerTrajectory(0, 0, peer)])
     assert ok and why.startswith(MARGINAL + "drone 0 at 0.34 m"), why
+
+
+def test_a_short_stop_is_checked_against_the_peers_over_the_stop_window() -> None:
+    """A kept hover or a stop lasts half a second to a second, and the check sampled it only
+    to its end: a peer that would reach the place a moment later was not seen (``bench
+    hidden`` seed 649, 2026-12-01: a drone its peers did not hear kept such a hover, replan
+    after replan, while a peer flew at it; 0.16 m). The drone holds at the end, so the check
+    looks on to ``brake_reference_s`` (1 s; 3 s while a peer does not hear it). A hover is
+    its own stop, so a peer met there makes it a last resort, which the planner keeps only if
+    nothing better is found (it no longer keeps it as a safe previous trajectory)."""
+    from onboard.planner.params import unheard_params
+
+    field = AnalyticField(World.empty(0.0))
+    line = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
+    here = np.array([0.0, 0.0, 1.0])
+    hover = Trajectory.hover(here, 0.0, 0.5)
+
+    def passing_at(t: float) -> PeerTrajectory:  # through here at t, at 1 m/s
+        c = np.zeros((1, 6, 3))
+        c[0, 0] = here - [t, 0.0, 0.0]
+        c[0, 1] = (1.0, 0.0, 0.0)
+        return PeerTrajectory(0, 0, Trajectory(0.0, c, np.array([30.0])))
+
+    heard = FormationPlanner(PlannerParams(), line, slot=1)
+    ok, why = heard.check(hover, 0.0, field, [passing_at(0.8)])
+    assert ok and why.startswith(MARGINAL + "drone 0 at 0.00 m at t=0.80 s"), why
+    assert heard.check(hover, 0.0, field, [passing_at(2.0)]) == (True, "")  # it replans
+    unheard = FormationPlanner(unheard_params(PlannerParams()), line, slot=1)
+    ok, why = unheard.check(hover, 0.0, field, [passing_at(2.0)])
+    assert ok and why.startswith(MARGINAL + "drone 0 at 0.00 m at t=2.00 s"), why

@@ -20,7 +20,10 @@ from an A* path at the largest of the clearances in between that finds one
 (``astar_rescue_ladder_m``): the roomier way around a gap that the check refuses every plan
 through. Failing that a refused trajectory that the check accepts over its first
 ``APPROACH_S`` is flown (the drone approaches and looks again), else a safe previous trajectory
-(a hover) is kept, else a last resort (``MARGINAL``) or an emergency stop is returned. A caller
+(a hover) is kept; else, where the stop would meet a peer, an evasion (``EVADE``: a short move
+to rest straight away from where the drone is, in one of a fixed set of directions) that the
+check accepts outright; else the last resort (``MARGINAL``: the optimised ones, and those
+evasions) that keeps farthest beyond the check's distances, else an emergency stop. A caller
 short of time passes ``give_up``: once it says so, no further attempt starts while the previous
 trajectory is safe and moves the drone on; that trajectory is kept (``OVER_BUDGET``). A drone
 ahead of its slot relative to its peers plans with a lower speed limit (``lead_slowdown_m``), so
@@ -56,7 +59,7 @@ from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
 from onboard.planner.minco import BAND_COLS
 from onboard.planner.params import PlannerParams
-from onboard.planner.trajectory import Trajectory
+from onboard.planner.trajectory import Trajectory, braking_duration_s
 
 COMFORT_LOOKAHEAD_S = 1.0
 """``comfort_obstacle_m`` looks at the trajectory from this long after its start (the replan
@@ -112,6 +115,26 @@ check refuses it: "<attempt>: <reason>" like the others (``gcs.fastsim.count_ref
 the attempts named "formation..." and "a* retry..."). An accepted rescue adds "a* rescue: path
 at <clearance> m" to the message instead, which is no refusal."""
 
+EVADE = "evasion"
+"""How the message of a plan flown as an evasion begins its last part: "evasion <D> m toward
+(x, y, z)", then ``LAST_RESORT`` when the check accepts it only as one."""
+EVADE_DISTANCES_M = (0.8, 1.6)
+"""How far the evasions go (``FormationPlanner._evasions``): a step aside and a longer move."""
+EVADE_GROWTH = 1.3
+EVADE_TRIES = 8
+"""An evasion's duration starts at the hardest braking stop's from the start's speed (at least
+0.5 s) and grows by ``EVADE_GROWTH`` up to ``EVADE_TRIES`` times until the move keeps within the
+speed, acceleration and jerk limits; one that never does is not offered."""
+
+
+def _evade_directions() -> np.ndarray:
+    """The evasions' directions: eight level ones, 45 degrees apart, and up and down."""
+    ang = np.arange(8) * (math.pi / 4.0)
+    level = np.stack([np.cos(ang), np.sin(ang), np.zeros(8)], axis=1)
+    return np.vstack([level, [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]])
+
+
+_EVADE_DIRECTIONS = _evade_directions()
 _NO_COEFFS = np.zeros((1, 6, 3))
 _NO_DURATIONS = np.ones(1)
 _NO_KNOWN = np.ones((1, 1, 1), dtype=bool)
@@ -845,7 +868,9 @@ class FormationPlanner:
         Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
         back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` (over its
         first ``check_obstacle_horizon_s`` when that is > 0) and of every peer by
-        ``check_drone_m`` to its end; a drone that is already closer than that
+        ``check_drone_m`` to its end (held there to ``brake_reference_s`` at least: a stop or a
+        hover is judged against the peers that come on meanwhile); a drone that is already
+        closer than that
         at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
         inside a mapped (inflated) obstacle, may fly a trajectory that never comes closer than
         it starts (or than a braking stop from there would within ``brake_reference_s``, if
@@ -929,6 +954,7 @@ class FormationPlanner:
             brake.coeffs,
             brake.durations_s,
             brake.t0_s,
+            p.brake_reference_s,
             p.brake_reference_s,
         )
         return self._verdict(res, traj, t_from_s, field, view, peers)
@@ -1025,17 +1051,52 @@ class FormationPlanner:
     ) -> float:
         """How far ``traj`` keeps beyond the check's distances, the least over the obstacles
         (its ``clearance`` from the check) and every peer (sampled every ``check_step_s`` from
-        ``t_from_s`` to its end): what ranks the trajectories accepted only as a last resort."""
+        ``t_from_s`` to its end, held there to ``brake_reference_s`` at least, as the check
+        does): what ranks the trajectories accepted only as a last resort."""
         p = self.params
         margin = clearance - p.check_obstacle_m if math.isfinite(clearance) else math.inf
         if peers:
-            t_end = max(traj.t_end_s, t_from_s)
+            t_end = max(traj.t_end_s, t_from_s + p.brake_reference_s)
             ts = np.append(np.arange(t_from_s, t_end, p.check_step_s), t_end)
             own = traj.sample(ts)
             for pt in peers:
                 d = np.linalg.norm(own - pt.trajectory.sample(ts), axis=1)
                 margin = min(margin, float(d.min()) - p.check_drone_m)
         return margin
+
+    def _evasions(
+        self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray
+    ) -> list[tuple[str, Trajectory]]:
+        """Short moves to rest from the start (p, v, a) straight toward ``EVADE_DISTANCES_M``
+        away in each of ``_EVADE_DIRECTIONS``, each as fast as the limits allow (to the
+        nearest ``EVADE_GROWTH`` step): what a drone may fly when every optimised way comes
+        inside the check's distances, a peer that does not see it coming on (the optimiser
+        starts from the way to the goal and stays near it; such a move may be the one way that
+        keeps clear). (label, trajectory) pairs; the safety check judges them."""
+        p = self.params
+        v_lim = p.v_max_m_s
+        a_lim = p.a_max_m_s2
+        j_lim = p.j_max_m_s3
+        speed = float(np.linalg.norm(sv))
+        t0 = braking_duration_s(speed, a_lim, 1.0)
+        out: list[tuple[str, Trajectory]] = []
+        for dist in EVADE_DISTANCES_M:
+            for u in _EVADE_DIRECTIONS:
+                end = sp + dist * u
+                T = t0
+                for _ in range(EVADE_TRIES):
+                    traj = Trajectory.to_rest(t_start, sp, sv, sa, end, T)
+                    ts = t_start + np.linspace(0.0, T, 25)
+                    if (
+                        np.linalg.norm(traj.sample(ts, 1), axis=1).max() <= v_lim
+                        and np.linalg.norm(traj.sample(ts, 2), axis=1).max() <= a_lim
+                        and np.linalg.norm(traj.sample(ts, 3), axis=1).max() <= j_lim
+                    ):
+                        x, y, z = (np.round(u, 2) + 0.0).tolist()  # no -0
+                        out.append((f"{EVADE} {dist:g} m toward ({x:g}, {y:g}, {z:g})", traj))
+                        break
+                    T *= EVADE_GROWTH
+        return out
 
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest (a gentle stop, as the service's)."""
@@ -1451,11 +1512,50 @@ class FormationPlanner:
             return PlanResult(
                 PlanStatus.KEPT_PREVIOUS, prev, iters, evals, last_status, "; ".join(messages)
             )
-        if last_resorts:
-            # the one that keeps farthest beyond the check's distances (the first of equals)
-            last_resort = max(last_resorts, key=lambda m_e: m_e[0])[1]
+        # Nothing optimised stays outside the check's distances. Where the stop itself comes
+        # inside the check's distance of a peer (one coming on), a move straight away may:
+        # one the check accepts outright is flown (the one that keeps farthest), else the
+        # last resort, optimised or such a move, that keeps farthest beyond those distances
+        # (a way that comes no closer than the stop). Before, the optimised last resort alone:
+        # a drone its peers did not hear flew one to 0.43 m of a peer coming on, when a move
+        # aside kept more (``bench hidden``). Not for obstacles, which do not come on: there
+        # the stop is as safe, and such moves would wander.
+        outright: list[tuple[float, str, Trajectory]] = []
+        marginal: list[tuple[float, str, Trajectory]] = []
+        if not canceled and self._margin(brake, t_start_s, peers, math.inf) < 0.0:
+            for label, traj in self._evasions(t_start_s, sp, sv, sa):
+                safe, why, clearance, _ = self._check(
+                    traj, t_start_s, field, view, peers, pack, brake
+                )
+                if safe:
+                    margin = self._margin(traj, t_start_s, peers, clearance)
+                    (marginal if why else outright).append((margin, label, traj))
+        if outright:
+            _, label, traj = max(outright, key=lambda e: e[0])
+            return PlanResult(
+                PlanStatus.OK_NO_FORMATION,
+                traj,
+                iters,
+                evals,
+                last_status,
+                "; ".join([*messages, label]),
+            )
+        best_evasion = max(marginal, key=lambda e: e[0]) if marginal else None
+        best_last = max(last_resorts, key=lambda m_e: m_e[0]) if last_resorts else None
+        if best_evasion is not None and (best_last is None or best_evasion[0] > best_last[0]):
+            _, label, traj = best_evasion
+            return PlanResult(
+                PlanStatus.OK_NO_FORMATION,
+                traj,
+                iters,
+                evals,
+                last_status,
+                "; ".join([*messages, label, LAST_RESORT]),
+            )
+        if best_last is not None:
+            # the one that keeps farthest beyond the check's distances (the first of equals);
             # nothing stays outside the check's distances; this comes no closer than the stop
-            return flown(last_resort, LAST_RESORT)
+            return flown(best_last[1], LAST_RESORT)
         return PlanResult(
             PlanStatus.EMERGENCY,
             brake,
