@@ -1305,6 +1305,61 @@ def test_a_peer_coming_at_the_hover_after_a_failed_plan_cuts_the_hover_short(
     assert h.state is S.HOVER
 
 
+def test_a_peer_coming_at_the_stop_after_a_brake_retries_the_plan_at_once(
+    tmp_path: Path,
+) -> None:
+    """The real bus-faults flight (2026-12-01, 0.20 m): the monitor braked a drone that its
+    peers did not hear 1.7 m in front of one of them, and for the brake's second it only
+    watched ('braking') while the peer flew on at it; the retry came 1 s later, 0.96 m
+    apart, too late. When the stop after a brake is itself in a conflict, the plan is retried
+    at once, once per brake; a brake whose stop is clear holds its second as before."""
+    from onboard.agent import PeerView
+    from onboard.planner.planner import PeerTrajectory
+    from onboard.service.ports import braking_trajectory
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(10)
+    assert h.state is S.FORMATION_FLIGHT
+    t = h.clock.t
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    flying = h.svc.flying(t)
+    assert flying is not None
+
+    def brake_with(peer: Trajectory) -> str:
+        """What the service does on a brake, then the monitor's next look with ``peer``."""
+        p, v, a = flying.state(t)
+        h.svc.agent.reset(braking_trajectory(t, p, v, a, h.cfg.planner.a_max_m_s2, 1.0))
+        h.svc._monitor_brake_at = t
+        h.svc.machine.plan_failed("emergency")
+        h.svc.main_step()  # the service takes the hover over
+        assert h.state is S.HOVER
+        view = PeerView(t, (PeerTrajectory(5, 0, peer),), (), np.zeros((0, 3)), (), (), ())
+        h.svc.peers_now = lambda now, fresh=False: view  # type: ignore[method-assign]
+        h.svc._monitor_key = ()  # a new look
+        return h.svc.monitor_step()
+
+    # a peer far to the side: the stop is clear, its second is held
+    aside = Trajectory.hover(here + [0.0, 5.0, 0.0], t, 30.0)
+    assert brake_with(aside) == ""
+    h.svc.main_step()
+    assert h.state is S.HOVER and h.svc.counters["monitor_braking_retries"] == 0
+    h.svc.machine.retry_now("test: back to flight")
+    h.svc.main_step()
+    assert h.state is S.FORMATION_FLIGHT
+    # a peer coming at where the stop holds
+    charging = moving(here - [1.0, 0.0, 0.0], here + [2.0, 0.0, 0.0], t, speed=1.0)
+    what = brake_with(charging)
+    assert what.startswith("braking: drone 5"), what
+    h.svc.main_step()
+    assert h.state is S.FORMATION_FLIGHT  # at once, not retry_after_s (1 s) later
+    assert h.clock.t == t and h.svc.counters["monitor_braking_retries"] == 1
+    h.svc._monitor_key = ()
+    h.svc.monitor_step()
+    assert h.svc.counters["monitor_braking_retries"] == 1  # once per brake
+
+
 def test_obstacle_conflict_follows_the_planners_band_rule() -> None:
     from onboard.agent import obstacle_conflict
 

@@ -272,6 +272,7 @@ class FlightService:
         self._last_plan_s = -math.inf
         self._last_map_record_s = -math.inf
         self._monitor_brake_at = -math.inf
+        self._braking_retry_for = -math.inf  # the brake whose hover was retried early
         self._monitor_asked_s = -math.inf  # when the monitor asked for the replan awaited
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
@@ -292,6 +293,7 @@ class FlightService:
             "plans_over_budget": 0,  # gave up retrying at plan_budget_s: the safe plan flies on
             "monitor_replans": 0,
             "monitor_brakes": 0,
+            "monitor_braking_retries": 0,
             "monitor_holding": 0,
             "monitor_no_better_stop": 0,
             "plans_last_resort": 0,
@@ -808,6 +810,18 @@ class FlightService:
             self.counters["monitor_replans"] += 1
             self._monitor_asked_s = replan_asked_s(self._monitor_asked_s, self._last_plan_s, now)
             self._ask_replan()
+        if (
+            action == "braking"
+            and it.held_for_retry
+            and self._braking_retry_for < self._monitor_brake_at
+        ):
+            # the stop and hover after a brake are in a conflict themselves (a peer coming on:
+            # one that does not hear us flies through where we hold): retry the plan now, not
+            # after the hover's second (the real bus-faults flight, 2026-12-01: a drone braked
+            # 1.7 m in front of such a peer and held there until it was 0.96 m away; 0.20 m)
+            self._braking_retry_for = self._monitor_brake_at
+            self.counters["monitor_braking_retries"] += 1
+            self._results.put(("monitor_retry", problem))
         if action != "brake":
             return f"{action}: {problem}"
         pp, vv, aa = traj.state(now)
