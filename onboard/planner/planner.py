@@ -1530,28 +1530,26 @@ class FormationPlanner:
                 if safe:
                     margin = self._margin(traj, t_start_s, peers, clearance)
                     (marginal if why else outright).append((margin, label, traj))
-        if outright:
-            _, label, traj = max(outright, key=lambda e: e[0])
+
+        def evade(traj: Trajectory, *ending: str) -> PlanResult:
+            """An evasion flown; its message ends with ``ending``."""
             return PlanResult(
                 PlanStatus.OK_NO_FORMATION,
                 traj,
                 iters,
                 evals,
                 last_status,
-                "; ".join([*messages, label]),
+                "; ".join([*messages, *ending]),
             )
+
+        if outright:
+            _, label, traj = max(outright, key=lambda e: e[0])
+            return evade(traj, label)
         best_evasion = max(marginal, key=lambda e: e[0]) if marginal else None
         best_last = max(last_resorts, key=lambda m_e: m_e[0]) if last_resorts else None
         if best_evasion is not None and (best_last is None or best_evasion[0] > best_last[0]):
             _, label, traj = best_evasion
-            return PlanResult(
-                PlanStatus.OK_NO_FORMATION,
-                traj,
-                iters,
-                evals,
-                last_status,
-                "; ".join([*messages, label, LAST_RESORT]),
-            )
+            return evade(traj, label, LAST_RESORT)
         if best_last is not None:
             # the one that keeps farthest beyond the check's distances (the first of equals);
             # nothing stays outside the check's distances; this comes no closer than the stop
