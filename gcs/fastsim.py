@@ -166,6 +166,11 @@ class SimConfig:
     monitor_brake_within_s: float = MONITOR_BRAKE_WITHIN_S
     """A conflict further ahead than this that a fresh plan did not clear is left to the next
     replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
+    retry_after_s: float = 1.0
+    """The flight service's ``planning.retry_after_s``: a brake of the monitor is a failed plan
+    to the service, which hovers this long before it replans, unless the stop itself is in a
+    conflict (then at once, once per brake: ``FlightService.monitor_step``). 0: replans go on
+    on their grid after a brake (the twin's rule before 2026-12-01)."""
     resend_s: tuple[float, ...] = RESEND_S
     """A braking stop or hover announced (every plan too with ``resend_plans``) goes out again
     this long after it unless a newer trajectory went out first (``DroneAgent.resend``; the
@@ -280,7 +285,12 @@ class SimConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be > 0, got {v!r}")
-        for name in ("monitor_rate_hz", "monitor_brake_after_s", "monitor_brake_within_s"):
+        for name in (
+            "monitor_rate_hz",
+            "monitor_brake_after_s",
+            "monitor_brake_within_s",
+            "retry_after_s",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be >= 0, got {v!r}")
@@ -787,8 +797,12 @@ class SafetyMonitor:
         self.last_plan_s = -math.inf
         self.asked_s = -math.inf
         self.brake_at_s = -math.inf
+        self.retry_after_s = cfg.retry_after_s
+        self.hold_until_s = -math.inf
+        """No replan before this (the service's hover after a brake)."""
         self.replans = 0
         self.brakes = 0
+        self.braking_retries = 0
 
     def look(self, agent: DroneAgent, t: float) -> str:
         """'' when clear, else what was done ('replan: ...' or 'brake: ...')."""
@@ -841,6 +855,11 @@ class SafetyMonitor:
             self.replans += 1
             self.asked_s = replan_asked_s(self.asked_s, self.last_plan_s, t)
             agent.request_replan()
+        if action == "braking" and t < self.hold_until_s:
+            # the stop after the brake is in a conflict itself: retry now (the service's rule)
+            self.hold_until_s = t
+            self.braking_retries += 1
+            agent.request_replan()
         if action != "brake":
             return f"{action}: {problem}"
         if not self._helps:  # a braking stop would come as close (``service.monitor_step``)
@@ -850,6 +869,7 @@ class SafetyMonitor:
             return f"no better stop: {problem}"
         self.brake_at_s = t
         self.brakes += 1
+        self.hold_until_s = t + self.retry_after_s
         pp, vv, aa = agent.state(t)
         agent.reset(braking_trajectory(t, pp, vv, aa, self.a_max, peak_fraction=1.0))
         agent.announce(t)
@@ -1134,7 +1154,7 @@ def run_sim(
         if change is not None and change_record is None and t >= change[1] - EPS_T:
             change_record = _change_formation(change[0], t, pos, goals, agents, mon)
         for i, ag in sorted(enumerate(agents), key=lambda q: q[1].next_replan_s):
-            if i not in stopped and ag.due(t):
+            if i not in stopped and ag.due(t) and not (monitors and t < monitors[i].hold_until_s):
                 replan(ag, t, pos[i].copy())
                 if monitors:
                     monitors[i].last_plan_s = t
@@ -1183,6 +1203,7 @@ def run_sim(
             "stuck": {str(i): stopped[i] for i in sorted(stuck) if i in stopped},
             "monitor_replans": sum(m.replans for m in monitors),
             "monitor_brakes": sum(m.brakes for m in monitors),
+            "monitor_braking_retries": sum(m.braking_retries for m in monitors),
             "resent": sum(ag.resent for ag in agents),
             "monitor_no_better_stop": sum(m.no_better_stop for m in monitors),
             "radio_dropped": uplinks.dropped,

@@ -204,7 +204,7 @@ def test_sim_config_refuses_bad_fault_models() -> None:
             dataclasses.replace(base, **{name: 0.0})  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="resend_s"):
         dataclasses.replace(base, resend_s=(0.05, 0.0))
-    for name in ("monitor_rate_hz", "monitor_brake_after_s"):
+    for name in ("monitor_rate_hz", "monitor_brake_after_s", "retry_after_s"):
         with pytest.raises(ValueError, match=name):
             dataclasses.replace(base, **{name: -1.0})  # type: ignore[arg-type]
         with pytest.raises(ValueError, match=name):
@@ -267,3 +267,28 @@ def test_with_no_better_stop_the_monitor_asks_for_a_plan_at_most_every_retry_per
     what = mon.look(agent, t)
     assert what.startswith("no better stop: drone 1"), what
     assert agent.due(t) and mon.brakes == 0
+
+
+def test_after_a_brake_the_twin_holds_as_the_service_unless_the_stop_meets_a_peer() -> None:
+    """A brake of the monitor is a failed plan to the flight service, which hovers
+    ``retry_after_s`` before it replans; the twin replanned on its grid at once, and so missed
+    a real-stack collision (2026-12-01): a drone held there while a peer that could not see it
+    flew at it. The twin holds too (``hold_until_s``, which ``run_sim`` obeys), and, as the
+    service now does, retries at once when the stop itself meets a peer."""
+    bus, agent, mon = _flying_along_x()
+    ahead = Trajectory.hover(np.array([0.9, 0.0, 1.0]), 0.0, 600.0)
+    bus.publish(TrajectoryMsg(1, 1, 0, ahead), 0.0)
+    mon.last_plan_s = 0.0  # a plan made just now still runs into it
+    what = mon.look(agent, 0.0)
+    assert what.startswith("brake: drone 1"), what
+    assert mon.hold_until_s == pytest.approx(1.0) and not agent.due(0.0)
+    # the stop keeps clear of that hover (0.25 m on, 0.65 m short of it): the hold stands
+    assert mon.look(agent, 0.1) == ""
+    assert mon.hold_until_s == pytest.approx(1.0) and mon.braking_retries == 0
+    # a peer that runs through where the stop holds: retried at once, once
+    crossing = _line(np.array([0.25, 1.0, 1.0]), np.array([0.0, -1.0, 0.0]), 0.2)
+    bus.publish(TrajectoryMsg(2, 2, 0, crossing), 0.2)
+    what = mon.look(agent, 0.2)
+    assert what.startswith("braking: drone 2"), what
+    assert mon.hold_until_s == pytest.approx(0.2) and mon.braking_retries == 1
+    assert agent.due(0.2)
