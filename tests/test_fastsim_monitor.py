@@ -138,7 +138,7 @@ def test_the_monitor_replans_at_once_then_brakes_for_a_peer_stopped_in_its_way()
 
 def test_the_fast_time_monitor_keeps_the_wider_distance_while_unheard() -> None:
     """As the flight service's: while a peer does not hear us, the monitor judges peers at
-    ``check_drone_m`` plus ``unheard_margin_m`` (0.7 m), not the plain 0.5 m. A peer hovering
+    ``check_drone_m`` plus ``unheard_margin_m`` (0.8 m), not the plain 0.5 m. A peer hovering
     0.6 m beside our straight path is no conflict until it stops hearing us."""
     bus, agent, mon = _flying_along_x()
     beside = Trajectory.hover(np.array([1.0, 0.6, 1.0]), 0.0, 600.0)
