@@ -846,7 +846,7 @@ class SafetyMonitor:
             self._at,
             self.last_plan_s,
             self.brake_at_s,
-            True,
+            t >= self.hold_until_s,  # the service hovers after a brake: no replan, no watching
             self.brake_after_s,
             self.brake_within_s,
             self.asked_s,

@@ -285,10 +285,11 @@ def test_after_a_brake_the_twin_holds_as_the_service_unless_the_stop_meets_a_pee
     # the stop keeps clear of that hover (0.25 m on, 0.65 m short of it): the hold stands
     assert mon.look(agent, 0.1) == ""
     assert mon.hold_until_s == pytest.approx(1.0) and mon.braking_retries == 0
-    # a peer that runs through where the stop holds: retried at once, once
-    crossing = _line(np.array([0.25, 1.0, 1.0]), np.array([0.0, -1.0, 0.0]), 0.2)
-    bus.publish(TrajectoryMsg(2, 2, 0, crossing), 0.2)
-    what = mon.look(agent, 0.2)
+    # a peer that runs through where the stop holds (the last plan 0.5 s old, which in flight
+    # would ask for a replan; holding, the service does not): retried at once, once
+    crossing = _line(np.array([0.25, 1.0, 1.0]), np.array([0.0, -1.0, 0.0]), 0.5)
+    bus.publish(TrajectoryMsg(2, 2, 0, crossing), 0.5)
+    what = mon.look(agent, 0.5)
     assert what.startswith("braking: drone 2"), what
-    assert mon.hold_until_s == pytest.approx(0.2) and mon.braking_retries == 1
-    assert agent.due(0.2)
+    assert mon.hold_until_s == pytest.approx(0.5) and mon.braking_retries == 1
+    assert agent.due(0.5)
