@@ -719,14 +719,13 @@ def check_trajectory(
     ref_T: np.ndarray,
     ref_t0: float,
     ref_s: float,
-    horizon: float,
 ) -> tuple[int, int, int, int, float, float, float, float, float, int]:
     """The safety check of ``FormationPlanner.check`` on the samples ``ts`` = every ``step``
     from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
-    starting at global time t0), or to t_from + ``horizon`` if that is later (the drone holds
-    at the end meanwhile: a short stop or hover is judged against the peers that come on over
-    that long, not only while it moves), the obstacles only on those up to t_from + obstacle_s when
-    obstacle_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
+    starting at global time t0), or to t_from + ``ref_s`` if that is later (the drone holds at
+    the end meanwhile: a short stop or hover is judged against the peers that come on over the
+    stop's window, not only while it moves), the obstacles only on those up to t_from +
+    obstacle_s when obstacle_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
     (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A trajectory that comes
     closer than the threshold to an obstacle or a peer is judged by ``_band`` with the floor
@@ -746,8 +745,8 @@ def check_trajectory(
     """
     nan = math.nan
     t_end = t0 + np_sum(T)
-    if not t_end > t_from + horizon:
-        t_end = t_from + horizon
+    if not t_end > t_from + ref_s:
+        t_end = t_from + ref_s
     head = np_arange(t_from, t_end, step)
     n = head.shape[0] + 1
     ts = np.empty(n)

@@ -955,7 +955,6 @@ class FormationPlanner:
             brake.durations_s,
             brake.t0_s,
             p.brake_reference_s,
-            p.brake_reference_s,
         )
         return self._verdict(res, traj, t_from_s, field, view, peers)
 
