@@ -55,6 +55,7 @@ from onboard.config import Formation, WorldSpec, load_planner_params
 from onboard.planner.field import AnalyticField, DistanceField
 from onboard.planner.planner import APPROACH, LAST_RESORT
 from onboard.planner.trajectory import Trajectory
+from onboard.service.state import RETRY_AFTER_S
 from onboard.world import World
 
 if TYPE_CHECKING:
@@ -166,7 +167,7 @@ class SimConfig:
     monitor_brake_within_s: float = MONITOR_BRAKE_WITHIN_S
     """A conflict further ahead than this that a fresh plan did not clear is left to the next
     replan (asked for ``monitor_brake_after_s`` after the last) instead of braking."""
-    retry_after_s: float = 1.0
+    retry_after_s: float = RETRY_AFTER_S
     """The flight service's ``planning.retry_after_s``: a brake of the monitor is a failed plan
     to the service, which hovers this long before it replans, unless the stop itself is in a
     conflict (then at once, once per brake: ``FlightService.monitor_step``). 0: replans go on

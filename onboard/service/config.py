@@ -43,6 +43,7 @@ from onboard.config import (
 )
 from onboard.mapping.occupancy import OccupancyParams
 from onboard.planner.params import PlannerParams
+from onboard.service.state import RETRY_AFTER_S
 
 Vec3 = tuple[float, float, float]
 
@@ -340,7 +341,7 @@ class PlanningSection:
     """true: the replans' plans go out again too, not only braking stops and hovers (three
     times the trajectory messages, and their cost to every peer: about a tenth more CPU for
     the 7-drone demo on 2 cores; no fewer contacts in fast time, BENCHMARKS 9b)."""
-    retry_after_s: float = 1.0
+    retry_after_s: float = RETRY_AFTER_S
     """After an 'emergency' plan the drone hovers, then retries this late (after a
     'kept-previous' one the kept trajectory flies on and the next replan comes on its grid)."""
     max_failed_s: float = 15.0

@@ -149,10 +149,16 @@ class Assignment:
         return {s: d for d, s in self.slots}
 
 
+RETRY_AFTER_S = 1.0
+"""The default of ``planning.retry_after_s`` (``MachineParams.retry_after_s``): how long the
+hover after a failed plan lasts before the retry (the fast-time twin's
+``SimConfig.retry_after_s`` too)."""
+
+
 @dataclass(frozen=True)
 class MachineParams:
     emergency_hover_s: float = 5.0
-    retry_after_s: float = 1.0
+    retry_after_s: float = RETRY_AFTER_S
     max_failed_s: float = 15.0
     gcs_lost_action: str = "hover"
     """'hover': finish the current goal and hover; 'land': then land."""
