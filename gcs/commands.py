@@ -387,12 +387,14 @@ def waypoints(file: Path, drones: str | None, as_json: bool, **kw: Any) -> None:
 @click.command()
 @click.argument("name")
 @click.option("--scale", type=float, default=1.0, show_default=True, help="Scale factor.")
-@click.option("--yaw", "yaw_deg", type=float, default=0.0, show_default=True, help="Turn [deg].")
+@click.option("--yaw", "yaw_deg", type=float, default=None,
+              help="Turn the formation by this [deg] about the up axis [default: the turn "
+              "that takes the least travel in all; the shape is the same either way].")  # fmt: skip
 @bus_options
 @_drones_opt
 @_json_opt
 def formation(
-    name: str, scale: float, yaw_deg: float, drones: str | None, as_json: bool, **kw: Any
+    name: str, scale: float, yaw_deg: float | None, drones: str | None, as_json: bool, **kw: Any
 ) -> None:
     """Assign formation NAME (config/formations) or FILE (YAML/JSON ``points:``) to the drones
     up (or --drones), by the least total distance from where they are; all switch at one common
@@ -401,13 +403,16 @@ def formation(
     ids = _parse_ids(drones)
     with open_station(bus, drones=ids, with_state=True) as gs:
         try:
-            a, outcome = gs.formation(name, scale=scale, yaw_rad=math.radians(yaw_deg), drones=ids)
+            yaw = None if yaw_deg is None else math.radians(yaw_deg)
+            a, outcome = gs.formation(name, scale=scale, yaw_rad=yaw, drones=ids)
         except (FormationError, StationError) as e:
             raise click.ClickException(f"{e} (nothing sent)") from e
     if not as_json:
         slots = ", ".join(f"{d}->{s}" for d, s in sorted(a.slots.items()))
+        how = "" if yaw_deg is not None else " (least travel)"
         click.echo(
-            f"formation {a.name} epoch {a.epoch}, scale {a.scale:g}, yaw {yaw_deg:g} deg, "
+            f"formation {a.name} epoch {a.epoch}, scale {a.scale:g}, "
+            f"yaw {math.degrees(a.yaw_rad):.1f} deg{how}, "
             f"centre ({a.center_m[0]:.2f}, {a.center_m[1]:.2f}, {a.center_m[2]:.2f}), "
             f"slots {slots}, total distance {a.cost_m:.2f} m"
         )
@@ -415,6 +420,7 @@ def formation(
         "formation": a.name,
         "epoch": a.epoch,
         "slots": {str(d): s for d, s in sorted(a.slots.items())},
+        "yaw_deg": math.degrees(a.yaw_rad),
         "cost_m": a.cost_m,
     }
     _finish(outcome, as_json, extra)

@@ -935,6 +935,7 @@ class Demo:
                 "effective_s": a.effective_s,
                 "points_m": a.offsets_m.tolist(),
                 "slots": {str(d): s for d, s in sorted(a.slots.items())},
+                "yaw_deg": math.degrees(a.yaw_rad),
                 "cost_m": a.cost_m,
             }
         )

@@ -1234,13 +1234,16 @@ def _change_formation(
     mon: FlightMonitor,
 ) -> dict[str, Any]:
     """Give every drone its slot of ``tpl`` as the ground station assigns it
-    (``FormationAssigner``: the template at the drones' centroid, slots by minimum total
-    distance from ``pos``) and the goal centre plus that slot's offset; the monitor scores the
-    new shape from now on. Returns the record of the change (``SimResult.formation_change``)."""
+    (``FormationAssigner`` with the station's defaults: the template at the drones' centroid,
+    turned the way nearest in total, slots by minimum total distance from ``pos``) and the goal
+    centre plus that slot's offset; the monitor scores the new shape from now on. Returns the
+    record of the change (``SimResult.formation_change``)."""
     from gcs.formations import FormationAssigner
 
-    a = FormationAssigner(clock=lambda: t, lead_s=0.0).assign(tpl, dict(enumerate(pos)))
-    pts = np.asarray(tpl.points, dtype=np.float64)
+    a = FormationAssigner(clock=lambda: t, lead_s=0.0).assign(
+        tpl, dict(enumerate(pos)), yaw_rad=None
+    )
+    pts = a.offsets_m  # turned, as the wire carries them (``Assignment.to_wire``)
     slot_of = np.array([a.slots[i] for i in range(len(agents))])
     new_goals = goals.mean(axis=0) + a.offsets_m[slot_of]
     for i, ag in enumerate(agents):
@@ -1250,6 +1253,7 @@ def _change_formation(
         "name": tpl.name,
         "at_s": t,
         "slots": {str(i): int(s) for i, s in enumerate(slot_of)},
+        "yaw_deg": math.degrees(a.yaw_rad),
         "reached_s": None,
     }
 

@@ -465,12 +465,13 @@ class GroundStation:
         formation: Formation | str | Path,
         *,
         scale: float = 1.0,
-        yaw_rad: float = 0.0,
+        yaw_rad: float | None = None,
         drones: Sequence[int] | None = None,
     ) -> Assignment:
         """A validated assignment of ``formation`` to the drones up (or ``drones``) from their
-        reported positions; raises :class:`gcs.formations.FormationError` and sends nothing on
-        any problem."""
+        reported positions, turned by ``yaw_rad`` (None: the turn nearest in total travel,
+        :func:`gcs.formations.best_yaw`); raises :class:`gcs.formations.FormationError` and
+        sends nothing on any problem."""
         up = self.drones()
         ids = sorted(up) if drones is None else sorted(set(drones))
         down = sorted(set(ids) - up)
@@ -488,7 +489,7 @@ class GroundStation:
         formation: Formation | str | Path,
         *,
         scale: float = 1.0,
-        yaw_rad: float = 0.0,
+        yaw_rad: float | None = None,
         drones: Sequence[int] | None = None,
         **kw: Any,
     ) -> tuple[Assignment, CommandOutcome]:

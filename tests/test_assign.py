@@ -11,6 +11,7 @@ import pytest
 from gcs.formations import (
     FormationAssigner,
     FormationError,
+    best_yaw,
     brute_force_slots,
     check_points,
     formation_errors,
@@ -101,6 +102,54 @@ def test_assignment_mid_flight_takes_the_nearest_slots() -> None:
     assert a.cost_m == pytest.approx(best)
     for d, s in a.slots.items():  # each drone's slot is on its own side of the x axis
         assert np.sign(a.points_m[s][1]) == np.sign(positions[d][1])
+
+
+def _total(tpl: np.ndarray, pos: np.ndarray, yaw: float) -> float:
+    return hungarian_slots(pos, place(tpl, pos.mean(axis=0), 1.0, yaw))[1]
+
+
+def test_without_a_yaw_the_turn_of_least_travel() -> None:
+    """A hexagon re-shaping into the rectangle travels least with the rectangle turned by 90
+    degrees (4.67 m against 8.25 m as written); no turn on a fine grid is nearer."""
+    asg = FormationAssigner(FakeClock())
+    hexagon = place(load_template("hexagon-7").points, (5.0, 2.0, 1.5), 1.0, 0.0)
+    a = asg.assign("rectangle-7", _positions(hexagon), yaw_rad=None)
+    rect = load_template("rectangle-7").points
+    assert abs(a.yaw_rad) == pytest.approx(math.pi / 2, abs=1e-3)
+    assert a.cost_m == pytest.approx(4.665, abs=1e-3)
+    assert _total(rect, hexagon, 0.0) == pytest.approx(8.251, abs=1e-3)
+    grid = [_total(rect, hexagon, math.radians(k / 10.0)) for k in range(3600)]
+    assert a.cost_m <= min(grid) + 1e-9
+    # the slots are those of the placed points, and the wire carries the turned shape
+    assert np.allclose(a.points_m, place(rect, hexagon.mean(axis=0), 1.0, a.yaw_rad))
+    w = a.to_wire()
+    assert np.allclose(np.asarray(w.points_m), a.offsets_m) and w.yaw_rad == 0.0
+    # a yaw given is kept
+    b = asg.assign("rectangle-7", _positions(hexagon), yaw_rad=0.0)
+    assert b.yaw_rad == 0.0 and b.cost_m == pytest.approx(8.251, abs=1e-3)
+
+
+@pytest.mark.parametrize("name", ["arrow-7", "line-4", "bipyramid-7", "heart-10"])
+def test_best_yaw_finds_a_turned_swarm(name: str) -> None:
+    """Drones standing in the shape turned by any angle (shuffled) get that angle back, or one
+    of the shape's symmetric turns: no travel at all."""
+    tpl = load_template(name).points
+    rng = np.random.default_rng(7)
+    for yaw in (0.3, -2.0, 2.9, math.radians(137.4)):
+        pos = place(tpl, (1.0, -4.0, 2.0), 1.3, yaw)[rng.permutation(len(tpl))]
+        got = best_yaw(tpl, pos, pos.mean(axis=0), 1.3)
+        assert -math.pi < got <= math.pi
+        placed = place(tpl, pos.mean(axis=0), 1.3, got)
+        assert hungarian_slots(pos, placed)[1] == pytest.approx(0.0, abs=2e-3 * len(tpl))
+
+
+def test_best_yaw_keeps_the_template_as_written_on_a_tie() -> None:
+    """A swarm already in a symmetric shape (the hexagon: six turns fit it exactly, the
+    rectangle: two) keeps the shape unturned, exactly, whatever the order of the drones."""
+    for name in ("hexagon-7", "rectangle-7", "rectangle-4", "octahedron-6"):
+        tpl = load_template(name).points
+        pos = place(tpl, (3.0, 3.0, 1.0), 1.0, 0.0)[::-1]
+        assert best_yaw(tpl, pos, pos.mean(axis=0), 1.0) == 0.0, name
 
 
 def test_subset_with_drones() -> None:

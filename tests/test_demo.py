@@ -291,7 +291,7 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     `fleet` tests): every MAVLink frame accepted at either end was signed, the bus links are
     TLS, intruders were refused, and no key appears in the logs, records or result."""
     out = tmp_path / "flight"
-    line = tmp_path / "line-3.yaml"  # a user file: three abreast, 1.5 m apart
+    line = tmp_path / "line-3.yaml"  # a user file: three in a line, 1.5 m apart
     line.write_text("points: [[0, -1.5, 0], [0, 0, 0], [0, 1.5, 0]]\n")
     cfg = DemoConfig(
         drones=3,

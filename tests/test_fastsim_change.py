@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from click.testing import CliRunner
 
 from gcs.cli import main
 from gcs.fastsim import FORMATION_REACHED_E_SIM, SimConfig, SimResult, run_sim
-from gcs.formations import brute_force_slots, place
+from gcs.formations import best_yaw, brute_force_slots, place
 from gcs.metrics import e_dist
 from onboard.config import load_formation, load_world_spec
 from onboard.planner.formation import similarity
@@ -46,9 +47,11 @@ def test_the_new_shape_is_reached_without_a_collision(changed: SimResult) -> Non
     line = np.asarray(load_formation("line-3").points)
     slots = np.array([fc["slots"][str(i)] for i in range(3)])
     assert sorted(slots.tolist()) == [0, 1, 2]
-    # the flight ends at the line's goals (the goal centre plus each drone's new offset) ...
+    # the flight ends at the line's goals (the goal centre plus each drone's new offset, the
+    # line turned as the station turns it) ...
     goal_c = r.goals.mean(axis=0)
-    assert np.allclose(r.goals, goal_c + line[slots] - line.mean(axis=0))
+    turned = place(line, (0.0, 0.0, 0.0), 1.0, math.radians(fc["yaw_deg"]))
+    assert np.allclose(r.goals, goal_c + turned[slots])
     assert np.allclose(r.tracks.pos[-1], r.goals, atol=0.5)
     # ... in the line's shape, scored against the line from the change on
     t = r.tracks
@@ -76,12 +79,15 @@ def test_slots_minimise_the_total_distance(changed: SimResult) -> None:
     k = int(np.searchsorted(t.t, CHANGE_AT_S - 1e-6))
     pos = t.pos[k]
     line = np.asarray(load_formation("line-3").points)
-    best, best_cost = brute_force_slots(pos, place(line, pos.mean(axis=0), 1.0, 0.0))
+    # the line turned the way of least travel, as the ground station turns it by default
+    yaw = best_yaw(line, pos, pos.mean(axis=0), 1.0)
+    assert r.formation_change["yaw_deg"] == pytest.approx(math.degrees(yaw), abs=1e-9)
+    placed = place(line, pos.mean(axis=0), 1.0, yaw)
+    best, best_cost = brute_force_slots(pos, placed)
     slots = np.array([r.formation_change["slots"][str(i)] for i in range(3)])
-    cost = float(
-        np.sum(np.linalg.norm(pos - place(line, pos.mean(axis=0), 1.0, 0.0)[slots], axis=1))
-    )
+    cost = float(np.sum(np.linalg.norm(pos - placed[slots], axis=1)))
     assert cost == pytest.approx(best_cost, abs=1e-9), (slots, best)
+    assert cost <= brute_force_slots(pos, place(line, pos.mean(axis=0), 1.0, 0.0))[1] + 1e-9
 
 
 def test_bad_changes_are_refused() -> None:

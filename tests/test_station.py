@@ -15,9 +15,10 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
-from gcs.formations import FormationError, load_template, place
+from gcs.formations import FormationError, best_yaw, hungarian_slots, load_template, place
 from gcs.station import GroundStation, StationConfig, StationError
 from onboard.comm.wire import (
     Command,
@@ -346,6 +347,18 @@ def test_cli_commands_report_acks(
     out = json.loads(r.output)
     assert r.exit_code == 1 and out["missing"] == [2] and out["formation"] == "triangle-3"
     assert sorted(out["slots"].values()) == [0, 1, 2]
+    # without --yaw the turn of least travel, with it the turn given
+    line = np.array([d.position for d in drones.values()], dtype=np.float64)
+    tri = load_template("triangle-3").points
+    auto = best_yaw(tri, line, line.mean(axis=0), 1.5)
+    assert out["yaw_deg"] == pytest.approx(math.degrees(auto))
+    assert out["cost_m"] < hungarian_slots(line, place(tri, line.mean(axis=0), 1.5, 0.0))[1]
+    r = _run(["formation", "triangle-3", "--yaw", "30", *bus])
+    assert "yaw 30.0 deg," in r.output and "least travel" not in r.output
+    sent = drones[0].commands()[-1].action
+    assert isinstance(sent, FormationAssignment)
+    turned = place(tri, (0.0, 0.0, 0.0), 1.0, math.radians(30.0))
+    assert np.allclose(np.asarray(sent.points_m), turned)
     r = _run(["formation", "line-4", "--drones", "0,1", "--scale", "0.5", *bus])
     assert r.exit_code == 1 and "has 4 points but 2 drones" in r.output
 
