@@ -17,6 +17,7 @@ import pytest
 from onboard.agent import (
     MONITOR_BRAKE_WITHIN_S,
     MONITOR_PLAN_WAIT_S,
+    MONITOR_RETRY_S,
     RESEND_S,
     DroneAgent,
     PeerView,
@@ -1295,6 +1296,20 @@ def test_a_peer_coming_at_the_hover_after_a_failed_plan_cuts_the_hover_short(
     h.svc.main_step()
     assert h.state is S.FORMATION_FLIGHT  # at once, not retry_after_s (1 s) later
     assert h.clock.t == t
+    # the retried plan fails too: its hover is cut short again, but not before
+    # MONITOR_RETRY_S (each look retrying would fail plans as fast as they are made)
+    h.svc.machine.plan_failed("emergency")
+    h.svc.main_step()
+    assert h.state is S.HOVER
+    h.svc._monitor_key = ()
+    assert h.svc.monitor_step().startswith("holding: drone 5")
+    h.svc.main_step()
+    assert h.state is S.HOVER and h.svc._results.empty()
+    h.clock.t = t + MONITOR_RETRY_S + 1e-3
+    h.svc._monitor_key = ()
+    assert h.svc.monitor_step().startswith("holding: drone 5")
+    h.svc.main_step()
+    assert h.state is S.FORMATION_FLIGHT
     # a hover that no failed plan holds (the goal reached) stays a hover
     h.svc.machine.goal_reached()
     h.svc.main_step()

@@ -273,6 +273,7 @@ class FlightService:
         self._last_map_record_s = -math.inf
         self._monitor_brake_at = -math.inf
         self._braking_retry_for = -math.inf  # the brake whose hover was retried early
+        self._monitor_retry_s = -math.inf  # when the monitor last cut a failed plan's hover
         self._monitor_asked_s = -math.inf  # when the monitor asked for the replan awaited
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
@@ -821,7 +822,7 @@ class FlightService:
             # 1.7 m in front of such a peer and held there until it was 0.96 m away; 0.20 m)
             self._braking_retry_for = self._monitor_brake_at
             self.counters["monitor_braking_retries"] += 1
-            self._results.put(("monitor_retry", problem))
+            self._monitor_retry(now, problem)
         if action != "brake":
             return f"{action}: {problem}"
         pp, vv, aa = traj.state(now)
@@ -832,9 +833,11 @@ class FlightService:
             self.counters["monitor_holding"] += 1
             if it.state is S.FORMATION_FLIGHT:
                 self._ask_replan()
-            elif it.held_for_retry:
-                # the hover after a failed plan is in the way: retry the plan now
-                self._results.put(("monitor_retry", problem))
+            elif it.held_for_retry and now - self._monitor_retry_s >= MONITOR_RETRY_S:
+                # the hover after a failed plan is in the way: retry the plan now (if that plan
+                # fails too, its hover is retried again at most every MONITOR_RETRY_S: not at
+                # every look, as fast as plans fail)
+                self._monitor_retry(now, problem)
             return f"holding: {problem}"
         if not helps:
             # the plan comes inside the check's distance, but a braking stop would come as
@@ -844,8 +847,8 @@ class FlightService:
             if it.state is S.FORMATION_FLIGHT:
                 if now - self._last_plan_s >= MONITOR_RETRY_S:
                     self._ask_replan()
-            elif it.held_for_retry:
-                self._results.put(("monitor_retry", problem))
+            elif it.held_for_retry and now - self._monitor_retry_s >= MONITOR_RETRY_S:
+                self._monitor_retry(now, problem)
             return f"no better stop: {problem}"
         self._monitor_brake_at = now
         self.counters["monitor_brakes"] += 1
@@ -853,6 +856,11 @@ class FlightService:
         self._control(braking_trajectory(now, pp, vv, aa, p.a_max_m_s2, peak_fraction=1.0))
         self._results.put(("monitor_brake", problem))
         return f"brake: {problem}"
+
+    def _monitor_retry(self, now: float, problem: str) -> None:
+        """Ask the main loop to retry a failed plan at once (``FlightMachine.retry_now``)."""
+        self._monitor_retry_s = now
+        self._results.put(("monitor_retry", problem))
 
     # ---- peers (the main loop; the monitor) --------------------------------------------------
     def peers_now(self, now: float, fresh: bool = False) -> PeerView:
