@@ -41,8 +41,11 @@ DEFAULT_MIN_SPACING_M = 0.8
 YAW_GRID_STEP_DEG = 1.0
 """:func:`best_yaw`'s grid over the full turn, before its refinement."""
 
-YAW_TIE_M = 1e-6
-"""Totals closer than this (m) are a tie for :func:`best_yaw` (symmetric shapes)."""
+YAW_TIE_M_PER_DRONE = 0.02
+""":func:`best_yaw` takes totals within this many metres per drone of the least for a tie, and
+of tied turns the one nearest to none: a symmetric shape fits as well at several turns, and
+the drones' positions are known to centimetres (the demo's hexagon on the real stack fitted
+0.01-0.1 m better turned by 60 degrees, the same points with the slots renamed)."""
 
 
 class FormationError(ValueError):
@@ -195,9 +198,10 @@ def best_yaw(
     (:func:`hungarian_slots`).
 
     Every whole degree is tried, the best refined to within about 1e-4 rad (the total is
-    piecewise smooth in the turn: smooth while the slots stay the same). Of turns as near as
-    each other (within ``YAW_TIE_M``: a symmetric shape has several) the one nearest to no turn
-    wins, so a swarm that already stands in the template as written keeps it exactly."""
+    piecewise smooth in the turn: smooth while the slots stay the same). Of the grid's local
+    minima about as near as the least (within ``YAW_TIE_M_PER_DRONE`` a drone: a symmetric
+    shape has several) the one nearest to no turn is refined, so a swarm that already stands in
+    the template as written keeps it (exactly, when it stands there exactly)."""
     from scipy.optimize import minimize_scalar
 
     pos = np.asarray(positions, dtype=np.float64)
@@ -208,12 +212,14 @@ def best_yaw(
     n = int(round(360.0 / YAW_GRID_STEP_DEG))
     grid = [math.radians(k * YAW_GRID_STEP_DEG) for k in range(n)]
     totals = np.array([total(y) for y in grid])
-    near = np.flatnonzero(totals <= totals.min() + YAW_TIE_M)
+    # the grid's local minima (on the circle), each the bottom of its own basin
+    low = (totals <= np.roll(totals, 1)) & (totals <= np.roll(totals, -1))
+    near = np.flatnonzero(low & (totals <= totals.min() + YAW_TIE_M_PER_DRONE * len(pos)))
     k = min(near, key=lambda j: (abs(_wrap(grid[j])), grid[j]))
     y0, f0 = grid[k], float(totals[k])
     h = math.radians(YAW_GRID_STEP_DEG)
     r = minimize_scalar(total, bounds=(y0 - h, y0 + h), method="bounded", options={"xatol": 1e-4})
-    if bool(r.success) and float(r.fun) < f0 - YAW_TIE_M:
+    if bool(r.success) and float(r.fun) < f0 - 1e-9:
         return _wrap(float(r.x))
     return _wrap(y0)
 
