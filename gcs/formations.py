@@ -7,10 +7,10 @@ get slots by the minimum total distance from their current positions to the plac
 Hungarian method, ``scipy.optimize.linear_sum_assignment``), which also holds mid-flight: a new
 shape is taken with the least total travel and no two drones crossing needlessly. Without a
 given yaw the turn is chosen too (:func:`best_yaw`): the one whose slots are nearest in total,
-the template as written when no turn is nearer. The shape metric (e_sim) and the planner's
-formation cost do not depend on the turn, so a swarm re-shaping in flight should not travel
-for it: hexagon-7 to rectangle-7 as written is 8.25 m of travel in all (1.58 m for one
-drone), turned by 90 degrees 4.67 m (0.92 m).
+the template as written when no turn is nearer by more than a few centimetres a drone. The
+shape metric (e_sim) and the planner's formation cost do not depend on the turn, so a swarm
+re-shaping in flight should not travel for it: hexagon-7 to rectangle-7 as written is 8.25 m
+of travel in all (1.58 m for one drone), turned by 30 (or 90) degrees 4.67 m (0.92 m).
 
 Every assignment carries an *epoch* (strictly increasing; a drone accepts only epochs newer than
 every one it knows, so it never flies two assignments at once) and an *effective time* (a common
