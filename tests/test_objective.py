@@ -10,7 +10,7 @@ from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.kernels import peer_speed_bounds
-from onboard.planner.minco import BAND_COLS, Minco
+from onboard.planner.minco import Minco
 from onboard.planner.timemap import tau_from_T
 from onboard.world import World
 
@@ -215,14 +215,7 @@ def test_whole_objective_gradient_in_q_and_tau(seed: int) -> None:
     }
     M, head, tail, q, T, prob, fld = _setup(seed, weights)
     x = np.concatenate([q.ravel(), tau_from_T(T)])
-    work = (
-        np.zeros((6 * M, BAND_COLS)),
-        np.zeros((6 * M, 3)),
-        np.zeros((6 * M, 3)),
-        np.zeros(M),
-        np.zeros((M - 1, 3)),
-        np.zeros(obj.N_TERMS),
-    )
+    work = obj.workspace(M)
     g = np.empty_like(x)
     obj.objective(x, prob, fld, work, g)
 
@@ -239,14 +232,7 @@ def test_absurd_durations_give_an_infinite_cost_not_an_error() -> None:
     point costs +inf with a zero gradient (the line search shrinks its step), as does one
     whose durations overflow."""
     M, head, tail, q, T, prob, fld = _setup(21, {"time": 5.0, "feasibility": 20.0})
-    work = (
-        np.zeros((6 * M, BAND_COLS)),
-        np.zeros((6 * M, 3)),
-        np.zeros((6 * M, 3)),
-        np.zeros(M),
-        np.zeros((M - 1, 3)),
-        np.zeros(obj.N_TERMS),
-    )
+    work = obj.workspace(M)
     sc = prob[3][obj.P_TAU_SCALE]
     x = np.concatenate([q.ravel(), tau_from_T(T) / sc])
     g = np.empty_like(x)

@@ -45,7 +45,7 @@ from onboard.planner.lbfgs import (
     lbfgs_start,
     lbfgs_workspace,
 )
-from onboard.planner.minco import energy, propagate_gradient, solve_coeffs
+from onboard.planner.minco import BAND_COLS, energy, propagate_gradient, solve_coeffs
 from onboard.planner.timemap import T_from_tau, grad_tau_from_grad_T
 from onboard.planner.trajectory import eval_position_velocity
 
@@ -520,6 +520,18 @@ def cost_c_T(
         gT[i] += w_t
     costs[C_T] = w_t * jt
     return je + w_t * jt + sampled_costs(coeffs, T, prob, fld, gc, gT, costs)
+
+
+def workspace(M: int) -> tuple:
+    """The scratch arrays of :func:`objective` for M pieces: (band, coeffs, gc, gT, gq, costs)."""
+    return (
+        np.zeros((6 * M, BAND_COLS)),
+        np.zeros((6 * M, 3)),
+        np.zeros((6 * M, 3)),
+        np.zeros(M),
+        np.zeros((M - 1, 3)),
+        np.zeros(N_TERMS),
+    )
 
 
 T_SANE_MIN_S = 1e-9

@@ -57,7 +57,6 @@ from onboard.planner.astar import astar_path_levels
 from onboard.planner.field import AnalyticField, DistanceField, FieldData, GridField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.lbfgs import LbfgsStatus
-from onboard.planner.minco import BAND_COLS
 from onboard.planner.params import PlannerParams
 from onboard.planner.trajectory import Trajectory, braking_duration_s
 
@@ -221,14 +220,7 @@ class Problem:
         self.prob = prob
         self.fld = fld
         M = self.M
-        self.work = (
-            np.zeros((6 * M, BAND_COLS)),
-            np.zeros((6 * M, 3)),
-            np.zeros((6 * M, 3)),
-            np.zeros(M),
-            np.zeros((M - 1, 3)),
-            np.zeros(obj.N_TERMS),
-        )
+        self.work = obj.workspace(M)
         self.lb_prm = lb_prm
         self.cancel_flag = np.zeros(1, dtype=np.int64)
         self.iterations = 0
