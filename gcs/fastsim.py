@@ -1245,7 +1245,7 @@ def _change_formation(
     )
     pts = a.offsets_m  # turned, as the wire carries them (``Assignment.to_wire``)
     slot_of = np.array([a.slots[i] for i in range(len(agents))])
-    new_goals = goals.mean(axis=0) + a.offsets_m[slot_of]
+    new_goals = goals.mean(axis=0) + pts[slot_of]
     for i, ag in enumerate(agents):
         ag.set_formation(pts, int(slot_of[i]), a.epoch, goal=new_goals[i])
     mon.retarget(new_goals, pts[slot_of])

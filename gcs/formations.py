@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from onboard.autopilot.frames import wrap_pi
 from onboard.comm.wire import FormationAssignment
 from onboard.config import ConfigError, Formation, load_formation
 
@@ -181,12 +182,6 @@ def hungarian_slots(positions: np.ndarray, targets: np.ndarray) -> tuple[np.ndar
     return slots, float(cost[rows, cols].sum())
 
 
-def _wrap(yaw_rad: float) -> float:
-    """``yaw_rad`` in (-pi, pi]."""
-    w = math.remainder(yaw_rad, 2.0 * math.pi)
-    return math.pi if w == -math.pi else w
-
-
 def best_yaw(
     template: np.ndarray,
     positions: np.ndarray,
@@ -215,13 +210,13 @@ def best_yaw(
     # the grid's local minima (on the circle), each the bottom of its own basin
     low = (totals <= np.roll(totals, 1)) & (totals <= np.roll(totals, -1))
     near = np.flatnonzero(low & (totals <= totals.min() + YAW_TIE_M_PER_DRONE * len(pos)))
-    k = min(near, key=lambda j: (abs(_wrap(grid[j])), grid[j]))
+    k = min(near, key=lambda j: (abs(wrap_pi(grid[j])), grid[j]))
     y0, f0 = grid[k], float(totals[k])
     h = math.radians(YAW_GRID_STEP_DEG)
     r = minimize_scalar(total, bounds=(y0 - h, y0 + h), method="bounded", options={"xatol": 1e-4})
     if bool(r.success) and float(r.fun) < f0 - 1e-9:
-        return _wrap(float(r.x))
-    return _wrap(y0)
+        return wrap_pi(float(r.x))
+    return wrap_pi(y0)
 
 
 def brute_force_slots(positions: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, float]:
