@@ -1394,10 +1394,17 @@ class DroneAgent:
                 self.request_replan()  # the attempts it gave up, from a newer start
         while self._next_replan_s <= now + EPS_T:
             self._next_replan_s += self.replan_period_s
-        if (reforming or recovering) and self.params.reform_replan_period_s > 0.0:
+        period = (
+            self.params.reform_replan_period_s
+            if reforming
+            else self.params.recover_replan_period_s
+            if recovering
+            else 0.0
+        )
+        if period > 0.0:
             # the peers' re-shaping moves, each the answer to the others' last plans,
             # converge in replans, not in seconds
-            self.request_replan(now + self.params.reform_replan_period_s)
+            self.request_replan(now + period)
         key = str(res.status.value)
         with self._cfg_lock:
             self.status_counts[key] = self.status_counts.get(key, 0) + 1

@@ -114,8 +114,8 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
     """A replan that finds the swarm's shape (its start and its formation peers' broadcast
     plans, scored against their slots' template points) further than recover_e_sim from the
     template plans with the re-forming parameters at recover_formation_scale and replans every
-    reform_replan_period_s, until recover_hold_s after the last such replan; in shape, or with
-    recover_e_sim 0, on the grid with the plain parameters."""
+    recover_replan_period_s (not re-forming's period), until recover_hold_s after the last such
+    replan; in shape, or with recover_e_sim 0, on the grid with the plain parameters."""
     me = np.array([0.0, 0, 1])
     goal = me  # the drone holds still: only the peers' plans move the shape
 
@@ -140,7 +140,13 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
             t = round(t + 0.05, 2)
         return a, times
 
-    base = PlannerParams(v_max_m_s=1.0, recover_e_sim=0.005, recover_hold_s=1.0)
+    base = PlannerParams(
+        v_max_m_s=1.0,
+        recover_e_sim=0.005,
+        recover_hold_s=1.0,
+        recover_replan_period_s=0.25,
+        reform_replan_period_s=0.4,
+    )
     # the peers in a line with the drone: far from the triangle (e_sim about 0.2)
     line = {1: me + np.array([-1.0, 1.5, 0.0]) * 2.0, 2: me + np.array([-4.0, 0.0, 0.0])}
     assert similarity(np.vstack([me, line[1], line[2]]), TRIANGLE)[0] > 0.1
@@ -167,6 +173,11 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
         PlannerParams(recover_e_sim=-0.1)
     with pytest.raises(ValueError, match="recover_formation_scale"):
         PlannerParams(recover_formation_scale=0.0)
+    with pytest.raises(ValueError, match="recover_replan_period_s"):
+        PlannerParams(recover_replan_period_s=-0.1)
+    # 0: the grid alone, also while recovering
+    _, times = run(dataclasses.replace(base, recover_replan_period_s=0.0), line)
+    assert times == [(float(t), True) for t in range(5)]
 
 
 def test_trajectory_queue() -> None:

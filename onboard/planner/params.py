@@ -281,7 +281,7 @@ class PlannerParams:
     against their slots' points of the template) is further than this from the template, the
     drone plans for the next ``recover_hold_s`` as while re-forming (``recover_params``: with
     ``recover_formation_scale`` for the formation weight's factor), replanning every
-    ``reform_replan_period_s``. After trunks split the formation, the shape otherwise comes back
+    ``recover_replan_period_s``. After trunks split the formation, the shape otherwise comes back
     only 8-10 s after the last one (section 8 of BENCHMARKS.md, 2026-11-30). Not while
     re-forming (that has its own parameters) nor without the lead slow-down. 0: off.
     Measured (``bench table``, 20 worlds a density, and the reference forests, BENCHMARKS.md
@@ -290,6 +290,10 @@ class PlannerParams:
     recover_hold_s: float = 2.0
     """Shape recovery (``recover_e_sim``) lasts this long after the last replan that found the
     shape off."""
+    recover_replan_period_s: float = 0.25
+    """While recovering the shape (``recover_e_sim``), the agent replans at most this long
+    after its last replan (0: on its own grid only), as ``reform_replan_period_s`` does while
+    re-forming. The agent's own parameter, like that one."""
     unheard_margin_m: float = 0.3
     """Added to ``check_drone_m`` and ``swarm_clearance_m`` while a peer reports that it does
     not hear this drone (``DroneAgent.set_unheard``: the peer's status says this drone's link
@@ -514,6 +518,7 @@ class PlannerParams:
             "reform_replan_period_s",
             "recover_e_sim",
             "recover_hold_s",
+            "recover_replan_period_s",
             "unheard_margin_m",
             "brake_reference_s",
             "unheard_brake_reference_s",
