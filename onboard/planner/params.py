@@ -263,7 +263,7 @@ class PlannerParams:
     slot flew on at full speed and those behind could never catch up: in the fast-time
     hexagon-7 -> rectangle-7 change in forest-medium the along-path offsets from the new slots
     grew over the 10 s (BENCHMARKS.md section 10, eleventh session)."""
-    reform_replan_period_s: float = 0.25
+    reform_replan_period_s: float = 0.1
     """While re-forming (``reform_s``), the agent replans at most this long after its last
     replan (0: on its own grid only, ``replan_period_s``). Each drone's plan answers the plans
     its peers last broadcast, so a move that every drone makes at once converges in replans
@@ -272,7 +272,8 @@ class PlannerParams:
     at 0.5 s, 15 at 0.25 s; hexagon-7 -> arrow-7 (seeds 1-10) 2 -> 6 of 10. The price: the shape
     is entered at the yaw nearest the old one, and turning it to the goals' yaw afterwards
     (the lead slow-down) made flights longer, mean 98 -> 109 s (104-106 s with
-    ``target_speed_frac`` 0.5; BENCHMARKS.md section 10).
+    ``target_speed_frac`` 0.5; BENCHMARKS.md section 10). 0.1 since 2026-12-01, with
+    ``recover_replan_period_s``: see there.
     The agent's own parameter, kept here beside ``reform_s``; the planner has no notion of
     it."""
     recover_e_sim: float = 0.005
@@ -290,10 +291,19 @@ class PlannerParams:
     recover_hold_s: float = 2.0
     """Shape recovery (``recover_e_sim``) lasts this long after the last replan that found the
     shape off."""
-    recover_replan_period_s: float = 0.25
+    recover_replan_period_s: float = 0.1
     """While recovering the shape (``recover_e_sim``), the agent replans at most this long
     after its last replan (0: on its own grid only), as ``reform_replan_period_s`` does while
-    re-forming. The agent's own parameter, like that one."""
+    re-forming. The agent's own parameter, like that one. Both 0.25 until 2026-12-01 (one
+    parameter then). Both at 0.1 (BENCHMARKS.md section 10, sixteenth session), the demo's
+    fast-time twin (forest-medium, mapped, hexagon-7 -> rectangle-7 20 s in, seeds 1-36): the
+    new shape sooner in 22 seeds, later in 8 (within 10 s in 23 of 36 against 17), mean e_sim
+    0.0224 against 0.0267 (seeds 13-36), flights 1.7 s longer; ``bench table``'s top speed
+    within 2 % of the limit on all 180 worlds; the fault trials' flights 1.4 s longer
+    (median), one of them (a drone killed, one stuck) not home within its 60 s. Recovery
+    alone at 0.1 (re-forming at 0.25): 8 of 12 within 10 s, one drone not home (seed 3: it
+    went back and forth between two ways through a trunk cluster, each refused in turn by
+    the check's 4 s horizon on its own map)."""
     unheard_margin_m: float = 0.3
     """Added to ``check_drone_m`` and ``swarm_clearance_m`` while a peer reports that it does
     not hear this drone (``DroneAgent.set_unheard``: the peer's status says this drone's link
