@@ -297,8 +297,9 @@ class PlannerParams:
     re-forming. The agent's own parameter, like that one. Both 0.25 until 2026-12-01 (one
     parameter then). Both at 0.1 (BENCHMARKS.md section 10, sixteenth session), the demo's
     fast-time twin (forest-medium, mapped, hexagon-7 -> rectangle-7 20 s in, seeds 1-36): the
-    new shape sooner in 22 seeds, later in 8 (within 10 s in 23 of 36 against 17), mean e_sim
-    0.0224 against 0.0267 (seeds 13-36), flights 1.7 s longer; ``bench table``'s top speed
+    new shape sooner in 26 seeds, later in 9 (within 10 s in 23 of 36 against 17, median 8.3 s
+    against 10.3 s), mean e_sim 0.0227 against 0.0255, flights 1.6 s longer; the real stack 2 of
+    5 within 10 s (its runs at 0.25 s: 1-3 of 5); ``bench table``'s top speed
     within 2 % of the limit on all 180 worlds; the fault trials' flights 1.4 s longer
     (median), one of them (a drone killed, one stuck) not home within its 60 s. Recovery
     alone at 0.1 (re-forming at 0.25): 8 of 12 within 10 s, one drone not home (seed 3: it
