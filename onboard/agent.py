@@ -1219,8 +1219,12 @@ class DroneAgent:
     def _deviation(self, pid: int) -> np.ndarray | None:
         """Where ``pid`` last reported itself if that is further than ``peer_deviation_m``
         from its newest trajectory at the report's time, or would be ``peer_deviation_ahead_s``
-        later if both went straight on (``_off_by``; a report older than the trajectory's
-        start is not compared), else None. Under ``_peer_lock``."""
+        later if both went straight on (``_off_by``), else None. A report older than the
+        trajectory's start is not compared: the verdict before stands until a report from
+        the new trajectory's time comes (a peer found off its trajectory stays off, at its
+        newest report, rather than vanish into a trajectory it may not fly: a peer whose
+        vehicle holds while its process announces plans along its path was planned around
+        without it at each announcement). Under ``_peer_lock``."""
         if not math.isfinite(self.peer_deviation_m):
             return None
         st = self._heard.get(pid)
@@ -1233,7 +1237,8 @@ class DroneAgent:
         out: np.ndarray | None = st.position
         tr = seen.msg.trajectory
         if st.stamp_s < tr.t0_s - EPS_T:
-            out = None
+            if cached is None or cached[2] is None:
+                out = None
         elif self._off_by(st, tr) <= self.peer_deviation_m:
             out = None
         self._deviation_cache[pid] = (st, seen, out)

@@ -940,7 +940,12 @@ def test_a_peer_reported_off_its_trajectory_is_avoided_where_it_reported_itself(
         assert 2 in r.formation_peers and not r.silent_peers
         # (1 mm: a plan may start on the limit, within the check's sampling, and back out)
         assert plan_clearance(r, held) >= keep - 1e-3, f"plan at {r.planned_at_s - t_snag:.2f} s"
-    assert sum(2 in r.deviating_peers for r in later) >= len(later) - 2
+    # every one of them avoids it where it holds, also a replan between a fresh announcement
+    # and the first report from its time (replans every 0.1 s while the shape is off found
+    # it in that window every 2.1 s, and planned with the snagged peer only at its announced
+    # trajectory)
+    missed = [round(r.planned_at_s - t_snag, 2) for r in later if 2 not in r.deviating_peers]
+    assert not missed, missed
     assert setpoints_clear(h, held, t_snag) >= keep
     assert h.svc.counters["peers_left_trajectory"] >= 1
 
