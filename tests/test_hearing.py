@@ -207,7 +207,10 @@ def test_in_fast_time_a_drone_whose_uplink_fails_learns_it_and_keeps_clear() -> 
     assert row["radio_dropped"] > 0 and row["unheard_plans"] > 0, row
     assert row["success"] and row["arrived"] == 3 and row["collisions"] == 0, row
     assert row["hidden_closest_m"] >= params.check_drone_m, row
-    row = fly_hidden(HiddenTrial(1, 1.0, 0.0, params, 40.0))
+    # the bench's time limit (80 s): with no outage 5-7 of 100 such swaps take over 40 s at
+    # either replan period while the shape is off (bench hidden --outage-s 0 --time-limit 40,
+    # 2026-12-01), seed 1 among them at 0.1 s (45.7 s)
+    row = fly_hidden(HiddenTrial(1, 1.0, 0.0, params, 80.0))
     assert row["radio_dropped"] == 0 and row["unheard_plans"] == 0, row
     assert row["success"] and row["collisions"] == 0, row
     with pytest.raises(ValueError, match="radio_outages"):
