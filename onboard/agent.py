@@ -812,6 +812,9 @@ class DroneAgent:
         # (``peer_view`` runs 20-40 times a second, a peer's messages change at 10 Hz)
         self._ghost_cache: dict[int, tuple[tuple[Any, ...], np.ndarray]] = {}
         self._deviation_cache: dict[int, tuple[_Heard, _Seen, np.ndarray | None]] = {}
+        # each peer's last verdict of ``_deviation`` on a report it could compare (off its
+        # trajectory or not): what stands while its newest report predates its trajectory
+        self._off_track: dict[int, bool] = {}
         self._spells: dict[int, deque[tuple[float, float]]] = {}  # peer -> (look, spell)
         self._spell_max: dict[int, float] = {}  # peer -> longest spell kept (None: recompute)
         self._spell_stale: set[int] = set()  # peers whose longest spell left the window
@@ -1237,10 +1240,12 @@ class DroneAgent:
         out: np.ndarray | None = st.position
         tr = seen.msg.trajectory
         if st.stamp_s < tr.t0_s - EPS_T:
-            if cached is None or cached[2] is None:
+            if not self._off_track.get(pid, False):
                 out = None
-        elif self._off_by(st, tr) <= self.peer_deviation_m:
-            out = None
+        else:
+            if self._off_by(st, tr) <= self.peer_deviation_m:
+                out = None
+            self._off_track[pid] = out is not None
         self._deviation_cache[pid] = (st, seen, out)
         return out
 
