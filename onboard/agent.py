@@ -812,9 +812,6 @@ class DroneAgent:
         # (``peer_view`` runs 20-40 times a second, a peer's messages change at 10 Hz)
         self._ghost_cache: dict[int, tuple[tuple[Any, ...], np.ndarray]] = {}
         self._deviation_cache: dict[int, tuple[_Heard, _Seen, np.ndarray | None]] = {}
-        # each peer's last verdict of ``_deviation`` on a report it could compare (off its
-        # trajectory or not): what stands while its newest report predates its trajectory
-        self._off_track: dict[int, bool] = {}
         self._spells: dict[int, deque[tuple[float, float]]] = {}  # peer -> (look, spell)
         self._spell_max: dict[int, float] = {}  # peer -> longest spell kept (None: recompute)
         self._spell_stale: set[int] = set()  # peers whose longest spell left the window
@@ -1223,11 +1220,10 @@ class DroneAgent:
         """Where ``pid`` last reported itself if that is further than ``peer_deviation_m``
         from its newest trajectory at the report's time, or would be ``peer_deviation_ahead_s``
         later if both went straight on (``_off_by``), else None. A report older than the
-        trajectory's start is not compared: the verdict before stands until a report from
-        the new trajectory's time comes (a peer found off its trajectory stays off, at its
-        newest report, rather than vanish into a trajectory it may not fly: a peer whose
-        vehicle holds while its process announces plans along its path was planned around
-        without it at each announcement). Under ``_peer_lock``."""
+        trajectory's start is compared at that start, carried there at its velocity (until
+        2026-12-01 it was not compared: a peer whose vehicle holds while its process
+        announces plans along its path was, between each announcement and its next report,
+        neither off its trajectory nor avoided where it holds). Under ``_peer_lock``."""
         if not math.isfinite(self.peer_deviation_m):
             return None
         st = self._heard.get(pid)
@@ -1239,28 +1235,29 @@ class DroneAgent:
             return cached[2]
         out: np.ndarray | None = st.position
         tr = seen.msg.trajectory
-        if st.stamp_s < tr.t0_s - EPS_T:
-            if not self._off_track.get(pid, False):
-                out = None
-        else:
-            if self._off_by(st, tr) <= self.peer_deviation_m:
-                out = None
-            self._off_track[pid] = out is not None
+        if self._off_by(st, tr) <= self.peer_deviation_m:
+            out = None
         self._deviation_cache[pid] = (st, seen, out)
         return out
 
     def _off_by(self, st: _Heard, tr: Trajectory) -> float:
         """How far ``st`` is off ``tr``: at its stamp, and ``peer_deviation_ahead_s`` later if
         both went on at the velocity they have then (the larger). Both straight on: a peer that
-        follows a turn or a braking of its trajectory is not off it."""
+        follows a turn or a braking of its trajectory is not off it. A report from before
+        ``tr``'s start: at that start, the report carried there at its velocity, by position
+        only (a new plan may turn from its start on)."""
         assert st.position is not None
-        p = tr.sample(st.stamp_s)
-        gap = st.position - p
+        # a report from before the trajectory's start: at that start, carried there straight
+        t = max(st.stamp_s, tr.t0_s)
+        pos = st.position
+        if t > st.stamp_s and st.velocity is not None:
+            pos = pos + (t - st.stamp_s) * st.velocity
+        gap = pos - tr.sample(t)
         off = float(np.linalg.norm(gap))
         ahead = self.peer_deviation_ahead_s
-        if st.velocity is None or ahead <= 0.0:
+        if st.velocity is None or ahead <= 0.0 or t > st.stamp_s:
             return off
-        dv = st.velocity - tr.sample(st.stamp_s, order=1)
+        dv = st.velocity - tr.sample(t, order=1)
         return max(off, float(np.linalg.norm(gap + ahead * dv)))
 
     # --- the cycle --------------------------------------------------------------------------
