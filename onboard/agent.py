@@ -53,7 +53,8 @@ its last message was sent and out of the formation at most ``peer_silence_max_s`
 A peer whose last reported position is further than ``peer_deviation_m`` from its trajectory
 (stuck or lagging, its new trajectory late), or would be ``peer_deviation_ahead_s`` later if
 it and its trajectory went straight on at their velocities (it stopped or turned off it: a
-brake or a plan whose copies were lost), is also avoided as a hover there; with
+brake or a plan whose copies were lost; a report from before its trajectory's start is
+compared at that start, carried there, by position only), is also avoided as a hover there; with
 ``avoid_reported``, so is a peer heard through states without a trajectory considered.
 ``watch`` (called at the state rate) asks for a replan at once when a peer falls silent, falls
 quiet in our way or leaves its trajectory; ``peer_view`` gives what a plan made now would avoid
@@ -1247,17 +1248,17 @@ class DroneAgent:
         ``tr``'s start: at that start, the report carried there at its velocity, by position
         only (a new plan may turn from its start on)."""
         assert st.position is not None
-        # a report from before the trajectory's start: at that start, carried there straight
-        t = max(st.stamp_s, tr.t0_s)
-        pos = st.position
-        if t > st.stamp_s and st.velocity is not None:
-            pos = pos + (t - st.stamp_s) * st.velocity
-        gap = pos - tr.sample(t)
+        if tr.t0_s > st.stamp_s:  # a report from before the trajectory's start
+            pos = st.position
+            if st.velocity is not None:
+                pos = pos + (tr.t0_s - st.stamp_s) * st.velocity
+            return float(np.linalg.norm(pos - tr.sample(tr.t0_s)))
+        gap = st.position - tr.sample(st.stamp_s)
         off = float(np.linalg.norm(gap))
         ahead = self.peer_deviation_ahead_s
-        if st.velocity is None or ahead <= 0.0 or t > st.stamp_s:
+        if st.velocity is None or ahead <= 0.0:
             return off
-        dv = st.velocity - tr.sample(t, order=1)
+        dv = st.velocity - tr.sample(st.stamp_s, order=1)
         return max(off, float(np.linalg.norm(gap + ahead * dv)))
 
     # --- the cycle --------------------------------------------------------------------------
