@@ -10,8 +10,8 @@ from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField
 from onboard.planner.formation import complete_mask, normalized_adjacency
 from onboard.planner.kernels import peer_speed_bounds
-from onboard.planner.minco import Minco
-from onboard.planner.timemap import tau_from_T
+from onboard.planner.minco import BAND_COLS, Minco, solve_coeffs
+from onboard.planner.timemap import T_from_tau, tau_from_T
 from onboard.world import World
 
 RTOL = 1e-5
@@ -243,6 +243,42 @@ def test_absurd_durations_give_an_infinite_cost_not_an_error() -> None:
         g[:] = 1.0
         assert obj.objective(bad, prob, fld, work, g) == np.inf
         assert np.all(g == 0.0)
+
+
+# a trial point of a line search (``bench hidden`` seed 30 with the pace floor at w_pace 1e4,
+# 2026-12-01): waypoints km away and durations of 6e7 s and 2e-9 s side by side, each inside
+# T_SANE's bounds, whose MINCO system has a zero pivot
+SINGULAR_X = np.array([1.06335037e03, 6.78311137e01, 1.0, -2.18777799e04, 8.73786538e02, 1.0,
+                       1.28084811e04, -1.20313913e04, 1.0,
+                       1.10929139e04, -2.98557259e04, 3.05662088e04, -2.11663688e04])  # fmt: skip
+
+
+def test_a_singular_minco_system_gives_an_infinite_cost_not_an_error() -> None:
+    """Durations of absurd ratios inside the sanity bounds cancel a pivot of MINCO's band LU
+    to zero: the compiled solve raised ZeroDivisionError out of the planner. Now the objective
+    returns +inf with a zero gradient there, ``solve_coeffs`` says so (its coefficients NaN,
+    which ``kernels.trajectory_from_x`` reads as not finite) and ``Minco`` refuses them."""
+    T = T_from_tau(SINGULAR_X[9:])
+    assert np.all((T >= obj.T_SANE_MIN_S) & (T <= obj.T_SANE_MAX_S))
+    head = np.array([[5.1, 0.1, 1.0], [0.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    tail = np.array([[11.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    q = SINGULAR_X[:9].reshape(3, 3).copy()
+    band = np.zeros((24, BAND_COLS))
+    c = np.zeros((24, 3))
+    assert not solve_coeffs(head, tail, q, T, band, c)
+    assert np.all(np.isnan(c))
+    _, _, _, _, _, prob, fld = _setup(21, {"time": 5.0, "feasibility": 20.0})
+    prob = (head, tail, *prob[2:])
+    g = np.ones(SINGULAR_X.shape[0])
+    assert obj.objective(SINGULAR_X.copy(), prob, fld, obj.workspace(4), g) == np.inf
+    assert np.all(g == 0.0)
+    m = Minco(4)
+    m.set_conditions(head, tail)
+    with pytest.raises(ValueError, match="singular"):
+        m.set_parameters(q, T)
+    # ordinary durations still solve
+    assert solve_coeffs(head, tail, q, np.array([1.0, 2.0, 1.5, 0.8]), band, c)
+    assert np.all(np.isfinite(c))
 
 
 def test_unit_gradient_variant_does_not_match_its_cost() -> None:

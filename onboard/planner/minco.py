@@ -103,11 +103,16 @@ def build_system(
 
 
 @njit(cache=True, nogil=True)
-def band_lu(band: np.ndarray) -> None:
-    """In-place LU factorisation without pivoting (unit lower L below the diagonal)."""
+def band_lu(band: np.ndarray) -> bool:
+    """In-place LU factorisation without pivoting (unit lower L below the diagonal). False,
+    with the factorisation left unfinished, at a zero pivot: durations of absurd ratios (a
+    line search's trial step once gave pieces of 6e7 s and 2e-9 s side by side) cancel a
+    pivot to zero, where the division would raise out of the compiled code."""
     n = band.shape[0]
     for k in range(n):
         piv = band[k, BW]
+        if piv == 0.0:
+            return False
         for i in range(k + 1, min(k + BW + 1, n)):
             lik = band[i, k - i + BW]
             if lik == 0.0:
@@ -116,6 +121,7 @@ def band_lu(band: np.ndarray) -> None:
             band[i, k - i + BW] = lik
             for j in range(k + 1, min(k + BW + 1, n)):
                 band[i, j - i + BW] -= lik * band[k, j - k + BW]
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -168,11 +174,15 @@ def solve_coeffs(
     T: np.ndarray,
     band: np.ndarray,
     coeffs: np.ndarray,
-) -> None:
-    """c = C(q, T): fills ``coeffs`` (6M, 3) and leaves the LU factors in ``band``."""
+) -> bool:
+    """c = C(q, T): fills ``coeffs`` (6M, 3) and leaves the LU factors in ``band``; False, with
+    ``coeffs`` all NaN, when the system is singular to working precision (``band_lu``)."""
     build_system(head, tail, q, T, band, coeffs)
-    band_lu(band)
+    if not band_lu(band):
+        coeffs[:, :] = np.nan
+        return False
     band_solve(band, coeffs)
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -294,8 +304,9 @@ class Minco:
         T = np.array(T, dtype=np.float64).reshape(self.M)
         if np.any(T <= 0) or not np.all(np.isfinite(T)) or not np.all(np.isfinite(q)):
             raise ValueError("durations must be positive and all parameters finite")
+        if not solve_coeffs(self.head, self.tail, q, T, self.band, self.c):
+            raise ValueError("durations too far apart: the MINCO system is singular")
         self.q, self.T = q, T
-        solve_coeffs(self.head, self.tail, q, T, self.band, self.c)
 
     @property
     def coeffs(self) -> np.ndarray:

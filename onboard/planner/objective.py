@@ -541,13 +541,16 @@ gradient 0) instead of evaluating: the powers of T in MINCO's matrix underflow o
 there (a line search's trial step once took a tau to a duration whose matrix had a zero pivot,
 and the compiled solve raised ZeroDivisionError out of the planner: ``bench hidden`` seed 183
 with ``reform_replan_period_s`` 0.1, 2026-12-01). The line search shrinks its step on a
-non-finite f; no plan has such durations."""
+non-finite f; no plan has such durations. Durations inside these bounds but of absurd ratios
+can still make the system singular (a zero pivot): :func:`objective` returns +inf there too
+(``minco.solve_coeffs``)."""
 
 
 @njit(cache=True, nogil=True)
 def objective(x: np.ndarray, prob: tuple, fld: tuple, work: tuple, g: np.ndarray) -> float:
     """f(x) with its gradient written to g: the whole pipeline of the module docstring (+inf
-    and a zero gradient for durations out of ``T_SANE_MIN_S``..``T_SANE_MAX_S``)."""
+    and a zero gradient for durations out of ``T_SANE_MIN_S``..``T_SANE_MAX_S`` or a singular
+    MINCO system)."""
     head, tail = prob[0], prob[1]
     band, coeffs, gc, gT, gq, costs = work
     M = gT.shape[0]
@@ -560,7 +563,9 @@ def objective(x: np.ndarray, prob: tuple, fld: tuple, work: tuple, g: np.ndarray
         if not (T_SANE_MIN_S <= T[i] <= T_SANE_MAX_S):  # NaN too
             g[:] = 0.0
             return np.inf
-    solve_coeffs(head, tail, q, T, band, coeffs)
+    if not solve_coeffs(head, tail, q, T, band, coeffs):  # singular: as an absurd duration
+        g[:] = 0.0
+        return np.inf
     f = cost_c_T(coeffs, T, prob, fld, gc, gT, costs)
     propagate_gradient(band, coeffs, T, gc, gT, gq)
     g[:nq] = gq.ravel()
