@@ -87,8 +87,10 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
         ("formation", obj.P_W_FORM),
         ("altitude", obj.P_W_ALT),
         ("altitude-hold", obj.P_W_HOLD),
+        ("pace", obj.P_W_PACE),
     ):
         prm[idx] = weights.get(key, 0.0)
+    prm[obj.P_T_CAP] = 4.0  # under the durations drawn below (4 pieces of 1-2 s): the floor acts
     prm.setflags(write=False)  # as the planner's (numba compiles a writable one anew)
     prob = (head, tail, 5, prm, pc, pT, pt0, sdes, mask, formation, peer_speed_bounds(pc, pT))
     world = World(
@@ -124,6 +126,7 @@ TERMS = {
     "formation": {"formation": 1e3},
     "altitude": {"altitude": 1e4},
     "altitude-hold": {"altitude-hold": 50.0},
+    "pace": {"time": 3.0, "pace": 50.0},
 }
 
 
@@ -145,7 +148,12 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
     gc = np.zeros_like(c0)
     gT = np.zeros(M)
     obj.cost_c_T(c0, T, prob, fld, gc, gT, costs)
-    if term != "energy+time":
+    if term == "pace":
+        # the pace floor is part of J_t: beyond w_t sum(T) by the squared excess over the cap
+        over = float(np.sum(T)) - 4.0
+        assert over > 0.0
+        assert costs[obj.C_T] == pytest.approx(3.0 * np.sum(T) + 50.0 * over * over)
+    elif term != "energy+time":
         # J_z holds the altitude band and the hold; J_d both parts of the limits
         name = {"altitude-hold": "altitude", "feasibility-hard": "feasibility"}.get(term, term)
         assert costs[obj.TERM_NAMES.index(name)] > 0.0, f"{term} not active in the test setup"

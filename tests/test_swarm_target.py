@@ -369,3 +369,69 @@ def test_while_reforming_the_lead_is_measured_from_the_centroid_and_the_shape_pu
         load_planner_params(**parse_override("reform_formation_scale=2")).reform_formation_scale
         == 2.0
     )
+
+
+def _crawling_peer(
+    slot: int, start: np.ndarray, goal: np.ndarray, duration_s: float
+) -> PeerTrajectory:
+    """A peer flying straight from ``start`` to ``goal`` at a constant crawl over ``duration_s``."""
+    c = np.zeros((1, 6, 3))
+    c[0, 0] = start
+    c[0, 1] = (goal - start) / duration_s
+    return PeerTrajectory(slot, slot, Trajectory(0.0, c, np.array([duration_s])))
+
+
+@pytest.mark.parametrize("pace", [0.0, 0.5])
+def test_near_the_goal_a_drone_does_not_crawl_after_peers_that_crawl(pace: float) -> None:
+    """The swarm 5.5 m short of its goals, in its shape, its two peers' plans crawling there
+    over 40 s: each plan that follows its peers through the formation term keeps the shape all
+    the way, and the drones settle on an ever later common arrival (``bench hidden``: plans of
+    34 s for 6 m, drones backing away from their goals for 10 s). With the pace floor the plan
+    to the own goal is no slower than ``pace_floor_frac`` of the speed limit, plus the slack."""
+    params = PlannerParams(pace_floor_frac=pace)  # 0: off (the default is 0.5)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    x0 = GOAL_ORIGIN[0] - 5.5
+    peers = [
+        _crawling_peer(s, np.array([x0, LINE3[s, 1], 1.0]), GOAL_ORIGIN + LINE3[s], 40.0)
+        for s in (0, 2)
+    ]
+    sp = np.array([x0, 0.0, 1.0])
+    res = planner.plan(0.0, sp, ZERO, ZERO, GOAL_ORIGIN.copy(), peers, EMPTY)
+    assert res.status == PlanStatus.OK
+    cap = 5.5 / (0.5 * params.v_max_m_s * params.limit_margin) + params.pace_slack_s
+    if pace == 0.0:
+        assert res.trajectory.duration_s > 35.0  # the crawl this guards against (39.4 s)
+    else:
+        # a soft floor: the formation term still holds it a little past the cap (27.4 s)
+        assert res.trajectory.duration_s < cap + 3.0
+        np.testing.assert_allclose(res.trajectory.sample(res.trajectory.t_end_s), GOAL_ORIGIN,
+                                   atol=1e-6)  # fmt: skip
+
+
+def test_the_pace_floor_acts_only_where_the_local_target_is_the_own_goal() -> None:
+    """Mid-flight (the goal beyond the horizon) the plan's end is passed at speed, and its
+    pace is the formation's, as before: no cap in the problem."""
+    params = PlannerParams()
+    assert params.pace_floor_frac == 0.5
+    planner = FormationPlanner(params, LINE3, slot=1)
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [0.0, 1.5, 1.0])]
+    far = planner.prepare(0.0, np.array([0.0, 0.0, 1.0]), ZERO, ZERO, GOAL_ORIGIN, peers, EMPTY)
+    assert far.prob[3][obj.P_W_PACE] == 0.0
+    near_peers = [_peer(0, [37.0, -1.5, 1.0]), _peer(2, [37.0, 1.5, 1.0])]
+    near = planner.prepare(
+        0.0, np.array([37.0, 0.0, 1.0]), ZERO, ZERO, GOAL_ORIGIN, near_peers, EMPTY
+    )
+    assert near.prob[3][obj.P_W_PACE] == params.w_pace
+    assert near.prob[3][obj.P_T_CAP] == pytest.approx(
+        3.0 / (0.5 * params.v_max_m_s * params.limit_margin) + params.pace_slack_s
+    )
+    # without the formation term (nothing holds the plan back) or alone: none
+    alone = planner.prepare(0.0, np.array([37.0, 0.0, 1.0]), ZERO, ZERO, GOAL_ORIGIN, [], EMPTY)
+    assert alone.prob[3][obj.P_W_PACE] == 0.0
+    free = planner.prepare(
+        0.0, np.array([37.0, 0.0, 1.0]), ZERO, ZERO, GOAL_ORIGIN, near_peers, EMPTY,
+        use_formation=False,
+    )  # fmt: skip
+    assert free.prob[3][obj.P_W_PACE] == 0.0
+    with pytest.raises(ValueError, match="pace_floor_frac"):
+        PlannerParams(pace_floor_frac=-0.1)

@@ -75,7 +75,9 @@ P_W_HARD = 21  # J_d: weight of the steep penalty beyond the limits themselves
 P_V_HARD = 22  # J_d: the speed limit itself (P_V_MAX is the soft one, below it)
 P_A_HARD = 23
 P_J_HARD = 24
-N_PRM = 25
+P_W_PACE = 25  # J_t's pace floor: weight per s^2 of total duration over P_T_CAP
+P_T_CAP = 26  # the longest total duration the pace floor leaves free [s]
+N_PRM = 27
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -518,8 +520,20 @@ def cost_c_T(
     for i in range(T.shape[0]):
         jt += T[i]
         gT[i] += w_t
-    costs[C_T] = w_t * jt
-    return je + w_t * jt + sampled_costs(coeffs, T, prob, fld, gc, gT, costs)
+    jt *= w_t
+    w_p = prm[P_W_PACE]
+    if w_p > 0.0:
+        # the pace floor: a plan longer than its cap pays for the excess squared
+        over = 0.0
+        for i in range(T.shape[0]):
+            over += T[i]
+        over -= prm[P_T_CAP]
+        if over > 0.0:
+            jt += w_p * over * over
+            for i in range(T.shape[0]):
+                gT[i] += 2.0 * w_p * over
+    costs[C_T] = jt
+    return je + jt + sampled_costs(coeffs, T, prob, fld, gc, gT, costs)
 
 
 def workspace(M: int) -> tuple:

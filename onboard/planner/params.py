@@ -76,6 +76,26 @@ class PlannerParams:
     limit: table (3 x 20 forests, 0.5 m/s) top speed 0.513 / 0.521 / 0.516 m/s with 0, 0.503 /
     0.503 / 0.506 with 1e10 (0.503 / 0.503 / 0.504 with 1e12), mean e_sim 0.0034 / 0.0078 /
     0.0152 -> 0.0038 / 0.0081 / 0.0133, flight times unchanged (BENCHMARKS section 8)."""
+    pace_floor_frac: float = 0.5
+    """J_t's pace floor, where the local target is the drone's own goal (the swarm within
+    ``horizon_m`` of its goals): a plan that takes longer than the straight distance to it at
+    this fraction of the speed limit, plus the time to brake from the start's speed and
+    ``pace_slack_s``, pays ``w_pace`` per s^2 beyond. 0: off. The time term is linear and the
+    formation term integrates over the plan's duration, so drones that follow each other's
+    plans keep their shape at any common pace; near the goals, where the plan ends at rest,
+    nothing anchors that pace, and swarms crawled: ``bench hidden --outage-s 0`` (three
+    drones, two swapping sides over 11 m at 1 m/s), seed 18: two drones 5 m short of their
+    goals planned 34 s for 6 m and backed away for 10 s, the flight 47.3 s. Mid-flight the
+    plan's end is passed at speed (``target_speed_frac``) and the floor is off. At 0.5 (40
+    seeds): flight median 28.1 -> 25.0 s, the longest 47.3 -> 38.2 s; ``bench table`` (3 x 20)
+    the same means and flights (0.0028 / 0.0046 / 0.0099); the demo's twin, seeds 1-12: the
+    new shape within 10 s in 10 of 12 either way; the fault trials 582 of 587 home against
+    583 (trial 69 either way); BENCHMARKS.md section 10, seventeenth session. On everywhere
+    (with the lead's speed limit), not kept: the fault trials 578 of 587."""
+    pace_slack_s: float = 2.0
+    """The pace floor's slack [s]."""
+    w_pace: float = 1.0e3
+    """The pace floor's weight [per s^2]."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
     w_formation: float = 1.0e5
@@ -518,6 +538,9 @@ class PlannerParams:
             "w_limit_hard",
             "w_uniform",
             "w_formation",
+            "pace_floor_frac",
+            "pace_slack_s",
+            "w_pace",
             "check_obstacle_m",
             "check_drone_m",
             "check_obstacle_horizon_s",

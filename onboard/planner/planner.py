@@ -823,6 +823,24 @@ class FormationPlanner:
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
+        if (
+            p.pace_floor_frac > 0.0
+            and use_formation
+            and p.w_formation > 0
+            and len(peers) > 0
+            and bool(np.all(goal_t == gl))
+        ):
+            # the pace floor, where the local target is the drone's own goal: no plan slower
+            # than this on average to it (with the time to brake and a slack), so that drones
+            # that follow each other's plans through the formation term cannot settle on an
+            # ever later common arrival (without the term nothing holds a plan back)
+            prm = prm.copy()
+            dist = float(np.linalg.norm(target - sp))
+            brake = float(np.linalg.norm(sv)) / (p.a_max_m_s2 * p.limit_margin)
+            prm[obj.P_W_PACE] = p.w_pace
+            prm[obj.P_T_CAP] = (
+                dist / (p.pace_floor_frac * p.v_max_m_s * p.limit_margin) + brake + p.pace_slack_s
+            )
         if p.target_speed_frac > 0.0:
             # the local target passed at speed along the way on, as long as the goal lies far
             # enough beyond it to stop there: plans that end at rest make every drone's
