@@ -433,5 +433,6 @@ def test_the_pace_floor_acts_only_where_the_local_target_is_the_own_goal() -> No
         use_formation=False,
     )  # fmt: skip
     assert free.prob[3][obj.P_W_PACE] == 0.0
-    with pytest.raises(ValueError, match="pace_floor_frac"):
-        PlannerParams(pace_floor_frac=-0.1)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="pace_floor_frac"):
+            PlannerParams(pace_floor_frac=bad)

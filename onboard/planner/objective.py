@@ -5,13 +5,13 @@ with ``T = T(tau)`` (``timemap``). The pipeline is
 
     tau -> T -> c = C(q, T) -> J(c, T) -> (dJ/dc, dJ/dT) -> adjoint -> (dJ/dq, dJ/dT) -> dJ/dtau
 
-``J = J_e + w_t J_t + J_o + J_f + J_r + J_d + J_u + J_z``. The sampled terms (o, f, r, d, z) are
-evaluated
-at the constraint points ``p_i(j / kappa * T_i)``, j = 0..kappa, with trapezoid weights
-``T_i / kappa * (1/2, 1, ..., 1, 1/2)`` (Eq. 16); each sample's penalty has partials with respect
-to position, velocity, acceleration and jerk (chained to c through the basis derivatives), and with
-respect to the global time tau of the peers' trajectories (J_f, J_r), which depends on every
-earlier piece duration (Eq. 20-22).
+``J = J_e + w_t J_t + J_o + J_f + J_r + J_d + J_u + J_z`` (J_t's part in the cost breakdown also
+holds the pace floor, ``w_pace max(sum T - T_cap, 0)^2``, where the planner sets it). The sampled
+terms (o, f, r, d, z) are evaluated at the constraint points ``p_i(j / kappa * T_i)``, j =
+0..kappa, with trapezoid weights ``T_i / kappa * (1/2, 1, ..., 1, 1/2)`` (Eq. 16); each sample's
+penalty has partials with respect to position, velocity, acceleration and jerk (chained to c
+through the basis derivatives), and with respect to the global time tau of the peers' trajectories
+(J_f, J_r), which depends on every earlier piece duration (Eq. 20-22).
 
 Packed inputs (all float64 unless said):
 J_f is evaluated on every ``stride``-th constraint point only (kappa divisible by stride), with the

@@ -572,6 +572,11 @@ class PlannerParams:
             raise ValueError(
                 f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"
             )
+        if self.pace_floor_frac > 1.0:
+            raise ValueError(
+                "pace_floor_frac must be at most 1 (a pace above the speed limit), "
+                f"got {self.pace_floor_frac!r}"
+            )
         if not (np.isfinite(self.recover_limit_scale) and self.recover_limit_scale >= 1.0):
             raise ValueError(
                 f"recover_limit_scale must be a number >= 1, got {self.recover_limit_scale!r}"
