@@ -282,8 +282,12 @@ def test_a_singular_minco_system_gives_an_infinite_cost_not_an_error() -> None:
     assert np.all(g == 0.0)
     m = Minco(4)
     m.set_conditions(head, tail)
+    m.set_parameters(q, np.ones(4))
+    before = m.c.copy()
     with pytest.raises(ValueError, match="singular"):
         m.set_parameters(q, T)
+    np.testing.assert_array_equal(m.c, before)  # the state before the refusal stands
+    np.testing.assert_array_equal(m.T, np.ones(4))
     # ordinary durations still solve
     assert solve_coeffs(head, tail, q, np.array([1.0, 2.0, 1.5, 0.8]), band, c)
     assert np.all(np.isfinite(c))

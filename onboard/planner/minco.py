@@ -304,9 +304,11 @@ class Minco:
         T = np.array(T, dtype=np.float64).reshape(self.M)
         if np.any(T <= 0) or not np.all(np.isfinite(T)) or not np.all(np.isfinite(q)):
             raise ValueError("durations must be positive and all parameters finite")
-        if not solve_coeffs(self.head, self.tail, q, T, self.band, self.c):
+        band = np.zeros_like(self.band)
+        c = np.zeros_like(self.c)
+        if not solve_coeffs(self.head, self.tail, q, T, band, c):  # the state stays as it was
             raise ValueError("durations too far apart: the MINCO system is singular")
-        self.q, self.T = q, T
+        self.q, self.T, self.band, self.c = q, T, band, c
 
     @property
     def coeffs(self) -> np.ndarray:
