@@ -90,7 +90,8 @@ class PlannerParams:
     seeds): flight median 28.1 -> 25.0 s, the longest 47.3 -> 38.2 s; ``bench table`` (3 x 20)
     the same means and flights (0.0028 / 0.0046 / 0.0099); the demo's twin, seeds 1-12: the
     new shape within 10 s in 10 of 12 either way; the fault trials 582 of 587 home against
-    583 (trial 69 either way); BENCHMARKS.md section 10, seventeenth session. On everywhere
+    583 (seed 1000, trial 69 either way) and 589 of 594 against 577 (seed 2000); BENCHMARKS.md
+    section 10, seventeenth session. On everywhere
     (with the lead's speed limit), not kept: the fault trials 578 of 587."""
     pace_slack_s: float = 2.0
     """The pace floor's slack [s]."""
