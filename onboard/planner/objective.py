@@ -520,18 +520,14 @@ def cost_c_T(
     for i in range(T.shape[0]):
         jt += T[i]
         gT[i] += w_t
+    over = jt - prm[P_T_CAP]  # the total duration beyond the pace floor's cap
     jt *= w_t
     w_p = prm[P_W_PACE]
-    if w_p > 0.0:
+    if w_p > 0.0 and over > 0.0:
         # the pace floor: a plan longer than its cap pays for the excess squared
-        over = 0.0
+        jt += w_p * over * over
         for i in range(T.shape[0]):
-            over += T[i]
-        over -= prm[P_T_CAP]
-        if over > 0.0:
-            jt += w_p * over * over
-            for i in range(T.shape[0]):
-                gT[i] += 2.0 * w_p * over
+            gT[i] += 2.0 * w_p * over
     costs[C_T] = jt
     return je + jt + sampled_costs(coeffs, T, prob, fld, gc, gT, costs)
 

@@ -779,9 +779,8 @@ class FormationPlanner:
         ``setups``: the swarm set-up (``_swarm_setup``) of the same start and peers, by its
         ``lead`` flag, kept from one attempt of a replan to the next (filled here)."""
         p = self.params
-        want_lead = (
-            use_formation and p.w_formation > 0 and p.lead_slowdown_m > 0.0 and len(peers) > 0
-        )
+        formation_on = use_formation and p.w_formation > 0 and len(peers) > 0
+        want_lead = formation_on and p.lead_slowdown_m > 0.0
         if len(peers) > 0:
             known = None if setups is None else setups.get(want_lead)
             if known is None:
@@ -808,7 +807,7 @@ class FormationPlanner:
         head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
         tail[0] = target
-        if use_formation and p.w_formation > 0 and len(peers) > 0:
+        if formation_on:
             sdes, m, fpts = self._desired((self.slot, *(pt.slot for pt in peers)))
         else:
             m = np.zeros((1, 1))
@@ -823,13 +822,7 @@ class FormationPlanner:
             if lead > 0.0:
                 prm = prm.copy()
                 prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
-        if (
-            p.pace_floor_frac > 0.0
-            and use_formation
-            and p.w_formation > 0
-            and len(peers) > 0
-            and bool(np.all(goal_t == gl))
-        ):
+        if p.pace_floor_frac > 0.0 and formation_on and bool(np.all(goal_t == gl)):
             # the pace floor, where the local target is the drone's own goal: no plan slower
             # than this on average to it (with the time to brake and a slack), so that drones
             # that follow each other's plans through the formation term cannot settle on an
