@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from gcs.fastsim import REFUSAL_KEYS, count_refusals
+from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField, GridField
-from onboard.planner.lbfgs import LbfgsStatus, minimize
+from onboard.planner.lbfgs import P_DELTA, LbfgsStatus, minimize
 from onboard.planner.minco import Minco
 from onboard.planner.params import PlannerParams, recover_params, reform_params
 from onboard.planner.planner import (
@@ -811,6 +812,142 @@ def test_fresh_alternative_line_starts_on_the_blocked_line_and_astar_searches() 
         d, _ = field.distance(res.trajectory.sample(np.linspace(0.5, res.trajectory.t_end_s, 400)))
         assert d.min() >= PlannerParams().check_obstacle_m
     assert searched == {"line": 0, "astar": 1}
+
+
+def _fresh_and_line(params: PlannerParams) -> tuple[Problem, Problem]:
+    """The fresh start's problem (``fresh_alternative``'s second solve) and the plain
+    straight-line problem of the same replan: drone 1 of LINE3 with two peers flying along x
+    beside it, a trunk on its line to the local target."""
+    planner = FormationPlanner(params, LINE3, slot=1)
+    field = AnalyticField(_world([[3.0, 0.1, 0.3, 0.0, 3.0]]))
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([8.0, 0.0, 1.0])
+    v = np.array([0.4, 0.0, 0.0])
+    peers = _peers_flying_along_x(0.4)
+    pack = _pack_peers(peers)
+    fld = planner._field_view(field).fld
+    out = []
+    for fresh in (True, False):
+        out.append(
+            planner._prepare(
+                0.0, start, v, ZERO, goal, peers, pack, field, fld, None, True, False, 3.0, (),
+                1.0, None, fresh,
+            )
+        )  # fmt: skip
+    return out[0], out[1]
+
+
+def test_the_fresh_start_is_timed_below_the_limit_and_solved_coarse_first() -> None:
+    """``fresh_guess_speed_frac``: the fresh start's straight line is timed at that fraction of
+    the problem's speed limit (0: at ``v_max_m_s``, the plain line's timing);
+    ``fresh_coarse_kappa``: its solve from x0 first runs on that many constraint points per
+    piece (the formation term at each) to the loose stop ``fresh_coarse_delta``, then on the
+    full problem from where that stopped, both passes counted; a solve from a given point, and
+    a problem without the pass, solve the full problem alone."""
+    base = PlannerParams(v_max_m_s=0.5)
+    assert (base.fresh_coarse_kappa, base.fresh_guess_speed_frac) == (1, 0.8)  # the defaults
+    fresh, line = _fresh_and_line(base)
+    assert line.coarse is None and fresh.coarse is not None
+    M = fresh.M
+    assert line.M == M
+    t_fresh = fresh.trajectory(fresh.x0).durations_s
+    t_line = line.trajectory(line.x0).durations_s
+    # the pieces of the cruise are 1 / (0.8 margin) times as long; the first gets time to reach
+    # the (lower) speed from the start's, the last 1 s to brake as before
+    np.testing.assert_allclose(t_fresh[1:-1], t_line[1:-1] / (0.8 * base.limit_margin))
+    assert t_fresh.sum() > t_line.sum() + 1.0
+    off, line_off = _fresh_and_line(dataclasses.replace(base, fresh_guess_speed_frac=0.0))
+    np.testing.assert_array_equal(off.x0, line_off.x0)
+
+    coarse_prob, coarse_prm = fresh.coarse
+    assert coarse_prob[2] == 1 and coarse_prob[3][obj.P_FORM_STRIDE] == 1.0
+    assert fresh.prob[2] == base.kappa and fresh.prob[3][obj.P_FORM_STRIDE] == base.formation_stride
+    assert coarse_prm[P_DELTA] == base.fresh_coarse_delta
+    x, status = fresh.solve()
+    assert status != LbfgsStatus.CANCELED
+    # the same as the two passes by hand
+    x1 = fresh.x0.copy()
+    _, it1, ev1, _ = obj.solve_counted(
+        x1, coarse_prob, fresh.fld, fresh.work, coarse_prm, base.lbfgs.mem_size,
+        np.zeros(1, dtype=np.int64),
+    )  # fmt: skip
+    x2 = x1.copy()
+    _, it2, ev2, f2 = obj.solve_counted(
+        x2, fresh.prob, fresh.fld, fresh.work, fresh.lb_prm, base.lbfgs.mem_size,
+        np.zeros(1, dtype=np.int64),
+    )  # fmt: skip
+    assert ev1 > 1 and ev2 > 1
+    np.testing.assert_array_equal(x, x2)
+    assert (fresh.iterations, fresh.evaluations) == (it1 + it2, ev1 + ev2)
+    assert fresh.cost(x) == f2  # the full problem's f, as the comparison with the warm one reads
+    # from a given point: the full problem alone
+    fresh.iterations = fresh.evaluations = 0
+    x3, _ = fresh.solve(x1)
+    np.testing.assert_array_equal(x3, x2)
+    assert (fresh.iterations, fresh.evaluations) == (it2, ev2)
+    # without the pass
+    plain, _ = _fresh_and_line(dataclasses.replace(base, fresh_coarse_kappa=0))
+    assert plain.coarse is None
+    x4, _ = plain.solve()
+    x5 = plain.x0.copy()
+    obj.solve_counted(
+        x5, plain.prob, plain.fld, plain.work, plain.lb_prm, base.lbfgs.mem_size,
+        np.zeros(1, dtype=np.int64),
+    )  # fmt: skip
+    np.testing.assert_array_equal(x4, x5)
+    # canceled: no full pass after the coarse one
+    fresh.cancel_flag[0] = 1
+    fresh.evaluations = 0
+    assert fresh.solve()[1] == LbfgsStatus.CANCELED
+    assert fresh.evaluations == 1
+
+
+def test_plan_runs_the_coarse_pass_on_the_fresh_start_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """In ``plan()`` the warm start's solve is the full problem alone, and the fresh start's is
+    the coarse pass and then the full problem (``fresh_coarse_kappa`` 0: the full alone)."""
+    import onboard.planner.planner as planner_mod
+
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
+    first = FormationPlanner(PlannerParams(v_max_m_s=0.5), LINE3, slot=1).plan(
+        0.0, start, ZERO, ZERO, goal, [], field
+    )
+    solve_counted = obj.solve_counted
+    for k, expected in ((1, [8, 1, 8]), (0, [8, 8])):
+        kappas: list[int] = []
+
+        def spy(x: np.ndarray, prob: tuple, *args: Any, kappas: list[int] = kappas) -> Any:
+            kappas.append(int(prob[2]))
+            return solve_counted(x, prob, *args)
+
+        monkeypatch.setattr(planner_mod.obj, "solve_counted", spy)
+        params = PlannerParams(v_max_m_s=0.5, fresh_coarse_kappa=k)
+        res = FormationPlanner(params, LINE3, slot=1).plan(
+            0.0, start, ZERO, ZERO, goal, [], field, first.trajectory
+        )
+        monkeypatch.setattr(planner_mod.obj, "solve_counted", solve_counted)
+        assert res.status == PlanStatus.OK
+        assert kappas == expected
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"fresh_coarse_kappa": -1}, "fresh_coarse_kappa"),
+        ({"fresh_coarse_kappa": 65}, "fresh_coarse_kappa"),
+        ({"fresh_coarse_kappa": 1.5}, "fresh_coarse_kappa"),
+        ({"fresh_coarse_kappa": True}, "fresh_coarse_kappa"),
+        ({"fresh_coarse_delta": 0.0}, "fresh_coarse_delta"),
+        ({"fresh_coarse_delta": 1.0}, "fresh_coarse_delta"),
+        ({"fresh_coarse_delta": float("nan")}, "fresh_coarse_delta"),
+        ({"fresh_guess_speed_frac": -0.1}, "fresh_guess_speed_frac"),
+        ({"fresh_guess_speed_frac": 1.1}, "fresh_guess_speed_frac"),
+        ({"fresh_guess_speed_frac": float("nan")}, "fresh_guess_speed_frac"),
+    ],
+)
+def test_the_fresh_start_settings_are_validated(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        PlannerParams(**kwargs)
 
 
 def test_recover_limit_scale_stiffens_the_limits_while_recovering_only() -> None:

@@ -246,6 +246,24 @@ class PlannerParams:
     a change in flight 0.0244 against 0.0332 (seeds 1-24; the new shape within 10 s in 8 of 24
     against 10). The price: ``bench planner``'s median plan 2.6 ms against 0.9 ms. 'astar':
     0.0029 / 0.0046 / 0.0094, one unseen medium world folded (0.0526), median plan 6.9 ms."""
+    fresh_coarse_kappa: int = 1
+    """The fresh start's solve (``fresh_alternative``) first solves a coarse problem, with this
+    many constraint points per piece (the formation term at each), to the loose stop
+    ``fresh_coarse_delta``, and then the full problem from there (0: the full problem from the
+    guess). The full objective's many constraint points make a rugged landscape for a start as
+    far off as the straight line through trunks: on 600 recorded replans (forest-medium seed 1,
+    forest-dense seed 2) the coarse pass at 1 (the pieces' ends only) finds a fresh plan cheaper
+    than the warm one in 53 % / 44 % of them against 28 % / 34 %, for 17-22 % less work
+    (BENCHMARKS.md section 8, 2026-12-01, eighteenth session). Its evaluations count in the
+    result's."""
+    fresh_coarse_delta: float = 1e-2
+    """The coarse pass's stop: relative decrease of the cost over the solver's ``past``
+    iterations below this (the full solve's is ``lbfgs.delta``)."""
+    fresh_guess_speed_frac: float = 0.8
+    """The fresh start's path is timed at this fraction of the problem's speed limit (the
+    limit margin and the lead slow-down applied; 0: at ``v_max_m_s``, as before). Timed at
+    the limit itself, a minimum-jerk path overshoots it between its waypoints, and the first
+    iterations spend themselves on the feasibility penalty (~10 fewer evaluations at 0.8)."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals
@@ -572,6 +590,19 @@ class PlannerParams:
         if not (np.isfinite(self.refine_penalty_scale) and self.refine_penalty_scale >= 1.0):
             raise ValueError(
                 f"refine_penalty_scale must be a number >= 1, got {self.refine_penalty_scale!r}"
+            )
+        k = self.fresh_coarse_kappa
+        if not (isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= 64):
+            raise ValueError(f"fresh_coarse_kappa must be an integer 0-64, got {k!r}")
+        if not (np.isfinite(self.fresh_coarse_delta) and 0.0 < self.fresh_coarse_delta < 1.0):
+            raise ValueError(
+                f"fresh_coarse_delta must be in (0, 1), got {self.fresh_coarse_delta!r}"
+            )
+        if not (
+            np.isfinite(self.fresh_guess_speed_frac) and 0.0 <= self.fresh_guess_speed_frac <= 1.0
+        ):
+            raise ValueError(
+                f"fresh_guess_speed_frac must be in [0, 1], got {self.fresh_guess_speed_frac!r}"
             )
         if self.pace_floor_frac > 1.0:
             raise ValueError(

@@ -228,6 +228,9 @@ class Problem:
         self._solved: tuple[np.ndarray, float] | None = None  # (x, f) of the last solve
         self.astar_clearance_m = math.nan
         """The clearance [m] of the A* path the initial guess follows (NaN: no A* path)."""
+        self.coarse: tuple[tuple, np.ndarray] | None = None
+        """(problem, solver parameters) of a coarse pass that ``solve`` from x0 runs first
+        (``PlannerParams.fresh_coarse_kappa``; None: none)."""
 
     def objective(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """(f, df/dx) at x."""
@@ -266,8 +269,20 @@ class Problem:
     ) -> tuple[np.ndarray, LbfgsStatus]:
         """Run L-BFGS from x_start (default x0) with the packed solver parameters lb_prm
         (default the planner's) on ``prob`` (default this problem's; ``refine_prob``); returns
-        (best x, solver status). Counters accumulate."""
+        (best x, solver status). Counters accumulate. From x0 with the defaults, a ``coarse``
+        pass runs first when there is one, and the solve goes on from where it stopped (unless
+        it was canceled)."""
         x = (self.x0 if x_start is None else x_start).copy()
+        if self.coarse is not None and x_start is None and lb_prm is None and prob is None:
+            c_prob, c_prm = self.coarse
+            status, iters, evals, _ = obj.solve_counted(
+                x, c_prob, self.fld, self.work, c_prm, self.params.lbfgs.mem_size, self.cancel_flag
+            )
+            self.iterations += iters
+            self.evaluations += evals
+            if status == LbfgsStatus.CANCELED:
+                self._solved = None
+                return x, LbfgsStatus(status)
         prm = self.lb_prm if lb_prm is None else lb_prm
         prob = self.prob if prob is None else prob
         status, iters, evals, f = obj.solve_counted(
@@ -494,6 +509,10 @@ class FormationPlanner:
         self._lb_prm_refine = dataclasses.replace(
             params.lbfgs, delta=min(params.lbfgs.delta, 1e-6), g_epsilon=1e-7
         ).to_array()
+        # the fresh start's coarse pass stops early (``fresh_coarse_delta``)
+        self._lb_prm_coarse = dataclasses.replace(
+            params.lbfgs, delta=params.fresh_coarse_delta
+        ).to_array()
         self._desired_cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._view: tuple[weakref.ref[DistanceField], _FieldView] | None = None
 
@@ -572,6 +591,7 @@ class FormationPlanner:
         ladder: tuple[float, ...],
         horizon_m: float,
         peers: Sequence[PeerTrajectory] = (),
+        v_guess: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, float]:
         """(local target, solver start x0, clearance of the A* path or NaN). The initial path is the
         previous trajectory (the warm start keeps its timing), else a straight line, else an A* path
@@ -580,8 +600,10 @@ class FormationPlanner:
         local target lies ``horizon_m`` along the line to ``goal`` (``_swarm_setup``). The A* search
         treats the peers outside the formation term (avoided only: silent, stuck, expired, the
         hovers where a silent one may have stopped) that hold still (``_still_peers``) as obstacles
-        too; formation peers move on with the swarm."""
+        too; formation peers move on with the swarm. A path without times is timed at
+        ``v_guess`` (default ``v_max_m_s``)."""
         p = self.params
+        v = p.v_max_m_s if v_guess is None else v_guess
         lo, hi = p.z_limits_m
         use_prev = previous is not None and not force_astar
         code, target, x0 = kn.initial_guess(
@@ -600,7 +622,7 @@ class FormationPlanner:
             use_prev,
             not force_astar,
             p.check_obstacle_m,
-            p.v_max_m_s,
+            v,
             p.a_max_m_s2,
             p.piece_length_m,
             p.max_pieces,
@@ -623,7 +645,7 @@ class FormationPlanner:
                 _NO_DURATIONS,
                 False,
                 sv,
-                p.v_max_m_s,
+                v,
                 p.a_max_m_s2,
                 p.piece_length_m,
                 p.max_pieces,
@@ -773,11 +795,15 @@ class FormationPlanner:
         ladder: tuple[float, ...],
         formation_scale: float = 1.0,
         setups: dict[bool, tuple[np.ndarray, float, float]] | None = None,
+        fresh: bool = False,
     ) -> Problem:
         """``prepare`` on validated inputs, the peers packed and the field's kernel tuple;
         ``formation_scale``: the formation weight times this (with ``use_formation``);
         ``setups``: the swarm set-up (``_swarm_setup``) of the same start and peers, by its
-        ``lead`` flag, kept from one attempt of a replan to the next (filled here)."""
+        ``lead`` flag, kept from one attempt of a replan to the next (filled here); ``fresh``:
+        the problem is ``fresh_alternative``'s second solve (``previous`` None): its guess is
+        timed at ``fresh_guess_speed_frac`` of the speed limit and it gets the coarse pass of
+        ``fresh_coarse_kappa``."""
         p = self.params
         formation_on = use_formation and p.w_formation > 0 and len(peers) > 0
         want_lead = formation_on and p.lead_slowdown_m > 0.0
@@ -790,6 +816,15 @@ class FormationPlanner:
             goal_t, horizon, lead = known[0].copy(), known[1], known[2]
         else:
             goal_t, horizon, lead = gl, p.horizon_m, 0.0
+        # the lead slow-down's factor on the speed limit (1: none)
+        lead_factor = 1.0
+        if want_lead:
+            lead -= p.lead_deadband_m
+            if lead > 0.0:
+                lead_factor = max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
+        v_guess = None
+        if fresh and p.fresh_guess_speed_frac > 0.0:
+            v_guess = p.fresh_guess_speed_frac * p.v_max_m_s * p.limit_margin * lead_factor
         target, x0, astar_clearance = self._initial_x(
             t_start_s,
             sp,
@@ -803,6 +838,7 @@ class FormationPlanner:
             ladder,
             horizon,
             peers,
+            v_guess,
         )
         head = np.array((sp, sv, sa))
         tail = np.zeros((3, 3))
@@ -817,11 +853,9 @@ class FormationPlanner:
         if use_formation and formation_scale != 1.0:
             prm = prm.copy()
             prm[obj.P_W_FORM] *= formation_scale
-        if want_lead:
-            lead -= p.lead_deadband_m
-            if lead > 0.0:
-                prm = prm.copy()
-                prm[obj.P_V_MAX] *= max(p.lead_min_speed_frac, 1.0 - lead / p.lead_slowdown_m)
+        if lead_factor != 1.0:
+            prm = prm.copy()
+            prm[obj.P_V_MAX] *= lead_factor
         if p.pace_floor_frac > 0.0 and formation_on and bool(np.all(goal_t == gl)):
             # the pace floor, where the local target is the drone's own goal: no plan slower
             # than this on average to it (with the time to brake and a slack), so that drones
@@ -855,6 +889,15 @@ class FormationPlanner:
         prob = (head, tail, p.kappa, prm, pack.c, pack.T, pt0, sdes, m, fpts, pack.vb)
         problem = Problem(p, float(t_start_s), head, tail, x0, prob, fld, self._lb_prm)
         problem.astar_clearance_m = astar_clearance
+        if fresh and p.fresh_coarse_kappa > 0:
+            # the pass from the guess on a few constraint points, the formation term at each
+            c_prm = prm.copy()
+            c_prm[obj.P_FORM_STRIDE] = 1.0
+            c_prm.setflags(write=False)  # as the planner's: one compiled version
+            problem.coarse = (
+                (head, tail, p.fresh_coarse_kappa, c_prm, *prob[4:]),
+                self._lb_prm_coarse,
+            )
         return problem
 
     # --- acceptance -------------------------------------------------------------------------
@@ -1183,6 +1226,7 @@ class FormationPlanner:
                 ladder,
                 formation_scale,
                 setups,
+                fresh,
             )
 
         def solve(problem: Problem) -> tuple[Problem, np.ndarray, LbfgsStatus]:
