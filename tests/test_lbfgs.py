@@ -106,8 +106,9 @@ def test_convex_quadratic_50d() -> None:
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
         return 0.5 * x @ A @ x - b @ x, A @ x - b
 
-    # (||g|| ~ 1e-6 is where f's rounding noise starts to dominate its decrease here)
-    r = minimize(fun, np.zeros(n), LbfgsParams(g_epsilon=1e-6, past=0))
+    # (f's rounding noise starts to dominate its decrease at ||g|| ~ 1e-6 on an Intel host and
+    # ~2e-6 on an AMD EPYC one, where 1e-6 ended in a line-search failure: 1e-5 stays clear)
+    r = minimize(fun, np.zeros(n), LbfgsParams(g_epsilon=1e-5, past=0))
     assert r.status == LbfgsStatus.CONVERGENCE
     np.testing.assert_allclose(r.x, x_star, rtol=0, atol=1e-6 * float(np.linalg.norm(x_star)))
     assert r.evaluations < 400
