@@ -1000,3 +1000,113 @@ def test_a_solve_that_raises_leaves_no_problem_to_cancel(monkeypatch: pytest.Mon
     with pytest.raises(RuntimeError, match="solver failed"):
         planner.plan(0.0, np.array([0.0, 0, 1]), ZERO, ZERO, np.array([5.0, 0, 1]), [], field)
     assert planner._active is None and planner._aside is None
+
+
+def test_peak_speed_is_the_sampled_maximum_of_the_trajectory() -> None:
+    """``kernels.peak_speed``: the largest speed on n + 1 points of every piece, its ends
+    included, as the trajectory's own sampling gives it."""
+    from onboard.planner import kernels as kn
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        M = int(rng.integers(1, 6))
+        coeffs = rng.normal(size=(M, 6, 3))
+        T = rng.uniform(0.3, 3.0, size=M)
+        tr = Trajectory(0.0, coeffs, T)
+        # each piece on its own (random pieces do not join: a piece's end is not the next
+        # one's start), through numpy's polynomial derivative
+        want = 0.0
+        for i in range(M):
+            ts = np.linspace(0.0, T[i], 17)
+            vel = [np.polynomial.polynomial.polyval(ts, np.polynomial.polynomial.polyder(
+                coeffs[i, :, d])) for d in range(3)]  # fmt: skip
+            want = max(want, float(np.linalg.norm(np.array(vel), axis=0).max()))
+        got = kn.peak_speed(tr.coeffs, tr.durations_s, 16)
+        assert got == pytest.approx(want, rel=1e-9)
+        assert got >= float(np.linalg.norm(tr.sample(0.0, order=1)))
+
+
+def _pulled_fast(
+    cap: float, check: Callable[[FormationPlanner], None] | None = None
+) -> tuple[FormationPlanner, Any]:
+    """A plan from 0.4 m/s along x whose time term outweighs J_d's steep part (softened): it
+    overshoots the 0.5 m/s limit by 2 % (the speed cap ``cap``; ``check`` may replace the
+    planner's safety check before the plan)."""
+    params = PlannerParams(v_max_m_s=0.5, w_time=3.0e4, w_limit_hard=1.0e8, speed_cap_frac=cap)
+    planner = FormationPlanner(params, LINE3, slot=1)
+    if check is not None:
+        check(planner)
+    start, goal = np.array([0.0, 0.0, 1.0]), np.array([20.0, 0.0, 1.0])
+    v = np.array([0.4, 0.0, 0.0])
+    res = planner.plan(0.0, start, v, ZERO, goal, [], AnalyticField(_world([])))
+    assert res.status == PlanStatus.OK
+    return planner, res
+
+
+def test_a_plan_over_the_speed_cap_is_solved_again_stiffer_and_flown_slower() -> None:
+    """``speed_cap_frac``: a plan the check accepts whose speed exceeds the cap is solved again
+    on twice the constraint points with J_d's steep part 100 times stiffer, from where it
+    stopped, and flown as such (its work counted, the message says so); off (0), it is flown
+    over the limit."""
+    _, over = _pulled_fast(0.0)
+    peak_over = float(_speeds(over.trajectory).max())
+    assert peak_over > 1.015 * 0.5  # the scenario does overshoot
+    assert "speed capped" not in over.message
+    _, capped = _pulled_fast(1.01)
+    peak = float(_speeds(capped.trajectory).max())
+    assert "speed capped" in capped.message
+    assert peak < peak_over and peak <= 1.01 * 0.5
+    # the same first solve, then the second one's work on top
+    assert capped.evaluations > over.evaluations
+    # a plan that keeps the cap is not touched: a cap above its speed flies the same plan
+    _, loose = _pulled_fast(1.5)
+    assert "speed capped" not in loose.message
+    np.testing.assert_array_equal(loose.trajectory.coeffs, over.trajectory.coeffs)
+    np.testing.assert_array_equal(loose.trajectory.durations_s, over.trajectory.durations_s)
+
+
+def test_the_cap_problem_doubles_the_points_and_stiffens_the_steep_part_only() -> None:
+    fresh, _ = _fresh_and_line(PlannerParams(v_max_m_s=0.5))
+    head, tail, kappa, prm, *rest = fresh.prob
+    c_head, c_tail, c_kappa, c_prm, *c_rest = fresh.cap_prob()
+    assert c_head is head and c_tail is tail and len(rest) == len(c_rest)
+    assert all(a is b for a, b in zip(rest, c_rest, strict=True))
+    assert c_kappa == 2 * kappa and isinstance(c_kappa, int)
+    assert not c_prm.flags.writeable
+    changed = np.flatnonzero(c_prm != prm)
+    assert changed.tolist() == [obj.P_W_HARD]
+    assert c_prm[obj.P_W_HARD] == 100.0 * prm[obj.P_W_HARD]
+
+
+def test_a_capped_plan_the_check_refuses_is_not_flown() -> None:
+    """The slower plan is flown only if the safety check accepts it outright; else the plan
+    over the cap is (a few per cent over the limit is the lesser harm)."""
+    from onboard.planner import kernels as kn
+
+    refused: list[float] = []
+
+    def refuse_the_slow(planner: FormationPlanner) -> None:
+        own = planner._check
+
+        def check(traj: Trajectory, *args: Any, **kwargs: Any) -> tuple[bool, str, float, float]:
+            safe, why, clearance, ahead = own(traj, *args, **kwargs)
+            peak = kn.peak_speed(traj.coeffs, traj.durations_s, 16)
+            if peak < 0.505:  # the capped plan (the first solution is over 0.505)
+                refused.append(peak)
+                return False, "refused by the test", clearance, ahead
+            return safe, why, clearance, ahead
+
+        planner._check = check  # type: ignore[method-assign]
+
+    _, over = _pulled_fast(0.0)
+    _, kept = _pulled_fast(1.01, refuse_the_slow)
+    assert refused  # the capped plan was made, and judged
+    assert "speed capped" not in kept.message
+    np.testing.assert_array_equal(kept.trajectory.coeffs, over.trajectory.coeffs)
+    np.testing.assert_array_equal(kept.trajectory.durations_s, over.trajectory.durations_s)
+
+
+@pytest.mark.parametrize("cap", [-0.1, 0.5, 0.99, 1.6, float("nan"), float("inf")])
+def test_the_speed_cap_is_validated(cap: float) -> None:
+    with pytest.raises(ValueError, match="speed_cap_frac"):
+        PlannerParams(speed_cap_frac=cap)

@@ -707,7 +707,7 @@ params = PlannerParams(check_known_s=1.0)
 warm_up(params)
 fns = {n: getattr(kn, n) for n in
        ("initial_guess", "path_guess", "pad_peers", "swarm_setup", "trajectory_from_x",
-        "check_trajectory")}
+        "check_trajectory", "peak_speed")}
 fns["solve_counted"] = obj.solve_counted
 before = {k: len(f.signatures) for k, f in fns.items()}
 # a replan as in a mapped flight: a masked grid, peers of unequal piece counts, a previous plan

@@ -17,13 +17,14 @@ evaluates for the library's fields.
   start, their centroid or the slowest member), the goal and horizon that make the local
   target the swarm-consistent one, and the drone's lead for the lead slow-down;
 - ``trajectory_from_x``: MINCO coefficients and durations of a solution vector;
+- ``peak_speed``: a trajectory's largest speed, sampled (the planner's speed cap);
 - ``check_trajectory``: the safety check of ``FormationPlanner.check`` (its unknown-space test
   for grid fields), answering with a code and the numbers of its reason.
 
-The planner calls ``initial_guess``, ``trajectory_from_x`` and ``check_trajectory`` in every
-replan, ``pad_peers`` and ``swarm_setup`` in every replan with peers and ``path_guess`` after
-an A* search, so the service's warm-up (``onboard.service.planning.warm_up``: an A* guess,
-peers) loads them all before flight.
+The planner calls ``initial_guess``, ``trajectory_from_x``, ``check_trajectory`` and
+``peak_speed`` in every replan, ``pad_peers`` and ``swarm_setup`` in every replan with peers
+and ``path_guess`` after an A* search, so the service's warm-up
+(``onboard.service.planning.warm_up``: an A* guess, peers) loads them all before flight.
 
 ``fld`` is the objective's field tuple (``objective.field_args``); peers are packed as
 ``peer_c (P, K, 6, 3)``, ``peer_T (P, K)`` (the first ``peer_n[k]`` pieces are the peer's own)
@@ -586,6 +587,27 @@ def trajectory_from_x(
             if not math.isfinite(c[r, d]):
                 finite = False
     return c.reshape((M, 6, 3)), T, finite
+
+
+@njit(cache=True, nogil=True)
+def peak_speed(coeffs: np.ndarray, T: np.ndarray, n: int) -> float:
+    """The largest speed of the trajectory (coeffs (M, 6, 3), durations T (M,)) on ``n + 1``
+    evenly spaced points of every piece, its ends included."""
+    peak2 = 0.0
+    for i in range(coeffs.shape[0]):
+        for s in range(n + 1):
+            t = T[i] * s / n
+            sq = 0.0
+            for d in range(3):
+                v = 0.0
+                tk = 1.0
+                for k in range(1, 6):
+                    v += k * coeffs[i, k, d] * tk
+                    tk *= t
+                sq += v * v
+            if sq > peak2:
+                peak2 = sq
+    return math.sqrt(peak2)
 
 
 def band_state(

@@ -76,6 +76,20 @@ class PlannerParams:
     limit: table (3 x 20 forests, 0.5 m/s) top speed 0.513 / 0.521 / 0.516 m/s with 0, 0.503 /
     0.503 / 0.506 with 1e10 (0.503 / 0.503 / 0.504 with 1e12), mean e_sim 0.0034 / 0.0078 /
     0.0152 -> 0.0038 / 0.0081 / 0.0133, flight times unchanged (BENCHMARKS section 8)."""
+    speed_cap_frac: float = 1.015
+    """A plan the safety check accepts whose speed (sampled, ``kernels.peak_speed``) exceeds
+    this fraction of ``v_max_m_s`` is solved again from there on ``Problem.cap_prob`` (twice
+    the constraint points, J_d's steep part 100 times stiffer), and the new plan is flown if
+    it is slower and the check accepts it outright (0: off). J_d is a penalty sampled at the
+    constraint points: in a chain of shape recovery's 0.1 s replans each plan kept a little of
+    the last one's overshoot ahead of it, and the formation's pull carried forest-dense seed
+    200 to 0.5112 m/s, 2.2 % over; every setting of the weights tried before moved other
+    flights over instead. ``bench table`` (3 x 3 x 20, AMD host): top speed at most 0.5112 ->
+    0.5074 m/s, means 0.0023 / 0.0036 / 0.0074 -> 0.0023 / 0.0037 / 0.0073 seeded, no trial
+    over 0.02 either way. At 1.01 the cap acted in up to 197 plans of a flight (each solved
+    down to ~0.501 m/s) and two unseen dense forests folded (0.0323, 0.0587); at 1.015 it acts
+    in a few, and a flight within the cap flies as before to the bit (BENCHMARKS.md section 8,
+    nineteenth session)."""
     pace_floor_frac: float = 0.5
     """J_t's pace floor, where the local target is the drone's own goal (the swarm within
     ``horizon_m`` of its goals): a plan that takes longer than the straight distance to it at
@@ -603,6 +617,13 @@ class PlannerParams:
         ):
             raise ValueError(
                 f"fresh_guess_speed_frac must be in [0, 1], got {self.fresh_guess_speed_frac!r}"
+            )
+        if not (
+            np.isfinite(self.speed_cap_frac)
+            and (self.speed_cap_frac == 0.0 or 1.0 <= self.speed_cap_frac <= 1.5)
+        ):
+            raise ValueError(
+                f"speed_cap_frac must be 0 (off) or in [1, 1.5], got {self.speed_cap_frac!r}"
             )
         if self.pace_floor_frac > 1.0:
             raise ValueError(

@@ -98,6 +98,15 @@ KEEP_MOVING_M = 0.1
 least this far from the replan's start is kept before the rescue attempt is tried (as before
 the rescue existed: the drone flies on and the next replan tries again); one that holds the
 drone where it is (a kept hover, a finished stop) is kept only if the rescue fails too."""
+SPEED_CAP_SAMPLES = 16
+"""``PlannerParams.speed_cap_frac``: a plan's speed is sampled on this many intervals of each
+piece (its pieces last 0.5-4 s; the speed varies little within 1/16 of one)."""
+SPEED_CAP_KAPPA_FACTOR = 2
+SPEED_CAP_HARD_SCALE = 100.0
+"""... and a plan over the cap is solved again with this many times the constraint points and
+J_d's steep part this many times stiffer (``Problem.cap_prob``)."""
+SPEED_CAP = "speed capped"
+"""How the message of a plan slowed to the cap starts."""
 SWARM_TARGET_MIN_M = 1.0
 """A swarm-consistent local target (``PlannerParams.swarm_target``) lies at least this far ahead
 of the drone along the shared path: a drone far ahead of the reference still plans a trajectory
@@ -260,6 +269,17 @@ class Problem:
             prm[[obj.P_W_OBS, obj.P_W_FEAS, obj.P_W_HARD]] *= p.refine_penalty_scale
             prm.setflags(write=False)  # as the planner's: one compiled version
         return (head, tail, kappa * p.refine_kappa_factor, prm, *rest)
+
+    def cap_prob(self) -> tuple:
+        """The problem a solution faster than the speed cap is solved again on
+        (``PlannerParams.speed_cap_frac``): ``SPEED_CAP_KAPPA_FACTOR`` times the constraint
+        points and J_d's steep part (beyond the limits themselves) ``SPEED_CAP_HARD_SCALE``
+        times stiffer."""
+        head, tail, kappa, prm, *rest = self.prob
+        prm = prm.copy()
+        prm[obj.P_W_HARD] *= SPEED_CAP_HARD_SCALE
+        prm.setflags(write=False)  # as the planner's: one compiled version
+        return (head, tail, kappa * SPEED_CAP_KAPPA_FACTOR, prm, *rest)
 
     def solve(
         self,
@@ -1087,6 +1107,44 @@ class FormationPlanner:
         )
         return traj, safe, why, clearance, ahead
 
+    def _cap_speed(
+        self,
+        problem: Problem,
+        x: np.ndarray,
+        traj: Trajectory,
+        field: DistanceField,
+        view: _FieldView,
+        peers: Sequence[PeerTrajectory],
+        pack: _PeerPack,
+        brake: Trajectory | None,
+    ) -> tuple[np.ndarray, Trajectory, str] | None:
+        """``PlannerParams.speed_cap_frac``: (x, trajectory, message) of the accepted solution
+        ``x`` (trajectory ``traj``) solved again from there on ``Problem.cap_prob`` when it is
+        faster than the cap; None when it keeps the cap, or when the new solution is no slower
+        or the safety check does not accept it outright (then ``traj`` is flown as it is: a
+        few per cent over the limit is a lesser harm than a plan the check refuses)."""
+        p = self.params
+        if p.speed_cap_frac <= 0.0:
+            return None
+        cap = p.v_max_m_s * p.speed_cap_frac
+        peak = kn.peak_speed(traj.coeffs, traj.durations_s, SPEED_CAP_SAMPLES)
+        if peak <= cap:
+            return None
+        x2, status = problem.solve(x, None, problem.cap_prob())
+        if status == LbfgsStatus.CANCELED:
+            return None
+        coeffs, T2, finite = kn.trajectory_from_x(x2, problem.head, problem.tail, problem.tau_scale)
+        if not finite:
+            return None
+        slow = Trajectory.trusted(problem.t_start_s, coeffs, T2)  # read-only, as every plan's
+        reached = kn.peak_speed(slow.coeffs, slow.durations_s, SPEED_CAP_SAMPLES)
+        if reached >= peak:
+            return None
+        safe, why, _, _ = self._check(slow, problem.t_start_s, field, view, peers, pack, brake)
+        if not safe or why:
+            return None
+        return x2, slow, f"{SPEED_CAP}: {peak:.3f} -> {reached:.3f} m/s"
+
     def _margin(
         self,
         traj: Trajectory,
@@ -1431,6 +1489,17 @@ class FormationPlanner:
                         messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
             if safe:
                 assert traj is not None
+                done = (problem.iterations, problem.evaluations)
+                self._active = problem  # cancellable meanwhile
+                try:
+                    capped = self._cap_speed(problem, x, traj, field, view, peers, pack, brake)
+                finally:
+                    self._active = None
+                    iters += problem.iterations - done[0]
+                    evals += problem.evaluations - done[1]
+                if capped is not None:
+                    x, traj, note = capped
+                    messages.append(note)
                 if what == _RESCUE:
                     messages.append(f"a* rescue: path at {problem.astar_clearance_m:.2f} m")
                 elif formation_scale != 1.0:
