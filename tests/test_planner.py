@@ -1027,18 +1027,20 @@ def test_peak_speed_is_the_sampled_maximum_of_the_trajectory() -> None:
 
 
 def _pulled_fast(
-    cap: float, check: Callable[[FormationPlanner], None] | None = None
+    cap: float,
+    check: Callable[[FormationPlanner], None] | None = None,
+    give_up: Callable[[], bool] | None = None,
 ) -> tuple[FormationPlanner, Any]:
     """A plan from 0.4 m/s along x whose time term outweighs J_d's steep part (softened): it
     overshoots the 0.5 m/s limit by 2 % (the speed cap ``cap``; ``check`` may replace the
-    planner's safety check before the plan)."""
+    planner's safety check before the plan; ``give_up``: the plan's time budget)."""
     params = PlannerParams(v_max_m_s=0.5, w_time=3.0e4, w_limit_hard=1.0e8, speed_cap_frac=cap)
     planner = FormationPlanner(params, LINE3, slot=1)
     if check is not None:
         check(planner)
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([20.0, 0.0, 1.0])
     v = np.array([0.4, 0.0, 0.0])
-    res = planner.plan(0.0, start, v, ZERO, goal, [], AnalyticField(_world([])))
+    res = planner.plan(0.0, start, v, ZERO, goal, [], AnalyticField(_world([])), give_up=give_up)
     assert res.status == PlanStatus.OK
     return planner, res
 
@@ -1104,6 +1106,17 @@ def test_a_capped_plan_the_check_refuses_is_not_flown() -> None:
     assert "speed capped" not in kept.message
     np.testing.assert_array_equal(kept.trajectory.coeffs, over.trajectory.coeffs)
     np.testing.assert_array_equal(kept.trajectory.durations_s, over.trajectory.durations_s)
+
+
+def test_a_replan_over_its_time_budget_is_not_capped() -> None:
+    """Over the caller's budget (``give_up``) the plan is flown as it is, as no alternative is
+    tried then either."""
+    _, over = _pulled_fast(0.0, give_up=lambda: True)
+    _, late = _pulled_fast(1.01, give_up=lambda: True)
+    assert float(_speeds(late.trajectory).max()) > 1.015 * 0.5
+    assert "speed capped" not in late.message
+    assert late.evaluations == over.evaluations
+    np.testing.assert_array_equal(late.trajectory.coeffs, over.trajectory.coeffs)
 
 
 @pytest.mark.parametrize("cap", [-0.1, 0.5, 0.99, 1.6, float("nan"), float("inf")])

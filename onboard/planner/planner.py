@@ -1489,14 +1489,16 @@ class FormationPlanner:
                         messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
             if safe:
                 assert traj is not None
-                done = (problem.iterations, problem.evaluations)
-                self._active = problem  # cancellable meanwhile
-                try:
-                    capped = self._cap_speed(problem, x, traj, field, view, peers, pack, brake)
-                finally:
-                    self._active = None
-                    iters += problem.iterations - done[0]
-                    evals += problem.evaluations - done[1]
+                capped = None
+                if not late():  # over the budget: the plan as it is, as for the alternatives
+                    done = (problem.iterations, problem.evaluations)
+                    self._active = problem  # cancellable meanwhile
+                    try:
+                        capped = self._cap_speed(problem, x, traj, field, view, peers, pack, brake)
+                    finally:
+                        self._active = None
+                        iters += problem.iterations - done[0]
+                        evals += problem.evaluations - done[1]
                 if capped is not None:
                     x, traj, note = capped
                     messages.append(note)
