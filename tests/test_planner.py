@@ -1120,6 +1120,17 @@ def test_a_replan_over_its_time_budget_is_not_capped() -> None:
 
 
 @pytest.mark.parametrize("cap", [-0.1, 0.5, 0.99, 1.6, float("nan"), float("inf")])
-def test_the_speed_cap_is_validated(cap: float) -> None:
-    with pytest.raises(ValueError, match="speed_cap_frac"):
-        PlannerParams(speed_cap_frac=cap)
+@pytest.mark.parametrize("name", ["speed_cap_frac", "reform_speed_cap_frac"])
+def test_the_speed_cap_is_validated(name: str, cap: float) -> None:
+    with pytest.raises(ValueError, match=name):
+        PlannerParams(**{name: cap})
+
+
+def test_the_speed_cap_of_re_forming_is_its_own_and_recovery_keeps_the_flights() -> None:
+    base = PlannerParams()
+    assert (base.speed_cap_frac, base.reform_speed_cap_frac) == (1.015, 0.0)  # the defaults
+    assert reform_params(base).speed_cap_frac == 0.0
+    assert recover_params(base).speed_cap_frac == 1.015
+    both = PlannerParams(speed_cap_frac=1.2, reform_speed_cap_frac=1.05)
+    assert reform_params(both).speed_cap_frac == 1.05
+    assert recover_params(both).speed_cap_frac == 1.2

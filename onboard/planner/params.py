@@ -298,6 +298,13 @@ class PlannerParams:
     against 5, within 15 s in 17 against 11; faster in 18 of the 24 seeds; mean e_sim 0.0282 /
     0.0381 against 0.0288 / 0.0393 (seeds 1-12 / 13-24), flights as long, closest trunk as far
     (BENCHMARKS.md section 10, ninth session of 2026-11-30)."""
+    reform_speed_cap_frac: float = 0.0
+    """``speed_cap_frac`` while re-forming (``reform_s``; 0: no cap then; shape recovery keeps
+    ``speed_cap_frac``). The drones accelerate hard into their new slots, and the cap's second
+    solve, which lands a plan near 0.501 m/s, holds one back against its peers: in the demo's
+    fast-time twin (seeds 1-24) the cap folded seeds 3 and 23 (0.0152 -> 0.0654, 0.0239 ->
+    0.0565), 22 of seed 23's 38 capped plans in the 5 s after the change (BENCHMARKS.md
+    section 10, nineteenth session)."""
     reform_s: float = 10.0
     """For this long after a formation change in flight (a new template, slot or epoch; the
     flight's first assignment is not a change) a drone plans with ``reform_params``: the lead
@@ -618,13 +625,10 @@ class PlannerParams:
             raise ValueError(
                 f"fresh_guess_speed_frac must be in [0, 1], got {self.fresh_guess_speed_frac!r}"
             )
-        if not (
-            np.isfinite(self.speed_cap_frac)
-            and (self.speed_cap_frac == 0.0 or 1.0 <= self.speed_cap_frac <= 1.5)
-        ):
-            raise ValueError(
-                f"speed_cap_frac must be 0 (off) or in [1, 1.5], got {self.speed_cap_frac!r}"
-            )
+        for name in ("speed_cap_frac", "reform_speed_cap_frac"):
+            cap = getattr(self, name)
+            if not (np.isfinite(cap) and (cap == 0.0 or 1.0 <= cap <= 1.5)):
+                raise ValueError(f"{name} must be 0 (off) or in [1, 1.5], got {cap!r}")
         if self.pace_floor_frac > 1.0:
             raise ValueError(
                 "pace_floor_frac must be at most 1 (a pace above the speed limit), "
@@ -721,11 +725,13 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     """The parameters a drone plans with for ``reform_s`` after a formation change in flight:
     the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
     the centroid reference alone (``reform_lead_from_centroid``; ``lead_slowest_beyond_m`` off),
-    else off; a fresh start beside the warm one (``reform_fresh_start``)."""
+    else off; a fresh start beside the warm one (``reform_fresh_start``); the speed cap
+    ``reform_speed_cap_frac``."""
     p = dataclasses.replace(
         params,
         w_formation=params.w_formation * params.reform_formation_scale,
         fresh_alternative="astar" if params.reform_fresh_start else params.fresh_alternative,
+        speed_cap_frac=params.reform_speed_cap_frac,
     )
     if params.reform_lead_from_centroid:
         return dataclasses.replace(p, lead_from_slowest=False, lead_slowest_beyond_m=0.0)
@@ -737,7 +743,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
     ``recover_formation_scale``, the limit penalties by ``recover_limit_scale``, a member far
     behind waited for (``lead_slowest_beyond_m``), and the fresh start of ``fresh_alternative``
-    (not re-forming's)."""
+    and the speed cap ``speed_cap_frac`` (not re-forming's)."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),
@@ -747,6 +753,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
         w_limit_hard=params.w_limit_hard * params.recover_limit_scale,
         lead_slowest_beyond_m=params.lead_slowest_beyond_m,
         fresh_alternative=params.fresh_alternative,
+        speed_cap_frac=params.speed_cap_frac,
     )
 
 
