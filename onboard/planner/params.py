@@ -80,7 +80,8 @@ class PlannerParams:
     """A plan the safety check accepts whose speed (sampled, ``kernels.peak_speed``) exceeds
     this fraction of ``v_max_m_s`` is solved again from there on ``Problem.cap_prob`` (twice
     the constraint points, J_d's steep part 100 times stiffer), and the new plan is flown if
-    it is slower and the check accepts it outright (0: off). J_d is a penalty sampled at the
+    it is slower and the check accepts it outright (0: off; while re-forming
+    ``reform_speed_cap_frac`` instead). J_d is a penalty sampled at the
     constraint points: in a chain of shape recovery's 0.1 s replans each plan kept a little of
     the last one's overshoot ahead of it, and the formation's pull carried forest-dense seed
     200 to 0.5112 m/s, 2.2 % over; every setting of the weights tried before moved other
