@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import itertools
 import math
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -737,7 +738,10 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
                 planner = FormationPlanner(
                     base, LINE3, slot=1, side=Counting() if parallel else None
                 )
-                give_up = functools.partial(next, iter(budgets[parallel]))
+                # once out, the budget stays out (the speed cap asks too, after the fresh start)
+                give_up = functools.partial(
+                    next, itertools.chain(budgets[parallel], itertools.repeat(True))
+                )
                 n0 = len(submitted)
                 plans[parallel] = planner.plan(
                     0.0,
