@@ -263,23 +263,25 @@ class Problem:
         p = self.params
         if p.refine_kappa_factor == 1 and p.refine_penalty_scale == 1.0:
             return self.prob  # the option off (the defaults)
-        head, tail, kappa, prm, *rest = self.prob
-        if p.refine_penalty_scale != 1.0:
-            prm = prm.copy()
-            prm[[obj.P_W_OBS, obj.P_W_FEAS, obj.P_W_HARD]] *= p.refine_penalty_scale
-            prm.setflags(write=False)  # as the planner's: one compiled version
-        return (head, tail, kappa * p.refine_kappa_factor, prm, *rest)
+        weights = [obj.P_W_OBS, obj.P_W_FEAS, obj.P_W_HARD]
+        return self._stiffer(p.refine_kappa_factor, weights, p.refine_penalty_scale)
 
     def cap_prob(self) -> tuple:
         """The problem a solution faster than the speed cap is solved again on
         (``PlannerParams.speed_cap_frac``): ``SPEED_CAP_KAPPA_FACTOR`` times the constraint
         points and J_d's steep part (beyond the limits themselves) ``SPEED_CAP_HARD_SCALE``
         times stiffer."""
+        return self._stiffer(SPEED_CAP_KAPPA_FACTOR, [obj.P_W_HARD], SPEED_CAP_HARD_SCALE)
+
+    def _stiffer(self, kappa_factor: int, weights: list[int], scale: float) -> tuple:
+        """This problem on ``kappa_factor`` times the constraint points, with the packed weights
+        ``weights`` (``objective.P_W_*``) ``scale`` times stiffer."""
         head, tail, kappa, prm, *rest = self.prob
-        prm = prm.copy()
-        prm[obj.P_W_HARD] *= SPEED_CAP_HARD_SCALE
-        prm.setflags(write=False)  # as the planner's: one compiled version
-        return (head, tail, kappa * SPEED_CAP_KAPPA_FACTOR, prm, *rest)
+        if scale != 1.0:
+            prm = prm.copy()
+            prm[weights] *= scale
+            prm.setflags(write=False)  # as the planner's: one compiled version
+        return (head, tail, kappa * kappa_factor, prm, *rest)
 
     def solve(
         self,
@@ -1112,6 +1114,9 @@ class FormationPlanner:
         problem: Problem,
         x: np.ndarray,
         traj: Trajectory,
+        again: Callable[
+            [Problem, np.ndarray, np.ndarray | None, tuple | None], tuple[np.ndarray, LbfgsStatus]
+        ],
         field: DistanceField,
         view: _FieldView,
         peers: Sequence[PeerTrajectory],
@@ -1119,10 +1124,11 @@ class FormationPlanner:
         brake: Trajectory | None,
     ) -> tuple[np.ndarray, Trajectory, str] | None:
         """``PlannerParams.speed_cap_frac``: (x, trajectory, message) of the accepted solution
-        ``x`` (trajectory ``traj``) solved again from there on ``Problem.cap_prob`` when it is
-        faster than the cap; None when it keeps the cap, or when the new solution is no slower
-        or the safety check does not accept it outright (then ``traj`` is flown as it is: a
-        few per cent over the limit is a lesser harm than a plan the check refuses)."""
+        ``x`` (trajectory ``traj``) solved again from there on ``Problem.cap_prob`` (through
+        ``again``: ``Problem.solve``'s call, the replan's work counted) when it is faster than
+        the cap; None when it keeps the cap, or when the new solution is no slower or the
+        safety check does not accept it outright (then ``traj`` is flown as it is: a few per
+        cent over the limit is a lesser harm than a plan the check refuses)."""
         p = self.params
         if p.speed_cap_frac <= 0.0:
             return None
@@ -1130,18 +1136,14 @@ class FormationPlanner:
         peak = kn.peak_speed(traj.coeffs, traj.durations_s, SPEED_CAP_SAMPLES)
         if peak <= cap:
             return None
-        x2, status = problem.solve(x, None, problem.cap_prob())
+        x2, status = again(problem, x, None, problem.cap_prob())
         if status == LbfgsStatus.CANCELED:
             return None
-        coeffs, T2, finite = kn.trajectory_from_x(x2, problem.head, problem.tail, problem.tau_scale)
-        if not finite:
+        slow, safe, why, _, _ = self._finish(problem, x2, field, view, peers, pack, brake)
+        if slow is None or not safe or why:
             return None
-        slow = Trajectory.trusted(problem.t_start_s, coeffs, T2)  # read-only, as every plan's
         reached = kn.peak_speed(slow.coeffs, slow.durations_s, SPEED_CAP_SAMPLES)
         if reached >= peak:
-            return None
-        safe, why, _, _ = self._check(slow, problem.t_start_s, field, view, peers, pack, brake)
-        if not safe or why:
             return None
         return x2, slow, f"{SPEED_CAP}: {peak:.3f} -> {reached:.3f} m/s"
 
@@ -1300,6 +1302,21 @@ class FormationPlanner:
             evals += problem.evaluations
             return problem, x, status
 
+        def again(
+            problem: Problem, x: np.ndarray, lb_prm: np.ndarray | None, prob: tuple | None
+        ) -> tuple[np.ndarray, LbfgsStatus]:
+            """Solve an attempt's problem again from ``x`` (``Problem.solve``'s arguments;
+            cancellable meanwhile), its work counted in the result, as every solve's."""
+            nonlocal iters, evals
+            done = (problem.iterations, problem.evaluations)
+            self._active = problem
+            try:
+                return problem.solve(x, lb_prm, prob)
+            finally:
+                self._active = None
+                iters += problem.iterations - done[0]
+                evals += problem.evaluations - done[1]
+
         def prepare_fresh(use_formation: bool, formation_scale: float) -> Problem:
             """The problem of ``fresh_alternative``'s second solve of an attempt."""
             line = self.params.fresh_alternative == "line"
@@ -1400,7 +1417,7 @@ class FormationPlanner:
         ) -> tuple[PlanResult | None, Problem, bool]:
             """``attempt`` with the fresh start's solve, when wanted, already running on the
             side executor (``side``)."""
-            nonlocal last_status, iters, evals
+            nonlocal last_status
             problem, x, last_status = solve(
                 prepare(use_formation, force_astar, ladder=ladder, formation_scale=formation_scale)
             )
@@ -1420,17 +1437,9 @@ class FormationPlanner:
                 # replaced by a trajectory the check accepts outright, or by a last resort
                 # that keeps farther beyond the check's distances
                 close = clearance < self.params.check_obstacle_m
-                self._active = problem  # cancellable meanwhile
-                done = (problem.iterations, problem.evaluations)
-                try:
-                    x2, st2 = problem.solve(
-                        x, self._lb_prm_refine, problem.refine_prob() if close else None
-                    )
-                finally:
-                    self._active = None
-                    # the refinement's work counts in the result, as every solve's
-                    iters += problem.iterations - done[0]
-                    evals += problem.evaluations - done[1]
+                x2, st2 = again(
+                    problem, x, self._lb_prm_refine, problem.refine_prob() if close else None
+                )
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
                     take = refined[0] is not None and (not safe or (refined[1] and not refined[2]))
@@ -1489,16 +1498,12 @@ class FormationPlanner:
                         messages.append(f"roomier a* way: {clearance:.2f} -> {roomy[4]:.2f} m")
             if safe:
                 assert traj is not None
-                capped = None
-                if not late():  # over the budget: the plan as it is, as for the alternatives
-                    done = (problem.iterations, problem.evaluations)
-                    self._active = problem  # cancellable meanwhile
-                    try:
-                        capped = self._cap_speed(problem, x, traj, field, view, peers, pack, brake)
-                    finally:
-                        self._active = None
-                        iters += problem.iterations - done[0]
-                        evals += problem.evaluations - done[1]
+                # over the budget: the plan as it is, as for the alternatives
+                capped = (
+                    None
+                    if late()
+                    else self._cap_speed(problem, x, traj, again, field, view, peers, pack, brake)
+                )
                 if capped is not None:
                     x, traj, note = capped
                     messages.append(note)
