@@ -765,6 +765,45 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
             assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
 
 
+def test_a_fresh_plan_is_checked_only_when_it_costs_less(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fresh start's solution is checked only when it costs less than the warm one (else it
+    is not flown whatever the check says): two checks where the fresh start wins, one where a
+    trunk stands on the line the fresh start begins on."""
+    start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([6.0, 0.0, 1.0])
+    base = PlannerParams(v_max_m_s=0.5)
+    wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
+    far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
+    field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
+    checked: list[float] = []
+    finish = FormationPlanner._finish
+
+    def counting(self: FormationPlanner, problem: Any, x: np.ndarray, *rest: Any) -> Any:
+        checked.append(problem.cost(x))
+        return finish(self, problem, x, *rest)
+
+    monkeypatch.setattr(FormationPlanner, "_finish", counting)
+    short_way = FormationPlanner(base, LINE3, slot=1).plan(
+        0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
+    )
+    assert "fresh start: cost" in short_way.message and "speed capped" not in short_way.message
+    assert len(checked) == 2 and checked[1] < checked[0]  # the warm plan, then the cheaper one
+    # a trunk on the line itself: the fresh start from the line ends dearer than the warm one
+    # round it (the line's symmetry), and is not checked
+    checked.clear()
+    on_line = AnalyticField(_world([[3.0, 0.0, 0.25, 0.0, 3.0]]))
+    again = FormationPlanner(base, LINE3, slot=1).plan(
+        0.0, start, ZERO, ZERO, goal, [], on_line, far_way.trajectory
+    )
+    assert again.status == PlanStatus.OK and again.message == "", again.message
+    assert len(checked) == 1  # the warm plan only
+    # the fresh start was solved all the same: the work counted is that of two solves
+    alone = FormationPlanner(dataclasses.replace(base, fresh_alternative="never"), LINE3, slot=1)
+    warm_only = alone.plan(0.0, start, ZERO, ZERO, goal, [], on_line, far_way.trajectory)
+    assert again.evaluations > warm_only.evaluations
+    np.testing.assert_array_equal(again.trajectory.coeffs, warm_only.trajectory.coeffs)
+
+
 def test_cancel_reaches_the_side_solve_too() -> None:
     """``cancel`` stops the solve on the side executor as well as the one in the planning
     thread."""
