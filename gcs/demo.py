@@ -186,6 +186,30 @@ class ProcessGroup:
             out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
         return out
 
+    def cpu_threads_s(self) -> dict[str, dict[str, float]]:
+        """CPU seconds (user + system) by OS thread name (threads of one name summed) of each
+        running child so far (Linux /proc; threads that ended are not counted)."""
+        tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        out: dict[str, dict[str, float]] = {}
+        for name, p in self.procs.items():
+            threads: dict[str, float] = {}
+            try:
+                tids = os.listdir(f"/proc/{p.pid}/task")
+            except OSError:
+                continue
+            for tid in tids:
+                try:
+                    with open(f"/proc/{p.pid}/task/{tid}/stat") as f:
+                        text = f.read()
+                except OSError:
+                    continue  # ended meanwhile
+                comm = text[text.index("(") + 1 : text.rindex(")")]
+                fields = text.rsplit(")", 1)[1].split()
+                cpu = (int(fields[11]) + int(fields[12])) / tick
+                threads[comm] = threads.get(comm, 0.0) + cpu
+            out[name] = threads
+        return out
+
     def check(self, expected_running: Sequence[str] | None = None) -> None:
         """Raise :class:`DemoError` if a child that should run has exited."""
         for name in expected_running if expected_running is not None else list(self.procs):
@@ -1056,6 +1080,7 @@ class Demo:
         names = [f"drone{i}" for i in range(self.cfg.drones)]
         live_collisions = self.truth.collisions() if self.truth else None
         self.cpu = self.procs.cpu_s()
+        self.cpu_threads = self.procs.cpu_threads_s()
         self.wall_s = time.monotonic() - self.t_start
         if self.view is not None:
             self.view.close()
@@ -1203,10 +1228,25 @@ class Demo:
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),
             "cpu_s": getattr(self, "cpu", {}),
+            "cpu_threads_s": cpu_by_thread(getattr(self, "cpu_threads", {})),
             "flight_dir": str(self.out),
         }
         (self.out / "result.json").write_text(json.dumps(_json_safe(result), indent=2) + "\n")
         return result
+
+
+def cpu_by_thread(per_process: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """``ProcessGroup.cpu_threads_s``'s figures as the result keeps them: the flight
+    services' threads summed over the services (``services``), the mock's (``sitl``)."""
+    services: dict[str, float] = {}
+    for name, threads in per_process.items():
+        if name.startswith("drone"):
+            for comm, cpu in threads.items():
+                services[comm] = services.get(comm, 0.0) + cpu
+    out = {"services": dict(sorted(services.items(), key=lambda kv: -kv[1]))}
+    if "sitl" in per_process:
+        out["sitl"] = dict(sorted(per_process["sitl"].items(), key=lambda kv: -kv[1]))
+    return out
 
 
 def _json_safe(x: Any) -> Any:
@@ -1362,6 +1402,24 @@ def demo_command() -> Any:
     return demo
 
 
+def _cpu_text(r: dict[str, Any]) -> str:
+    """Where the run's CPU went (cores: CPU seconds over the wall time, start-up included): the
+    flight services in all and their busiest threads, the mock; '' without the figures."""
+    wall = r.get("wall_s")
+    cpu = r.get("cpu_s") or {}
+    if not cpu or not isinstance(wall, (int, float)) or not wall > 0.0:
+        return ""
+    services = sum(v for k, v in cpu.items() if k.startswith("drone"))
+    n = sum(1 for k in cpu if k.startswith("drone"))
+    threads = (r.get("cpu_threads_s") or {}).get("services") or {}
+    top = ", ".join(f"{k} {v / wall:.2f}" for k, v in list(threads.items())[:6])
+    text = f"CPU over the run ({wall:.0f} s, start-up included): {n} flight services "
+    text += f"{services / wall:.2f} cores in all" + (f" (threads: {top})" if top else "")
+    if "sitl" in cpu:
+        text += f", mock {cpu['sitl'] / wall:.2f} core"
+    return text + f"; this machine has {os.cpu_count()}"
+
+
 def result_text(r: dict[str, Any]) -> str:
     def f(x: Any, spec: str = ".3f") -> str:
         return (
@@ -1383,6 +1441,9 @@ def result_text(r: dict[str, Any]) -> str:
         f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
         f"p99 {f(sp.get('p99'), '.1f')} ms, max {f(sp.get('max'), '.1f')} ms",
     ]
+    cpu_line = _cpu_text(r)
+    if cpu_line:
+        lines.append(cpu_line)
     peer = r.get("peer_latency_ms") or {}
     if peer:
         tgt = peer.get("target_ms", PEER_LATENCY_TARGET_MS)

@@ -35,3 +35,18 @@ def named_thread(target: Callable[[], None], name: str, daemon: bool = True) -> 
         target()
 
     return threading.Thread(target=run, name=name, daemon=daemon)
+
+
+_named = threading.local()
+
+
+def name_callback_thread(name: str) -> None:
+    """Give the calling thread the OS name ``name`` the first time it calls this: for threads
+    that a library starts and runs our callbacks in (Zenoh's Python handlers run each
+    subscriber's callback in a thread of their own), which would otherwise count their CPU
+    under the process's name in ``/proc/<pid>/task/*``. A thread-local flag after that (tens
+    of nanoseconds a call)."""
+    if getattr(_named, "done", False):
+        return
+    _named.done = True
+    set_os_thread_name(name)

@@ -371,6 +371,14 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     assert sec["bus_checks"]["link_locators_tls_only"]
     assert sec["bus_checks"]["every_drone_authenticated"]
     assert result["bus_latency_ms"]["count"] > 0
+    # where the CPU went, by OS thread: the services' own threads and the bus's callback
+    # threads by name (threads that ended, as the warm-up, count in the totals only)
+    threads = result["cpu_threads_s"]["services"]
+    for name in ("svc-depth", "svc-planner", "svc-monitor", "bus-rx", "depth-rx"):
+        assert threads.get(name, 0.0) > 0.0, threads
+    total = sum(v for k, v in result["cpu_s"].items() if k.startswith("drone"))
+    assert 0.0 < sum(threads.values()) <= total + 0.05 * len(records)
+    assert result["cpu_threads_s"]["sitl"] and "CPU over the run (" in result_text(result)
     keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
     assert len(keys) == 3
     for p in out.rglob("*"):

@@ -115,6 +115,25 @@ def test_peers_exchange_trajectories_latest_only(mesh: Callable[..., list[SwarmN
     assert sum(v for k, v in c.items() if k.startswith(("reject.", "error."))) == 0
 
 
+def test_callbacks_run_in_threads_named_for_the_bus(
+    mesh: Callable[..., list[SwarmNode]],
+) -> None:
+    """Zenoh runs a subscriber's callbacks in a thread of its own; the node names it (``bus-rx``)
+    so that its CPU is told apart from the process's main thread in ``/proc``."""
+    a, b = mesh([0, 1])
+    names: list[str] = []
+
+    def on_traj(env: Envelope, now: float) -> None:
+        tid = threading.get_native_id()
+        with open(f"/proc/self/task/{tid}/comm") as f:
+            names.append(f.read().strip())
+
+    b.on_trajectory(on_traj)
+    a.publish(traj(0, time.time()), time.time())
+    wait_for(lambda: names, "the callback")
+    assert names[0] == "bus-rx"
+
+
 def test_trajectory_dropped_after_its_validity(mesh: Callable[..., list[SwarmNode]]) -> None:
     a, b = mesh([0, 1])
     now = time.time()

@@ -53,6 +53,7 @@ from onboard.comm.wire import (
     kind_of,
 )
 from onboard.comm.zenoh_session import ZenohEndpoints, declare_liveliness, open_session
+from onboard.threadname import name_callback_thread
 
 log = logging.getLogger(__name__)
 
@@ -379,6 +380,7 @@ class SwarmNode:
 
     def _on_sample(self, sample: Any) -> None:
         """Zenoh's callback for every data key: gate, store, then user callbacks."""
+        name_callback_thread("bus-rx")
         if self._closed:
             return
         try:
@@ -423,6 +425,7 @@ class SwarmNode:
         return list(self._callbacks[kind])
 
     def _on_alive(self, sample: Any) -> None:
+        name_callback_thread("bus-alive")
         if self._closed:
             return
         try:

@@ -33,6 +33,7 @@ import numpy as np
 from onboard.comm.zenoh_session import ZenohEndpoints, open_session
 from onboard.mapping.camera import CameraIntrinsics, DepthFrame
 from onboard.sensors.mount import camera_pose
+from onboard.threadname import name_callback_thread
 
 log = logging.getLogger(__name__)
 
@@ -519,6 +520,7 @@ class ZenohTruthSubscriber:
         return msg
 
     def _on_pose(self, sample: Any) -> None:
+        name_callback_thread("truth-pose-rx")
         s = self._admit(sample, "pose", TruthSample.from_bytes)
         if s is None:
             return
@@ -527,6 +529,7 @@ class ZenohTruthSubscriber:
             self._counts["pose.rx"] += 1
 
     def _on_depth(self, sample: Any) -> None:
+        name_callback_thread("depth-rx")
         img = self._admit(sample, "depth", DepthImage.from_bytes)
         if img is None:
             return

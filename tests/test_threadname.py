@@ -1,0 +1,54 @@
+"""OS thread names: the service's own threads and the library threads that run its callbacks
+carry names in ``/proc/<pid>/task/*/comm``, so that per-thread CPU figures tell them apart."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from onboard.threadname import name_callback_thread, named_thread
+
+pytestmark = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="OS thread names are read from Linux's /proc"
+)
+
+
+def os_name(native_id: int) -> str:
+    return Path(f"/proc/self/task/{native_id}/comm").read_text().strip()
+
+
+def test_named_thread_carries_its_name_in_the_kernel() -> None:
+    seen: list[str] = []
+    t = named_thread(lambda: seen.append(os_name(threading.get_native_id())), "svc-longer-name")
+    t.start()
+    t.join(10.0)
+    u = named_thread(lambda: seen.append(os_name(threading.get_native_id())), "svc-longer-name-2")
+    u.start()
+    u.join(10.0)
+    assert seen == ["svc-longer-name", "svc-longer-name"]  # the kernel keeps 15 bytes
+    assert (t.name, u.name) == ("svc-longer-name", "svc-longer-name-2")
+
+
+def test_a_callback_thread_is_named_once() -> None:
+    """The first call names the thread; later calls (another callback run in the same thread)
+    keep that name; another thread gets its own."""
+    names: list[str] = []
+
+    def callback(name: str) -> None:
+        name_callback_thread(name)
+        names.append(os_name(threading.get_native_id()))
+
+    def run() -> None:
+        callback("bus-rx")
+        callback("depth-rx")
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join(10.0)
+    other = threading.Thread(target=callback, args=("depth-rx",))
+    other.start()
+    other.join(10.0)
+    assert names == ["bus-rx", "bus-rx", "depth-rx"]
