@@ -22,6 +22,7 @@ from onboard.planner.planner import (
     LAST_RESORT,
     FormationPlanner,
     PeerTrajectory,
+    PlanResult,
     PlanStatus,
     Problem,
     _pack_peers,
@@ -708,17 +709,27 @@ def test_fresh_alternative_flies_the_cheaper_way_round_a_trunk(mode: str) -> Non
     assert _y_where_x(again.trajectory, 3.0) < -0.2
 
 
-def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> None:
-    """``side``: the fresh start's solve on a second thread changes no plan: the trajectory,
-    status, message and work counted are those of the two solves one after the other, where the
-    fresh start wins by a long way and by a little, and where the time budget runs out after
-    the warm solve (the side solve is then stopped, not flown, and not counted)."""
+def _far_way_round_a_trunk() -> tuple[
+    np.ndarray, np.ndarray, PlannerParams, PlanResult, AnalyticField
+]:
+    """(start, goal, params, a plan past a wide trunk's far side, a field where a thin trunk
+    stands 0.35 m off the line): the warm start from that plan keeps the far way round the thin
+    trunk, the fresh start from the line takes the short one."""
     start = np.array([0.0, 0.0, 1.0])
     goal = np.array([6.0, 0.0, 1.0])
     base = PlannerParams(v_max_m_s=0.5)
     wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
     far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
     field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
+    return start, goal, base, far_way, field
+
+
+def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> None:
+    """``side``: the fresh start's solve on a second thread changes no plan: the trajectory,
+    status, message and work counted are those of the two solves one after the other, where the
+    fresh start wins by a long way and by a little, and where the time budget runs out after
+    the warm solve (the side solve is then stopped, not flown, and not counted)."""
+    start, goal, base, far_way, field = _far_way_round_a_trunk()
     short_way = FormationPlanner(base, LINE3, slot=1).plan(
         0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
     )
@@ -769,12 +780,7 @@ def test_a_fresh_plan_is_checked_only_when_it_costs_less(monkeypatch: pytest.Mon
     """The fresh start's solution is checked only when it costs less than the warm one (else it
     is not flown whatever the check says): two checks where the fresh start wins, one where a
     trunk stands on the line the fresh start begins on."""
-    start = np.array([0.0, 0.0, 1.0])
-    goal = np.array([6.0, 0.0, 1.0])
-    base = PlannerParams(v_max_m_s=0.5)
-    wide = AnalyticField(_world([[3.0, -0.7, 0.8, 0.0, 3.0]]))
-    far_way = FormationPlanner(base, LINE3, slot=1).plan(0.0, start, ZERO, ZERO, goal, [], wide)
-    field = AnalyticField(_world([[3.0, 0.35, 0.25, 0.0, 3.0]]))
+    start, goal, base, far_way, field = _far_way_round_a_trunk()
     checked: list[float] = []
     finish = FormationPlanner._finish
 
