@@ -27,17 +27,19 @@ def set_os_thread_name(name: str) -> bool:
     return int(_libc.prctl(_PR_SET_NAME, ctypes.c_char_p(raw), 0, 0, 0)) == 0
 
 
+_named = threading.local()
+"""``done``: this thread has its name (``named_thread``, or a first ``name_callback_thread``)."""
+
+
 def named_thread(target: Callable[[], None], name: str, daemon: bool = True) -> threading.Thread:
     """A ``threading.Thread`` called ``name`` whose OS thread carries the same name."""
 
     def run() -> None:
         set_os_thread_name(name)
+        _named.done = True  # named here: never renamed by a callback it runs
         target()
 
     return threading.Thread(target=run, name=name, daemon=daemon)
-
-
-_named = threading.local()
 
 
 def name_callback_thread(name: str) -> None:
@@ -45,8 +47,10 @@ def name_callback_thread(name: str) -> None:
     that a library starts and runs our callbacks in (Zenoh's Python handlers run each
     subscriber's callback in a thread of their own), which would otherwise count their CPU
     under the process's name in ``/proc/<pid>/task/*``. A thread-local flag after that (tens
-    of nanoseconds a call)."""
+    of nanoseconds a call). The main thread and the threads of ``named_thread`` keep their
+    names (a library may run a callback in the thread that triggered it)."""
     if getattr(_named, "done", False):
         return
     _named.done = True
-    set_os_thread_name(name)
+    if threading.current_thread() is not threading.main_thread():
+        set_os_thread_name(name)

@@ -52,3 +52,21 @@ def test_a_callback_thread_is_named_once() -> None:
     other.start()
     other.join(10.0)
     assert names == ["bus-rx", "bus-rx", "depth-rx"]
+
+
+def test_a_callback_keeps_the_name_of_a_named_thread_and_of_the_main_thread() -> None:
+    """A library may run a callback in the thread that triggered it: a ``named_thread`` and the
+    main thread keep their names."""
+    seen: list[str] = []
+
+    def work() -> None:
+        name_callback_thread("bus-rx")
+        seen.append(os_name(threading.get_native_id()))
+
+    t = named_thread(work, "svc-planner")
+    t.start()
+    t.join(10.0)
+    main = os_name(threading.get_native_id())
+    assert threading.current_thread() is threading.main_thread()
+    name_callback_thread("bus-rx")
+    assert seen == ["svc-planner"] and os_name(threading.get_native_id()) == main
