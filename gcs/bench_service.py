@@ -44,6 +44,8 @@ import click
 import numpy as np
 import yaml
 
+from gcs.procstat import stat_cpu_s
+
 SET_POSITION_TARGET_LOCAL_NED = 84
 TARGETS = {
     "setpoint_p99_ms": 25.0,
@@ -277,9 +279,7 @@ def service_config(
 
 def proc_cpu_s(pid: int) -> float:
     """User + system CPU seconds of a process, all its threads (Linux ``/proc``)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return stat_cpu_s(f"/proc/{pid}/stat")
 
 
 def proc_memory_kb(pid: int) -> dict[str, int]:

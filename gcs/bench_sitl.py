@@ -33,6 +33,8 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from gcs.procstat import stat_cpu_s
+
 # telemetry rates a real PX4 v1.16 SITL (SIH) sent on its API link, armed in Offboard, Hz
 # (REFERENCE_NOTES section 5): the observation, kept apart from the mock's own table
 PX4_RATES_HZ = {
@@ -71,11 +73,9 @@ HOVER_ALT_M = 2.0
 def _proc_cpu_s(pid: int) -> float | None:
     """User + system CPU seconds of a process (Linux /proc), None elsewhere."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return stat_cpu_s(f"/proc/{pid}/stat")
     except OSError:
         return None
-    ticks = os.sysconf("SC_CLK_TCK")
-    return (int(fields[11]) + int(fields[12])) / ticks
 
 
 class _Swarm:

@@ -46,6 +46,7 @@ import numpy as np
 
 from gcs.formations import FormationError, load_template
 from gcs.pools import sigterm_interrupts
+from gcs.procstat import stat_cpu_s, thread_cpu_s
 from gcs.station import CommandOutcome, GroundStation, StationConfig
 from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
 from onboard.config import Formation
@@ -175,39 +176,23 @@ class ProcessGroup:
 
     def cpu_s(self) -> dict[str, float]:
         """CPU seconds (user + system) each running child has used so far (Linux /proc)."""
-        tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
         out = {}
         for name, p in self.procs.items():
             try:
-                with open(f"/proc/{p.pid}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
+                out[name] = stat_cpu_s(f"/proc/{p.pid}/stat")
             except OSError:
                 continue
-            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
         return out
 
     def cpu_threads_s(self) -> dict[str, dict[str, float]]:
         """CPU seconds (user + system) by OS thread name (threads of one name summed) of each
         running child so far (Linux /proc; threads that ended are not counted)."""
-        tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-        out: dict[str, dict[str, float]] = {}
+        out = {}
         for name, p in self.procs.items():
-            threads: dict[str, float] = {}
             try:
-                tids = os.listdir(f"/proc/{p.pid}/task")
+                out[name] = thread_cpu_s(p.pid)
             except OSError:
                 continue
-            for tid in tids:
-                try:
-                    with open(f"/proc/{p.pid}/task/{tid}/stat") as f:
-                        text = f.read()
-                except OSError:
-                    continue  # ended meanwhile
-                comm = text[text.index("(") + 1 : text.rindex(")")]
-                fields = text.rsplit(")", 1)[1].split()
-                cpu = (int(fields[11]) + int(fields[12])) / tick
-                threads[comm] = threads.get(comm, 0.0) + cpu
-            out[name] = threads
         return out
 
     def check(self, expected_running: Sequence[str] | None = None) -> None:

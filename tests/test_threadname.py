@@ -3,12 +3,15 @@ carry names in ``/proc/<pid>/task/*/comm``, so that per-thread CPU figures tell 
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from gcs.procstat import stat_cpu_s, thread_cpu_s
 from onboard.threadname import name_callback_thread, named_thread
 
 pytestmark = pytest.mark.skipif(
@@ -70,3 +73,31 @@ def test_a_callback_keeps_the_name_of_a_named_thread_and_of_the_main_thread() ->
     assert threading.current_thread() is threading.main_thread()
     name_callback_thread("bus-rx")
     assert seen == ["svc-planner"] and os_name(threading.get_native_id()) == main
+
+
+def test_thread_cpu_by_name_from_proc() -> None:
+    """``gcs.procstat``: a named thread that spins shows under its name, and the threads' sum
+    stays within the process's total (threads that ended count in the total only)."""
+    stop = threading.Event()
+
+    def spin() -> None:
+        end = time.process_time() + 0.3
+        while time.process_time() < end:
+            pass
+        stop.wait(10.0)
+
+    t = named_thread(spin, "test-spinner")
+    t.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while thread_cpu_s(os.getpid()).get("test-spinner", 0.0) < 0.05:
+            assert time.monotonic() < deadline, thread_cpu_s(os.getpid())
+            time.sleep(0.05)
+        threads = thread_cpu_s(os.getpid())
+        total = stat_cpu_s(f"/proc/{os.getpid()}/stat")
+        assert sum(threads.values()) <= total + 0.02
+    finally:
+        stop.set()
+        t.join(10.0)
+    with pytest.raises(OSError):
+        stat_cpu_s("/proc/0/stat")
