@@ -168,6 +168,7 @@ def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
         "setpoint_period_max_ms": _num(sp.get("max")),
         "plan_ms_median": _num(plan.get("median")),
         "plan_ms_p90": _num(plan.get("p90")),
+        "plan_cpu_ms_median": _num((d.get("plan_cpu_ms") or {}).get("median")),
         "depth_frames": depth.get("frames"),
         "depth_frames_skipped": depth.get("skipped"),
         "cpu_s": sum((d.get("cpu_s") or {}).values()) or None,

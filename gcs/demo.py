@@ -1209,6 +1209,9 @@ class Demo:
             "bus_latency_ms": latency,
             "security": security,
             "plan_ms": {k: summary.get("plan_ms", {}).get(k) for k in ("median", "p90", "max")},
+            "plan_cpu_ms": {
+                k: summary.get("plan_cpu_ms", {}).get(k) for k in ("median", "p90", "max")
+            },
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),

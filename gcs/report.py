@@ -82,6 +82,9 @@ class DroneFlight:
     read_error: str | None = None
     setpoint_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     """(len(setpoint_t), 3) the commanded positions (ENU), NaN where a message had none."""
+    plan_cpu_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(len(plan_t),) the planning thread's CPU time of each plan (NaN: not recorded, e.g.
+    a record of an older service); against ``plan_ms``, the time spent waiting."""
 
     @staticmethod
     def from_record(rec: FlightRecord) -> DroneFlight:
@@ -108,6 +111,7 @@ class DroneFlight:
             counters=dict(counters[-1].get("counters", {})) if counters else {},
             read_error=rec.metadata.get("read_error"),
             setpoint_pos=_vecs([m.get("position_enu_m") for m in rec.messages("/setpoint")]),
+            plan_cpu_ms=np.array([_num(m.get("plan_cpu_ms")) for _, m in plans], dtype=np.float64),
         )
 
     def airborne(self) -> np.ndarray:
@@ -323,6 +327,7 @@ def _concat(fs: list[DroneFlight]) -> DroneFlight:
         counters=fs[-1].counters,
         read_error="; ".join(errors) if errors else None,
         setpoint_pos=cat("setpoint_pos"),
+        plan_cpu_ms=cat("plan_cpu_ms"),
     )
 
 
@@ -543,6 +548,7 @@ def summarise(a: Analysis) -> dict[str, Any]:
                 "tracking_error_m": _stat(tracking),
                 "closest_obstacle": a.closest[i] if i < len(a.closest) else None,
                 "plan_ms": _stat(f.plan_ms),
+                "plan_cpu_ms": _stat(f.plan_cpu_ms),
                 "plan_statuses": statuses,
                 "transitions": [list(x) for x in f.transitions],
                 "warnings": [m for _, lvl, m in f.events if lvl >= 3][:20],
@@ -575,6 +581,9 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "tracking_error_m": _stat(np.concatenate(all_tracking) if all_tracking else []),
         "closest_obstacle": _closest_of_all(drones),
         "plan_ms": _stat(np.concatenate([f.plan_ms for f in a.flights]) if a.flights else []),
+        "plan_cpu_ms": _stat(
+            np.concatenate([f.plan_cpu_ms for f in a.flights]) if a.flights else []
+        ),
         "peer_latency_ms": _latency_ms(
             LatencyFigures.merge(x for f in a.flights if (x := f.peer_latency()) is not None)
         ),
@@ -664,7 +673,13 @@ def summary_text(s: Mapping[str, Any]) -> str:
         f"max {f(s['tracking_error_m']['max'], '.3f')} m",
         f"plan time: median {f(s['plan_ms']['median'], '.0f')} ms, "
         f"p90 {f(s['plan_ms']['p90'], '.0f')} ms, max {f(s['plan_ms']['max'], '.0f')} ms "
-        f"({s['plan_ms']['count']} plans)",
+        f"({s['plan_ms']['count']} plans)"
+        + (
+            f"; the planning thread's CPU: median {f(cpu['median'], '.1f')} ms, "
+            f"p90 {f(cpu['p90'], '.1f')} ms (the rest is waiting for a core or the lock)"
+            if (cpu := s.get("plan_cpu_ms")) and cpu.get("count")
+            else ""
+        ),
     ]
     c = s.get("closest_obstacle")
     if c:
@@ -827,10 +842,15 @@ def plot_plan_time(a: Analysis, path: Path) -> Path:
         if f.plan_t.size:
             ax.plot(f.plan_t - t0, f.plan_ms, ".", color=cmap(i % cmap.N), markersize=4,
                     label=f"drone {f.drone_id}")  # fmt: skip
+        if f.plan_cpu_ms.size == f.plan_t.size and np.isfinite(f.plan_cpu_ms).any():
+            ax.plot(f.plan_t - t0, f.plan_cpu_ms, "x", color=cmap(i % cmap.N), markersize=3,
+                    alpha=0.6)  # fmt: skip
     ax.set_ylim(bottom=0.0)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("plan time [ms]")
-    ax.set_title("replan durations", fontsize=9)
+    ax.set_title(
+        "replan durations (dots: wall time; crosses: the planning thread's CPU)", fontsize=9
+    )
     ax.grid(True, linewidth=0.3, alpha=0.5)
     if a.flights:
         ax.legend(fontsize=7)

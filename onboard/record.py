@@ -110,6 +110,10 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                 "traj_id": {"type": "integer"},
                 "reason": {"type": "string"},
                 "plan_ms": _NUM,
+                "plan_cpu_ms": {
+                    "type": "number",
+                    "description": "the planning thread's CPU time within plan_ms (no waiting)",
+                },
                 "iterations": {"type": "integer"},
                 "evaluations": {"type": "integer"},
                 "cycle_ms": _NUM,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -706,6 +707,33 @@ def test_the_plan_budget_is_measured_by_the_timer_and_an_over_budget_plan_flies_
     for bad in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match="plan_budget_s"):
             _agent(0, bus, start, None, plan_budget_s=bad)
+
+
+def test_the_plan_reports_its_cpu_apart_from_its_wait(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``plan_cpu_ms`` is the planning thread's CPU within ``plan_ms``: a planner that waits
+    (here a sleep, on a starved host a core or the interpreter lock) shows in ``plan_ms``
+    only; one that computes shows in both."""
+    real_plan = FormationPlanner.plan
+    mode = {"wait": True}
+
+    def plan(self: FormationPlanner, *args: object, **kw: object) -> PlanResult:
+        if mode["wait"]:
+            time.sleep(0.08)
+        else:
+            end = time.thread_time() + 0.03
+            while time.thread_time() < end:
+                pass
+        return real_plan(self, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(FormationPlanner, "plan", plan)
+    a = _agent(0, InMemoryBus(), np.array([0.0, 0.0, 1.0]), np.array([6.0, 0, 1]))
+    waited = a.replan(0.0)
+    assert waited.plan_ms >= 80.0
+    assert 0.0 <= waited.plan_cpu_ms < waited.plan_ms - 60.0
+    mode["wait"] = False
+    busy = a.replan(1.0)
+    assert busy.plan_cpu_ms >= 30.0
+    assert busy.plan_cpu_ms <= busy.plan_ms + 1.0
 
 
 def test_a_published_trajectory_goes_out_again_on_time_until_a_newer_one_does() -> None:

@@ -106,8 +106,10 @@ def write_flight(d: Path) -> dict[str, object]:
                 want = _true_positions(float(t) - T0)[i] + SETPOINT_OFFSET[i]
                 rec.setpoint(float(t), want, [0, 0, 0], [0, 0, 0], 0.0)
             for j in range(30):
+                # drone 2's service records no CPU time (an older one): NaN, left out
+                cpu = {"plan_cpu_ms": 2.0 + i + 0.1 * j} if i < 2 else {}
                 rec.plan(T0 + 3.0 + j, status="ok", plan_ms=40.0 + i + j, traj_id=j,
-                         goal_enu_m=[12.0, 0.0, 1.0])  # fmt: skip
+                         goal_enu_m=[12.0, 0.0, 1.0], **cpu)  # fmt: skip
             rec.event(T0 + 20.0, "near miss", level="warning")
     return mission
 
@@ -142,6 +144,9 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert all(d["setpoint_pauses"] == 0 for d in s["drones"])
     # plans: 30 per drone, 40 + id + j ms
     assert s["plan_ms"]["count"] == 90 and s["plan_ms"]["max"] == pytest.approx(71.0)
+    assert s["plan_cpu_ms"]["count"] == 60 and s["plan_cpu_ms"]["max"] == pytest.approx(5.9)
+    assert s["drones"][2]["plan_cpu_ms"]["count"] == 0
+    assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
     # flight time: take-off transition at t=1 to landed at t=35
     assert s["flight_time_s"] == pytest.approx(34.0, abs=1e-6)

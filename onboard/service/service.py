@@ -722,6 +722,7 @@ class FlightService:
                 traj_id=rep.seq,
                 reason=why + (" (superseded by an override)" if superseded else ""),
                 plan_ms=rep.plan_ms,
+                plan_cpu_ms=rep.plan_cpu_ms,
                 cycle_ms=rep.cycle_ms,
                 iterations=rep.iterations,
                 evaluations=rep.evaluations,
