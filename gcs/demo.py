@@ -75,7 +75,8 @@ class DemoConfig:
     ``--set KEY=VALUE`` for every service / the mock; startup_timeout_s: until every service
     is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
     (None: from the route length and the speed limit); out_dir: the flight directory;
-    secure: MAVLink signing and Zenoh mutual TLS + access control (see the module docstring).
+    secure: MAVLink signing and Zenoh mutual TLS + access control (see the module docstring);
+    mapping_nice: the services' ``mapping.thread_nice`` (None: ``default_mapping_nice``).
     """
 
     drones: int = 7
@@ -87,6 +88,7 @@ class DemoConfig:
     depth_rate_hz: float | None = None
     altitude_band_m: tuple[float, float] | None = None
     sitl_nice: int = -15
+    mapping_nice: int | None = None
     depth_step: int = 3
     v_max_m_s: float | None = None
     spacing_m: float = 1.5
@@ -490,6 +492,24 @@ def default_depth_rate(cfg: DemoConfig) -> float:
     return 10.0 if cfg.drones <= 4 else 3.0
 
 
+MAPPING_NICE = 10
+"""The services' ``mapping.thread_nice`` above 4 drones. Seven services share this machine's
+2 cores (a drone has a companion computer of its own): nearly saturated, every thread waits
+in the run queue, and a plan of 1.8 ms of CPU took 50-72 ms (median, seed 1, nice 0) while the
+mapping threads, the largest consumers, ran their 10-20 ms refreshes. At nice 10 the planner,
+the bus and the monitor go first: plans 24 ms median, peer latency 8.6 ms median (against
+18-25), frames missed as before (398 of 2 706 against 95-421 of 2 243-2 522); one flight at
+nice 10 against four at nice 0 (BENCHMARKS.md section 10, 2026-12-02)."""
+
+
+def default_mapping_nice(cfg: DemoConfig) -> int:
+    """``cfg.mapping_nice``, else ``MAPPING_NICE`` above 4 drones (where the depth rate is 3
+    frames/s and the band narrow: the regime measured), else 0 (the services' default)."""
+    if cfg.mapping_nice is not None:
+        return int(cfg.mapping_nice)
+    return MAPPING_NICE if cfg.drones > 4 else 0
+
+
 NARROW_BAND_M = (0.6, 0.8)
 """The planner's altitude band above 4 drones, below and above the cruise altitude (0.4-1.8 m
 at the forests' 1 m): the drones hold their altitude within 0.1 m (``w_altitude_hold``), and
@@ -553,6 +573,9 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
+        self.mapping_nice = default_mapping_nice(cfg)
+        if not 0 <= self.mapping_nice <= 19:
+            raise DemoError(f"mapping_nice must lie in [0, 19], got {self.mapping_nice}")
         self.template = demo_templates(cfg.drones, cfg.formation, cfg.formation_change)[0]
         self.spec = load_world_spec(cfg.world)
         self.z_limits = planner_z_limits(cfg, self.spec)
@@ -866,6 +889,7 @@ class Demo:
                 "step": cfg.depth_step,
             },
             "planner": planner,
+            "mapping": {"thread_nice": self.mapping_nice},
             "reactions": {"depth_lost": {"timeout_s": max(0.5, 4.0 / self.depth_rate_hz)}},
             "record": {"enabled": True, "directory": str(self.out.resolve())},
             "logging": {"format": "json"},

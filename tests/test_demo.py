@@ -152,6 +152,30 @@ def test_the_altitude_band_by_fleet_size(tmp_path: Path) -> None:
             Demo(DemoConfig(drones=7, altitude_band_m=bad, out_dir=tmp_path / "bad"))
 
 
+def test_the_mapping_thread_yields_above_4_drones(tmp_path: Path) -> None:
+    """Above 4 drones (7 services on this machine's 2 cores) every service's mapping thread
+    runs at ``MAPPING_NICE``, which the service's config accepts and its depth thread applies;
+    up to 4 drones it stays at the services' default; an explicit value wins; out of range is
+    refused before anything starts."""
+    from gcs.demo import MAPPING_NICE
+    from onboard.service.config import load_onboard_config
+
+    cases = ((3, "triangle-3", None, 0), (7, "hexagon-7", None, MAPPING_NICE),
+             (7, "hexagon-7", 0, 0), (3, "triangle-3", 5, 5))  # fmt: skip
+    for k, (n, formation, nice, want) in enumerate(cases):
+        d = Demo(DemoConfig(drones=n, formation=formation, mapping_nice=nice,
+                            out_dir=tmp_path / str(k)))  # fmt: skip
+        d.world_file = d._world_file()
+        onboard = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
+        assert onboard["mapping"]["thread_nice"] == want
+        conf = tmp_path / f"{k}.yaml"
+        conf.write_text(json.dumps(onboard))
+        assert load_onboard_config(conf, drone_id=0).mapping.thread_nice == want
+    for bad in (-1, 20):
+        with pytest.raises(DemoError, match="mapping_nice"):
+            Demo(DemoConfig(drones=7, mapping_nice=bad, out_dir=tmp_path / "bad"))
+
+
 def test_peer_latency_from_the_services_records(tmp_path: Path) -> None:
     """The target's figure (peer trajectory, publish -> the planner's inbox) as the demo reads
     it after a flight: each service's cumulative histogram in the 1 Hz ``/counters`` of its
