@@ -49,7 +49,8 @@ from gcs.pools import sigterm_interrupts
 from gcs.procstat import stat_cpu_s, thread_cpu_s
 from gcs.station import CommandOutcome, GroundStation, StationConfig
 from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
-from onboard.config import Formation
+from onboard.config import Formation, merge_mappings, read_yaml
+from onboard.service.config import default_config_path
 
 log = logging.getLogger(__name__)
 
@@ -899,7 +900,14 @@ class Demo:
                 "tls": self.security.tls_section(),
                 "access_control_drones": cfg.drones,
             }
-        return json.dumps(data, indent=2) + "\n"  # JSON is YAML
+        # on top of the drone's own configuration: a file given to the service replaces
+        # config/onboard.yaml, and without it the services flew another planner than the
+        # drone's (check_obstacle_horizon_s 0 instead of 4 until 2026-12-02) and than the
+        # fast-time twin the demo is compared with
+        base = read_yaml(default_config_path())
+        if not isinstance(base, dict):
+            raise DemoError(f"{default_config_path()}: expected a mapping")
+        return json.dumps(merge_mappings(base, data), indent=2) + "\n"  # JSON is YAML
 
     # -- waiting --
 

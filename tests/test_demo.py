@@ -152,6 +152,34 @@ def test_the_altitude_band_by_fleet_size(tmp_path: Path) -> None:
             Demo(DemoConfig(drones=7, altitude_band_m=bad, out_dir=tmp_path / "bad"))
 
 
+def test_the_services_fly_the_drones_own_configuration(tmp_path: Path) -> None:
+    """The demo's service file is config/onboard.yaml with the demo's settings on top: a file
+    given to the service replaces that one, and the services once flew another planner than
+    the drone's (``check_obstacle_horizon_s`` 0 instead of 4) and than the fast-time twin."""
+    import dataclasses
+
+    from onboard.service.config import load_onboard_config
+
+    d = Demo(DemoConfig(drones=7, out_dir=tmp_path / "d"))
+    d.world_file = d._world_file()
+    conf = tmp_path / "onboard.yaml"
+    conf.write_text(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
+    demo, drone = load_onboard_config(conf, drone_id=0), load_onboard_config(None, drone_id=0)
+    assert drone.planner.check_obstacle_horizon_s > 0.0  # what the services lacked
+    set_by_demo = {"planner": {"z_limits_m"}, "mapping": {"thread_nice"},
+                   "depth": {"rate_hz", "sim_prefix", "sim_connect"}, "reactions": {"depth_lost"},
+                   "record": {"directory"}, "autopilot": {"url", "local_origins_enu_m"},
+                   "drone": {"swarm"}}  # fmt: skip
+    for section in ("planner", "planning", "mapping", "depth", "bus", "reactions", "zenoh",
+                    "record", "autopilot", "drone", "geofence", "flight", "watchdog"):  # fmt: skip
+        got, want = (
+            dataclasses.asdict(getattr(demo, section)),
+            dataclasses.asdict(getattr(drone, section)),
+        )
+        differ = {k for k in want if got[k] != want[k]}
+        assert differ <= set_by_demo.get(section, set()), (section, differ)
+
+
 def test_the_mapping_thread_yields_above_4_drones(tmp_path: Path) -> None:
     """Above 4 drones (7 services on this machine's 2 cores) every service's mapping thread
     runs at ``MAPPING_NICE``, which the service's config accepts and its depth thread applies;
