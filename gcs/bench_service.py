@@ -256,11 +256,13 @@ def service_config(
     implementation: str = "pymavlink",
     extra: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """A ``config/onboard.yaml`` mapping for a service on loopback: autopilot on UDP
-    ``autopilot_port`` (+ id with ``port_plus_id``), the swarm bus on the given endpoints,
-    ``depth`` (None: no camera), records in ``record_dir``, JSON log lines; ``extra`` is merged
-    in last (nested mappings key by key)."""
-    from onboard.config import merge_mappings
+    """``config/onboard.yaml`` (the drone's configuration: a file given to the service replaces
+    it, so it is the base here) for a service on loopback: autopilot on UDP ``autopilot_port``
+    (+ id with ``port_plus_id``), the swarm bus on the given endpoints, ``depth`` (None: no
+    camera), records in ``record_dir``, JSON log lines; ``extra`` is merged in last (nested
+    mappings key by key)."""
+    from onboard.config import merge_mappings, read_yaml
+    from onboard.service.config import default_config_path
 
     data: dict[str, Any] = {
         "drone": {"swarm": swarm},
@@ -274,7 +276,12 @@ def service_config(
         "record": {"directory": str(record_dir)},
         "logging": {"format": "json"},
     }
-    return merge_mappings(data, extra or {})
+    base = read_yaml(default_config_path())
+    if not isinstance(base, dict):
+        raise ValueError(f"{default_config_path()}: expected a mapping")
+    if depth is None:
+        base = {k: v for k, v in base.items() if k != "depth"}  # no camera: none of its keys
+    return merge_mappings(merge_mappings(base, data), extra or {})
 
 
 def proc_cpu_s(pid: int) -> float:

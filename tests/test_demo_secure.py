@@ -88,7 +88,15 @@ def test_plain_demo_config_has_no_security(tmp_path: Path) -> None:
                         out_dir=tmp_path / "f"))  # fmt: skip
     d.world_file = d._world_file()
     data = json.loads(d._onboard_yaml(14540, "tcp/127.0.0.1:1", "x/sim"))
-    assert "signing_key_file" not in data["autopilot"] and "zenoh" not in data
+    # the drone's configuration below the demo's settings: its security keys are there, off
+    assert data["autopilot"].get("signing_key_file") is None
+    assert not data["autopilot"].get("signing_required")
+    assert (data.get("zenoh") or {}).get("tls") is None
+    assert (data.get("zenoh") or {}).get("access_control_drones") is None
+    conf = tmp_path / "onboard.yaml"
+    conf.write_text(json.dumps(data))
+    svc = load_onboard_config(conf, drone_id=0)
+    assert svc.autopilot.signing_key_file is None and svc.zenoh.tls is None
     assert not (d.out / "secrets").exists() and not (d.out / "pki").exists()
 
 

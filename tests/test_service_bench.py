@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -122,3 +123,36 @@ def test_process_cpu_and_memory_are_read_from_proc() -> None:
     assert proc_cpu_s(os.getpid()) >= c0 + 0.03
     mem = proc_memory_kb(os.getpid())
     assert mem["VmHWM"] >= mem["VmRSS"] > 10_000
+
+
+def test_service_config_is_the_drones_configuration_with_the_test_settings_on_top(
+    tmp_path: Path,
+) -> None:
+    """The services the benchmarks and the process tests start fly ``config/onboard.yaml``
+    with their loopback settings on top (a file given to the service replaces that one: built
+    from scratch, they flew the planner's defaults, ``check_obstacle_horizon_s`` 0 instead of
+    the drone's 4); ``extra`` wins; without a camera no depth key of the drone's file is kept."""
+    import dataclasses
+
+    import yaml
+
+    from gcs.bench_service import service_config
+    from onboard.service.config import load_onboard_config
+
+    drone = load_onboard_config(None, drone_id=0)
+    for depth in (None, {"source": "zenoh-sim", "rate_hz": 5.0}):
+        cfg = service_config(
+            swarm="t", autopilot_port=14600, zenoh_listen=["tcp/127.0.0.1:7000"],
+            zenoh_connect=[], depth=depth, record_dir=tmp_path,
+            extra={"planning": {"replan_period_s": 0.5}},
+        )  # fmt: skip
+        path = tmp_path / "onboard.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        got = load_onboard_config(path, drone_id=0)
+        assert got.planner == drone.planner
+        assert got.planner.check_obstacle_horizon_s > 0.0
+        assert got.planning == dataclasses.replace(drone.planning, replan_period_s=0.5)
+        assert got.mapping == drone.mapping and got.reactions == drone.reactions
+        assert got.depth.source == ("none" if depth is None else "zenoh-sim")
+        assert depth is None or got.depth.rate_hz == 5.0
+        assert got.zenoh.listen == ("tcp/127.0.0.1:7000",)
