@@ -261,8 +261,8 @@ def service_config(
     (+ id with ``port_plus_id``), the swarm bus on the given endpoints, ``depth`` (None: no
     camera), records in ``record_dir``, JSON log lines; ``extra`` is merged in last (nested
     mappings key by key)."""
-    from onboard.config import merge_mappings, read_yaml
-    from onboard.service.config import default_config_path
+    from onboard.config import merge_mappings
+    from onboard.service.config import config_data
 
     data: dict[str, Any] = {
         "drone": {"swarm": swarm},
@@ -276,9 +276,7 @@ def service_config(
         "record": {"directory": str(record_dir)},
         "logging": {"format": "json"},
     }
-    base = read_yaml(default_config_path())
-    if not isinstance(base, dict):
-        raise ValueError(f"{default_config_path()}: expected a mapping")
+    base = config_data()
     if depth is None:
         base = {k: v for k, v in base.items() if k != "depth"}  # no camera: none of its keys
     return merge_mappings(merge_mappings(base, data), extra or {})

@@ -49,8 +49,8 @@ from gcs.pools import sigterm_interrupts
 from gcs.procstat import stat_cpu_s, thread_cpu_s
 from gcs.station import CommandOutcome, GroundStation, StationConfig
 from onboard.comm.zenoh_session import free_loopback_endpoint, open_session, peer_mesh
-from onboard.config import Formation, merge_mappings, read_yaml
-from onboard.service.config import default_config_path
+from onboard.config import ConfigError, Formation, merge_mappings
+from onboard.service.config import config_data
 
 log = logging.getLogger(__name__)
 
@@ -904,9 +904,10 @@ class Demo:
         # config/onboard.yaml, and without it the services flew another planner than the
         # drone's (check_obstacle_horizon_s 0 instead of 4 until 2026-12-02) and than the
         # fast-time twin the demo is compared with
-        base = read_yaml(default_config_path())
-        if not isinstance(base, dict):
-            raise DemoError(f"{default_config_path()}: expected a mapping")
+        try:
+            base = config_data()
+        except ConfigError as e:
+            raise DemoError(f"config/onboard.yaml: {e}") from e
         return json.dumps(merge_mappings(base, data), indent=2) + "\n"  # JSON is YAML
 
     # -- waiting --

@@ -304,9 +304,9 @@ class PlanReport:
     """Peers that reported they did not hear us (``DroneAgent.set_unheard``): planned with
     ``params.unheard_params`` (a wider berth to every peer)."""
     plan_cpu_ms: float = math.nan
-    """CPU time of the planner call in the planning thread (NaN where the platform has no
-    thread clock). Against ``plan_ms`` it tells computing from waiting for a core or the
-    interpreter lock (a side solve of ``side_executor`` runs in another thread: not counted)."""
+    """CPU time of the planner call in the planning thread (NaN: not measured). Against
+    ``plan_ms`` it tells computing from waiting for a core or the interpreter lock (a side
+    solve of ``side_executor`` runs in another thread: not counted)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -337,14 +337,6 @@ _REFORM = "reform"
 """``DroneAgent._planner``'s mode within ``reform_s`` of a formation change."""
 _RECOVER = "recover"
 """... and while recovering the shape (``PlannerParams.recover_e_sim``)."""
-
-
-def _thread_cpu_s() -> float:
-    """This thread's CPU time (s); NaN where the platform has no thread clock."""
-    try:
-        return time.thread_time()
-    except OSError:  # pragma: no cover - every platform the drone runs has one
-        return math.nan
 
 
 def _shape_error(
@@ -1386,7 +1378,7 @@ class DroneAgent:
             )
         self._active = planner
         p0 = self.timer()
-        q0 = _thread_cpu_s()
+        q0 = time.thread_time()
         give_up: Callable[[], bool] | None = None
         if math.isfinite(self.plan_budget_s):
             budget_end = p0 + self.plan_budget_s
@@ -1399,7 +1391,7 @@ class DroneAgent:
         finally:
             self._active = None
         plan_ms = (self.timer() - p0) * 1e3
-        plan_cpu_ms = (_thread_cpu_s() - q0) * 1e3
+        plan_cpu_ms = (time.thread_time() - q0) * 1e3
         new = res.trajectory
         late = self._late(new, t_start)
         if late:

@@ -662,6 +662,20 @@ def default_config_path() -> Path:
     return config_dir() / "onboard.yaml"
 
 
+def config_data(path: str | Path | None = None) -> dict[str, Any]:
+    """The mapping in ``path`` (default ``config/onboard.yaml``, the drone's configuration),
+    not yet validated: an empty file is an empty mapping. A file given to the service replaces
+    the drone's, so whoever writes one for a service (the demo, the benchmarks, the tests)
+    starts from this and merges its own settings on top."""
+    p = Path(path) if path is not None else default_config_path()
+    data = read_yaml(p)
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"<root>: expected a mapping, got {type(data).__name__}")
+    return data
+
+
 def load_onboard_config(
     path: str | Path | None = None,
     drone_id: int | None = None,
@@ -669,12 +683,7 @@ def load_onboard_config(
 ) -> OnboardConfig:
     """Read and validate ``path`` (default ``config/onboard.yaml``); ``drone_id`` (the
     ``--id`` option) and ``overrides`` (nested mappings) win over the file."""
-    p = Path(path) if path is not None else default_config_path()
-    data = read_yaml(p)
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"<root>: expected a mapping, got {type(data).__name__}")
+    data = config_data(path)
     if overrides:
         data = merge_mappings(data, overrides)
     if drone_id is not None:
