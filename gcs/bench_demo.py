@@ -169,6 +169,7 @@ def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
         "plan_ms_median": _num(plan.get("median")),
         "plan_ms_p90": _num(plan.get("p90")),
         "plan_cpu_ms_median": _num((d.get("plan_cpu_ms") or {}).get("median")),
+        "monitor_brakes": (d.get("monitor") or {}).get("brakes"),
         "depth_frames": depth.get("frames"),
         "depth_frames_skipped": depth.get("skipped"),
         "cpu_s": sum((d.get("cpu_s") or {}).values()) or None,
@@ -383,7 +384,7 @@ def bench_demo(
             "clear. centre / body m", "min pair m"]  # fmt: skip
     if fc is not None:
         cols.append("new shape after s (command / switch)")
-    cols += ["plans med ms", "depth frames / skipped"]
+    cols += ["plans med ms", "brakes", "depth frames / skipped"]
     for c in cols:
         t.add_column(c, justify="right")
     for r in rows:
@@ -411,6 +412,7 @@ def bench_demo(
                 )
             cells += [
                 _fmt(g.get("plan_ms_median", g.get("replan_ms_median")), ".1f"),
+                str(g.get("monitor_brakes", "-")) if side == "demo" else "",
                 f"{g.get('depth_frames', '-')} / {g.get('depth_frames_skipped', '-')}"
                 if side == "demo"
                 else "",

@@ -1245,6 +1245,8 @@ class Demo:
             "plan_cpu_ms": {
                 k: summary.get("plan_cpu_ms", {}).get(k) for k in ("median", "p90", "max")
             },
+            # the services' safety monitors: braking stops in flight, replans they asked for
+            "monitor": summary.get("monitor"),
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),
@@ -1462,6 +1464,14 @@ def result_text(r: dict[str, Any]) -> str:
         f"setpoint period: median {f(sp.get('median'), '.1f')} ms, "
         f"p99 {f(sp.get('p99'), '.1f')} ms, max {f(sp.get('max'), '.1f')} ms",
     ]
+    mon = r.get("monitor")
+    if mon:
+        lines.append(
+            f"safety monitors: {mon.get('brakes', 0)} braking stops in flight, "
+            f"{mon.get('replans', 0)} replans asked for a conflict, "
+            f"{mon.get('shallow_replans', 0)} for an obstacle within the check's distance by "
+            "less than the brake's slack"
+        )
     cpu_line = _cpu_text(r)
     if cpu_line:
         lines.append(cpu_line)

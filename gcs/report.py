@@ -587,12 +587,29 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "peer_latency_ms": _latency_ms(
             LatencyFigures.merge(x for f in a.flights if (x := f.peer_latency()) is not None)
         ),
+        "monitor": monitor_counts(a.flights),
         "assignments": [
             {k: x.get(k) for k in ("name", "epoch", "effective_s")}
             for x in a.mission.get("assignments", [])
         ],
     }
     return out
+
+
+MONITOR_COUNTERS = ("monitor_brakes", "monitor_replans", "monitor_shallow_replans")
+"""The services' safety monitor counters a flight's summary adds up (``monitor_counts``)."""
+
+
+def monitor_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
+    """What the drones' safety monitors did over the flight, summed from each record's last
+    ``/counters``: braking stops (each a stop and a second's hover in flight), replans asked for
+    a conflict, and replans asked for an obstacle within the check's distance but not within
+    the brake's slack (``planning.monitor_obstacle_slack_m``). A record of an older service
+    without a counter adds 0 for it."""
+    return {
+        k.removeprefix("monitor_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
+        for k in MONITOR_COUNTERS
+    }
 
 
 def _closest_of_all(drones: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:

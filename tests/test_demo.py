@@ -431,6 +431,10 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     total = sum(v for k, v in result["cpu_s"].items() if k.startswith("drone"))
     assert 0.0 < sum(threads.values()) <= total + 0.05 * len(records)
     assert result["cpu_threads_s"]["sitl"] and "CPU over the run (" in result_text(result)
+    # the safety monitors' stops and replans, summed from the records' counters
+    assert result["monitor"] == summary["monitor"]
+    assert set(result["monitor"]) == {"brakes", "replans", "shallow_replans"}
+    assert "safety monitors: " in result_text(result)
     keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
     assert len(keys) == 3
     for p in out.rglob("*"):

@@ -111,6 +111,13 @@ def write_flight(d: Path) -> dict[str, object]:
                 rec.plan(T0 + 3.0 + j, status="ok", plan_ms=40.0 + i + j, traj_id=j,
                          goal_enu_m=[12.0, 0.0, 1.0], **cpu)  # fmt: skip
             rec.event(T0 + 20.0, "near miss", level="warning")
+            # the safety monitors' counters: the last snapshot counts (drone 2's service is
+            # older: no shallow replans)
+            mon = {"service.monitor_brakes": i, "service.monitor_replans": 10 + i}
+            rec.counters(T0 + 10.0, {k: 0 for k in mon})
+            if i < 2:
+                mon["service.monitor_shallow_replans"] = 3
+            rec.counters(T0 + 30.0, mon)
     return mission
 
 
@@ -148,6 +155,7 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert s["drones"][2]["plan_cpu_ms"]["count"] == 0
     assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
+    assert s["monitor"] == {"brakes": 0 + 1 + 2, "replans": 33, "shallow_replans": 6}
     # flight time: take-off transition at t=1 to landed at t=35
     assert s["flight_time_s"] == pytest.approx(34.0, abs=1e-6)
     # the near miss: drone 2 comes to 0.2 m of drone 1 (one drone-collision start)

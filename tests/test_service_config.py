@@ -91,6 +91,11 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
          "reactions.peer_lost: peer_silence_in_way_s", "[0.05, 60]"),
         ("reactions:\n  peer_lost: {peer_silence_s: 0.8, peer_silence_max_s: 0.6}\n",
          "reactions.peer_lost: peer_silence_max_s", "at least peer_silence_s"),
+        # the monitor's slack below the check's distance: a brake must remain possible
+        ("planning:\n  monitor_obstacle_slack_m: -0.01\n", "monitor_obstacle_slack_m",
+         "[0, 1]"),
+        ("planning:\n  monitor_obstacle_slack_m: 0.3\n", "planning.monitor_obstacle_slack_m",
+         "never brake"),
     ],
 )  # fmt: skip
 def test_bad_values_name_the_key_and_the_expected_range(

@@ -1214,6 +1214,66 @@ def test_the_monitor_lets_a_drone_inside_the_check_distance_back_out(tmp_path: P
     assert h.svc.counters["monitor_brakes"] == 1
 
 
+def test_the_monitor_brakes_for_an_obstacle_only_below_its_slack(tmp_path: Path) -> None:
+    """Seen on the real stack (the 7-drone demo, 2026-12-02): a drone stopped dead (a braking
+    stop, then a second's hover) two to four times a flight, for a plan 0.2995 m from a trunk
+    on the inflated map. The planner had accepted it at the check's distance on the map of its
+    time; the monitor judged it on the next frame's. Within the check's distance by less than
+    ``planning.monitor_obstacle_slack_m`` the monitor now asks for a replan (once the last plan
+    is older than 0.3 s) and never brakes; deeper it brakes as before; with no slack it brakes
+    at the check's distance."""
+    from onboard.planner.field import AnalyticField
+    from onboard.world import World
+
+    def flown(slack: float | None) -> Harness:
+        over = {} if slack is None else {"planning": {"monitor_obstacle_slack_m": slack}}
+        h = Harness(tmp_path / f"s{slack}", depth=False, **over)
+        h.airborne()
+        h.fly_to(10.0)
+        h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "formation flight")
+        return h
+
+    def look(h: Harness, passing_m: float, plan_age_s: float) -> str:
+        """The plan: on along +x at 0.4 m/s, passing a trunk ``passing_m`` from its surface
+        0.5 s from now, made ``plan_age_s`` ago."""
+        here = np.asarray(h.ap.position, dtype=np.float64)
+        t = h.clock.t
+        # one quintic piece of 2 m peaking at 0.4 m/s, at its middle (here) now
+        way = moving(here - [1.0, 0.0, 0.0], here + [1.0, 0.0, 0.0], t, speed=0.4)
+        way = Trajectory(t - 0.5 * way.duration_s, way.coeffs, way.durations_s)
+        r = 0.3
+        x = float(way.sample(np.array([t + 0.5]))[0, 0])
+        cyl = np.array([[x, here[1] + passing_m + r, r, 0.0, 5.0]])
+        fld = AnalyticField(World(cyl, np.zeros((0, 7)), np.zeros((0, 6)), ground_z=0.0))
+        h.svc.field = lambda: fld  # type: ignore[method-assign]
+        h.svc.agent.reset(way)
+        h.svc._monitor_key = ()  # a new look, not the cached one
+        h.svc._monitor_brake_at = -math.inf
+        h.svc._last_plan_s = t - plan_age_s
+        return h.svc.monitor_step()
+
+    h = flown(None)
+    limit = h.cfg.planner.check_obstacle_m
+    slack = h.cfg.planning.monitor_obstacle_slack_m
+    assert slack == 0.05 and limit - slack < 0.28 < limit
+    assert look(h, 0.35, 0.1) == ""
+    what = look(h, 0.28, 0.1)  # a fresh plan within the check's distance, not its slack
+    assert what.startswith("watching: obstacle 0.28 m in 0.2 s"), what  # where it enters
+    what = look(h, 0.28, 0.5)  # an older one: replanned
+    assert what.startswith("replan: obstacle 0.28 m"), what
+    assert h.svc.counters["monitor_shallow_replans"] == 1
+    assert h.svc.counters["monitor_brakes"] == 0 and h.svc.counters["monitor_replans"] == 0
+    what = look(h, 0.20, 0.1)  # deeper than the slack: braked, as before
+    assert what.startswith("brake: obstacle 0.20 m"), what
+    assert h.svc.counters["monitor_brakes"] == 1
+    # no slack: the shallow conflict of a fresh plan is braked for
+    h0 = flown(0.0)
+    what = look(h0, 0.28, 0.1)
+    assert what.startswith("brake: obstacle 0.28 m"), what
+    assert h0.svc.counters["monitor_brakes"] == 1
+    assert h0.svc.counters["monitor_shallow_replans"] == 0
+
+
 def test_the_monitor_lets_a_drone_inside_a_peers_check_distance_back_out(tmp_path: Path) -> None:
     """CI's bus-faults flight (2026-11-29): two drones stopped 0.42 m apart, inside the check
     distance of each other. The planners accepted plans apart, and every one was braked by the

@@ -332,6 +332,15 @@ class PlanningSection:
     monitor_rate_hz: float = 100.0
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
+    monitor_obstacle_slack_m: float = 0.05
+    """The monitor brakes for an obstacle only where the plan in flight comes closer than
+    ``planner.check_obstacle_m`` less this; a plan that comes within the check's distance but
+    not that close asks for a replan (when the last one is older than 0.3 s) and flies on.
+    The planner accepts plans at the check's distance on the map of its time; the monitor judges
+    them 100 times a second on the newest map, in which a trunk seen again sits a few
+    millimetres nearer: with no slack a drone stopped dead (a braking stop, then a second's
+    hover) for a plan 0.2995 m from a trunk on the inflated map, two to four times a flight of
+    the demo (BENCHMARKS.md section 10, 2026-12-02). 0: brake at the check's distance."""
     resend_s: tuple[float, ...] = RESEND_S
     """A braking stop or hover announced (every plan too with ``resend_plans``) goes out again
     this long after it unless a newer trajectory went out first (``onboard.agent.RESEND_S``):
@@ -363,6 +372,7 @@ class PlanningSection:
         _in_range("plan_budget_s", self.plan_budget_s, 0.01, 60.0)
         _in_range("monitor_rate_hz", self.monitor_rate_hz, 10.0, 500.0)
         _in_range("monitor_horizon_s", self.monitor_horizon_s, 0.1, 10.0)
+        _in_range("monitor_obstacle_slack_m", self.monitor_obstacle_slack_m, 0.0, 1.0)
         for i, after in enumerate(self.resend_s):
             _in_range(f"resend_s[{i}]", after, 0.01, 2.0)
         _in_range("retry_after_s", self.retry_after_s, 0.05, 30.0)
@@ -601,6 +611,13 @@ class OnboardConfig:
                 ) from None
             object.__setattr__(self, "planner", planner)
         self._check_map_window()
+        slack = self.planning.monitor_obstacle_slack_m
+        if not slack < self.planner.check_obstacle_m:
+            raise ValueError(
+                f"planning.monitor_obstacle_slack_m: {slack:g} m leaves nothing of the check's "
+                f"distance (planner.check_obstacle_m {self.planner.check_obstacle_m:g} m): the "
+                "monitor would never brake for an obstacle"
+            )
         for key, taken in (("peer_silence_s", "silent"), ("peer_silence_in_way_s", "quiet")):
             limit = getattr(self.reactions.peer_lost, key)
             if not limit >= 2.0 / self.bus.state_rate_hz:

@@ -20,7 +20,8 @@ Threads (each loop is a ``*_step`` method the tests call directly with an inject
   the silent peers' ghosts, where deviating peers reported themselves) and the geofence over
   ``monitor_horizon_s``; a predicted conflict asks for a replan at once, and if a fresh plan
   still meets it less than ``onboard.agent.MONITOR_BRAKE_WITHIN_S`` ahead, brakes (further
-  ahead, another replan 0.3 s later);
+  ahead, another replan 0.3 s later); an obstacle that comes within the check's distance by
+  less than ``planning.monitor_obstacle_slack_m`` only asks for replans;
 - ``actions``: autopilot commands that wait for acknowledgements (offboard, arm, land), so the
   main loop never blocks;
 - the main loop (``main_step``): ground-station commands, the reactions, the peers' states
@@ -54,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from onboard.agent import (
+    MONITOR_REPLAN_AFTER_S,
     MONITOR_RETRY_S,
     DroneAgent,
     PeerView,
@@ -277,9 +279,12 @@ class FlightService:
         self._monitor_asked_s = -math.inf  # when the monitor asked for the replan awaited
         # the monitor's last check: (field, peers view, plan, 0.1 s grid step) -> problem
         self._monitor_key: tuple[object, ...] = ()
-        # the conflict found for _monitor_key, whether that plan holds still, and whether a
-        # braking stop would come less close than it (else the monitor does not brake)
-        self._monitor_problem: tuple[str, float, bool, bool] = ("", math.inf, False, True)
+        # the conflict found for _monitor_key, whether that plan holds still, whether a
+        # braking stop would come less close than it (else the monitor does not brake), and a
+        # shallow obstacle conflict (within the check's distance, not its slack) when no other
+        self._monitor_problem: tuple[str, float, bool, bool, str] = (
+            "", math.inf, False, True, ""
+        )  # fmt: skip
         self._plan_ms: list[float] = []
         self._plan_status = ""
         self._plan_stamp: float | None = None
@@ -294,6 +299,7 @@ class FlightService:
             "plans_over_budget": 0,  # gave up retrying at plan_budget_s: the safe plan flies on
             "monitor_replans": 0,
             "monitor_brakes": 0,
+            "monitor_shallow_replans": 0,  # asked for an obstacle within the brake's slack
             "monitor_braking_retries": 0,
             "monitor_holding": 0,
             "monitor_no_better_stop": 0,
@@ -774,14 +780,23 @@ class FlightService:
             # way out that comes as close as that stop would (the planner's rule)
             brake = braking_trajectory(now, *traj.state(now), p.a_max_m_s2, peak_fraction=1.0)
             brake_pos = brake.sample(ts)
-            # the earliest conflict, when, and whether the brake would come less close
+            # the earliest conflict, when, and whether the brake would come less close; an
+            # obstacle within the check's distance but not within its slack is only shallow
+            # (a plan checked on an older map): it asks for a replan, never a brake
             problem, at, helps = "", math.inf, True
+            shallow = ""
             if fld is not None:
                 d, _ = fld.distance(np.concatenate([pos, brake_pos]))
+                slack = self.cfg.planning.monitor_obstacle_slack_m
                 problem, at, helps = obstacle_conflict(
-                    d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :],
+                    d[: len(ts)], ts, now, p.check_obstacle_m - slack, d[len(ts) :],
                     self.agent.brake_reference_s,
                 )  # fmt: skip
+                if not problem and slack > 0.0:
+                    shallow = obstacle_conflict(
+                        d[: len(ts)], ts, now, p.check_obstacle_m, d[len(ts) :],
+                        self.agent.brake_reference_s,
+                    )[0]  # fmt: skip
             # the check the plans keep (wider while a peer does not hear us)
             peer, peer_at, peer_helps = peer_conflict(
                 view, now, ts, pos, self.agent.check_drone_m, brake_pos,
@@ -796,10 +811,18 @@ class FlightService:
                 problem, at, helps = "geofence", ts[int(np.argmax(out))], True
             self._monitor_key = (fld, view, plan, g)
             still = float(np.ptp(pos, axis=0).max()) < HOLDING_STILL_M
-            self._monitor_problem = (problem, float(at), still, helps)
-        problem, at, still, helps = self._monitor_problem
+            self._monitor_problem = (problem, float(at), still, helps, shallow)
+        problem, at, still, helps, shallow = self._monitor_problem
         if not problem:
-            return ""
+            if not shallow or it.state is not S.FORMATION_FLIGHT:
+                return ""
+            if now - self._last_plan_s <= MONITOR_REPLAN_AFTER_S:
+                return f"watching: {shallow}"
+            if self._monitor_asked_s <= self._last_plan_s:
+                self.counters["monitor_shallow_replans"] += 1
+            self._monitor_asked_s = replan_asked_s(self._monitor_asked_s, self._last_plan_s, now)
+            self._ask_replan()
+            return f"replan: {shallow}"
         action = monitor_action(
             now,
             at,
