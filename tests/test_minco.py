@@ -165,3 +165,52 @@ def test_a_trajectory_cut_short_is_the_same_up_to_the_cut() -> None:
     assert tr.until(5.0 + 3.2) is tr and tr.until(100.0) is tr
     with pytest.raises(ValueError):
         tr.until(5.0)
+
+
+def _turn(t0: float = 10.0) -> Trajectory:
+    """Three pieces turning from +x to +y at about 0.5 m/s."""
+    m = Minco(3)
+    z = np.zeros(3)
+    m.set_conditions(
+        np.stack([np.array([0.0, 0.0, 1.0]), np.array([0.5, 0.0, 0.0]), z]),
+        np.stack([np.array([2.0, 2.0, 1.0]), np.array([0.0, 0.5, 0.0]), z]),
+    )
+    T = np.array([2.5, 2.5, 2.5])
+    m.set_parameters(np.array([[1.2, 0.2, 1.0], [1.8, 0.8, 1.0]]), T)
+    return Trajectory(t0, m.coeffs, T)
+
+
+@pytest.mark.parametrize("t", [10.0, 11.3, 12.5, 14.9])
+def test_a_stop_along_a_path_keeps_to_it_and_ends_at_rest(t: float) -> None:
+    """``Trajectory.stop_along`` (the flight service's hold): it starts in the trajectory's
+    state, ends at rest where the trajectory is half the stop's duration later (as far as a
+    straight braking stop of that duration goes), stays on the path in between, decelerates
+    no harder than the straight stop's peak plus the turn's own, and is None when the path
+    ends first."""
+    from onboard.planner.trajectory import braking_duration_s
+
+    tr = _turn()
+    p, v, a = tr.state(t)
+    tb = braking_duration_s(float(np.linalg.norm(v)), 3.0)
+    st = tr.stop_along(t, tb)
+    assert st is not None and st.t0_s == t and st.duration_s == pytest.approx(tb)
+    for got, want in zip(st.state(t), (p, v, a), strict=True):
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    end, v_end, a_end = st.state(t + tb)
+    np.testing.assert_allclose(end, tr.sample(t + 0.5 * tb), atol=1e-9)
+    np.testing.assert_allclose(v_end, 0.0, atol=1e-9)
+    np.testing.assert_allclose(a_end, 0.0, atol=1e-9)
+    # on the path: every point of the stop within 0.1 mm of the path it replays
+    path = tr.sample(np.linspace(t, t + 0.5 * tb, 4001))
+    stop = st.sample(np.linspace(t, t + tb, 101))
+    off = np.min(np.linalg.norm(path[None, :, :] - stop[:, None, :], axis=2), axis=1)
+    assert off.max() < 1e-4
+    # the straight stop goes as far, but off the path in a turn
+    straight = Trajectory.braking(t, p, v, a, 3.0)
+    far = np.linalg.norm(straight.sample(t + tb) - p)
+    assert np.linalg.norm(end - p) == pytest.approx(far, rel=0.05)
+    acc = np.linalg.norm(st.sample(np.linspace(t, t + tb, 101), 2), axis=1)
+    assert acc.max() <= 1.5 * np.linalg.norm(v) / tb + np.linalg.norm(a) + 0.2
+    assert tr.stop_along(tr.t_end_s - 0.1, 0.5) is None
+    with pytest.raises(ValueError):
+        tr.stop_along(t, 0.0)

@@ -26,7 +26,7 @@ from onboard.agent import (
 )
 from onboard.config import merge_mappings
 from onboard.planner.planner import EVADE, FormationPlanner, PlanResult, PlanStatus
-from onboard.planner.trajectory import Trajectory
+from onboard.planner.trajectory import Trajectory, braking_duration_s
 from onboard.record import read_record
 from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
 from onboard.service.adapters import SwarmBusAdapter
@@ -235,6 +235,67 @@ def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
     h.until(lambda: h.state is S.FORMATION_FLIGHT, 1.0, "flight resumed")
     h.until(lambda: h.state is S.HOVER, 40.0, "arrival after the depth came back")
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+
+
+def test_a_hold_stops_along_the_plan_not_across_its_turn(tmp_path: Path) -> None:
+    """The real stack on a starved host (seed 9, 2026-12-02): a drone held for lost depth
+    frames while its plan turned round a trunk stopped straight along its velocity, 0.03 m from
+    the trunk, and touched it. A hold now stops along the plan in control (the path the planner
+    checked), unless the map puts the straight stop further from every obstacle."""
+    from onboard.planner.field import AnalyticField
+    from onboard.planner.minco import Minco
+    from onboard.world import World
+
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(6.0)
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "formation flight")
+    here = np.asarray(h.ap.position, dtype=np.float64)
+    t = h.clock.t
+    # the plan: on at 0.5 m/s along +x, turning hard to +y (2 m/s^2 across)
+    m = Minco(2)
+    z = np.zeros(3)
+    m.set_conditions(
+        np.stack([here, np.array([0.5, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])]),
+        np.stack([here + [0.6, 1.2, 0.0], np.array([0.0, 0.5, 0.0]), z]),
+    )
+    durations = np.array([1.2, 1.8])
+    m.set_parameters(np.array([here + [0.45, 0.2, 0.0]]), durations)
+    plan = Trajectory(t, m.coeffs, durations)
+    p, v, a = plan.state(t)
+    tb = braking_duration_s(float(np.linalg.norm(v)), h.cfg.planner.a_max_m_s2)
+    along_end = plan.sample(t + 0.5 * tb)
+    straight_end = Trajectory.braking(t, p, v, a, h.cfg.planner.a_max_m_s2).sample(t + tb)
+    assert np.linalg.norm(along_end - straight_end) > 0.01  # the turn is tight enough
+
+    def held(trunk_at: np.ndarray | None) -> Trajectory:
+        if trunk_at is None:
+            h.svc.field = lambda: None  # type: ignore[method-assign]
+        else:
+            cyl = np.array([[trunk_at[0], trunk_at[1], 0.3, 0.0, 5.0]])
+            fld = AnalyticField(World(cyl, np.zeros((0, 7)), np.zeros((0, 6)), ground_z=0.0))
+            h.svc.field = lambda: fld  # type: ignore[method-assign]
+        h.svc.agent.reset(plan)
+        h.svc._brake(t, None)
+        stop = h.svc.flying(t)
+        assert stop is not None and stop is not plan
+        return stop
+
+    ahead = here + [0.12 + 0.42, -0.15, 0.0]  # a trunk ahead, outside the turn
+    stop = held(ahead)
+    np.testing.assert_allclose(stop.sample(t + tb), along_end, atol=1e-9)
+    fld = AnalyticField(
+        World(np.array([[ahead[0], ahead[1], 0.3, 0.0, 5.0]]), np.zeros((0, 7)),
+              np.zeros((0, 6)), ground_z=0.0)
+    )  # fmt: skip
+    ts = t + np.linspace(0.0, tb, 21)
+    d_stop = fld.distance(stop.sample(ts))[0].min()
+    d_straight = fld.distance(Trajectory.braking(t, p, v, a, 3.0).sample(ts))[0].min()
+    assert d_stop > d_straight
+    # with no map, along the plan too; a trunk inside the turn: the straight stop, further
+    np.testing.assert_allclose(held(None).sample(t + tb), along_end, atol=1e-9)
+    inside = here + [0.1, 0.55, 0.0]
+    np.testing.assert_allclose(held(inside).sample(t + tb), straight_end, atol=1e-9)
 
 
 def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(

@@ -248,6 +248,45 @@ class Trajectory:
         T[-1] = cut - (float(ends[m - 2]) if m > 1 else 0.0)  # > 0: ends[m - 2] < cut
         return Trajectory.trusted(self.t0_s, self.coeffs[:m].copy(), T)
 
+    def stop_along(self, t_s: float, duration_s: float, pieces: int = 4) -> Trajectory | None:
+        """A stop from this trajectory's state at ``t_s`` to rest ``duration_s`` later that keeps
+        to its path: the trajectory replayed ever slower, at the rate ``1 - 3 u^2 + 2 u^3``
+        (``u``: the stop's elapsed fraction), as ``pieces`` quintic pieces that match the
+        replay's position, velocity and acceleration at their ends. It ends where this
+        trajectory is ``duration_s / 2`` after ``t_s``: as far along as a straight braking stop
+        (``braking``) of the same duration goes at the same speed, with the same peak
+        deceleration along the way, but on the path the plan was checked on, not across a turn.
+        None when this trajectory ends before that point."""
+        T = float(duration_s)
+        if not (T > 0.0 and math.isfinite(T) and math.isfinite(t_s)) or pieces < 1:
+            raise ValueError(f"stop_along needs a finite duration > 0, got {duration_s!r}")
+        if t_s + 0.5 * T > self.t_end_s:
+            return None
+        u = np.linspace(0.0, 1.0, pieces + 1)
+        rate = 1.0 - 3.0 * u**2 + 2.0 * u**3  # d(replay time)/dt
+        rate_dot = (-6.0 * u + 6.0 * u**2) / T
+        at = t_s + T * (u - u**3 + 0.5 * u**4)  # the replay's time: the rate's integral
+        pos = self.sample(at)
+        vel0 = self.sample(at, 1)
+        vel = vel0 * rate[:, None]
+        acc = self.sample(at, 2) * (rate**2)[:, None] + vel0 * rate_dot[:, None]
+        h = T / pieces
+        h2, h3 = h * h, h * h * h
+        c = np.empty((pieces, N_COEFFS, 3))
+        for i in range(pieces):
+            p0, v0, a0 = pos[i], vel[i], acc[i]
+            p1, v1, a1 = pos[i + 1], vel[i + 1], acc[i + 1]
+            dp = p1 - p0
+            c[i, 0] = p0
+            c[i, 1] = v0
+            c[i, 2] = 0.5 * a0
+            c[i, 3] = (20.0 * dp - (8.0 * v1 + 12.0 * v0) * h - (3.0 * a0 - a1) * h2) / (2.0 * h3)
+            c[i, 4] = (-30.0 * dp + (14.0 * v1 + 16.0 * v0) * h + (3.0 * a0 - 2.0 * a1) * h2) / (
+                2.0 * h3 * h
+            )
+            c[i, 5] = (12.0 * dp - 6.0 * (v1 + v0) * h - (a0 - a1) * h2) / (2.0 * h3 * h2)
+        return Trajectory(t_s, c, np.full(pieces, h))
+
     @staticmethod
     def hover(position: np.ndarray, t0_s: float, duration_s: float = 1.0) -> Trajectory:
         """A one-piece trajectory that stays at ``position``."""

@@ -71,7 +71,7 @@ from onboard.agent import (
 )
 from onboard.comm.hearing import not_hearing
 from onboard.planner.planner import APPROACH, LAST_RESORT, PlanStatus
-from onboard.planner.trajectory import Trajectory
+from onboard.planner.trajectory import Trajectory, braking_duration_s
 from onboard.record import FlightRecorder, flight_file_name
 from onboard.sensors.simulated import heading_yaw, look_velocity
 from onboard.service.config import OnboardConfig
@@ -469,7 +469,12 @@ class FlightService:
             self._ask_replan()
 
     def _brake(self, now: float, veh: VehicleSnapshot | None, keep_hover: bool = False) -> None:
-        """A braking stop from the state of the trajectory in control (or the vehicle)."""
+        """A braking stop from the state of the trajectory in control (or the vehicle): along
+        that trajectory's path where it goes on long enough (``Trajectory.stop_along``) unless
+        the map puts the straight stop along the velocity further from every obstacle. A
+        straight stop cuts the corner of a turn: a drone held for lost depth frames while its
+        plan turned round a trunk stopped 0.03 m from it and touched it (the real stack on a
+        starved host, BENCHMARKS.md section 10, 2026-12-02)."""
         traj = self.flying(now)
         if keep_hover and traj is not None:
             end = traj.end_position
@@ -477,6 +482,20 @@ class FlightService:
             return
         if traj is not None:
             p, v, a = traj.state(now)
+            a_max = self.cfg.planner.a_max_m_s2
+            tb = braking_duration_s(float(np.linalg.norm(v)), a_max)
+            along = traj.stop_along(now, tb)
+            if along is not None:
+                straight = braking_trajectory(now, p, v, a, a_max)
+                fld = self.field()
+                if fld is not None:
+                    ts = now + np.linspace(0.0, tb, 21)
+                    d, _ = fld.distance(np.concatenate([along.sample(ts), straight.sample(ts)]))
+                    if float(d[21:].min()) > float(d[:21].min()):
+                        self._control(straight)
+                        return
+                self._control(along)
+                return
         elif veh is not None:
             p, v, a = veh.position_m, veh.velocity_m_s, np.zeros(3)
         else:
