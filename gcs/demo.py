@@ -1468,9 +1468,9 @@ def result_text(r: dict[str, Any]) -> str:
     if mon:
         lines.append(
             f"safety monitors: {mon.get('brakes', 0)} braking stops in flight, "
-            f"{mon.get('replans', 0)} replans asked for a conflict, "
-            f"{mon.get('shallow_replans', 0)} for an obstacle within the check's distance by "
-            "less than the brake's slack"
+            f"{mon.get('replans', 0)} looks (100 a second) that asked for a replan for a "
+            f"conflict, {mon.get('shallow_replans', 0)} replans asked for an obstacle within the "
+            "check's distance by less than the brake's slack"
         )
     cpu_line = _cpu_text(r)
     if cpu_line:

@@ -602,9 +602,10 @@ MONITOR_COUNTERS = ("monitor_brakes", "monitor_replans", "monitor_shallow_replan
 
 def monitor_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
     """What the drones' safety monitors did over the flight, summed from each record's last
-    ``/counters``: braking stops (each a stop and a second's hover in flight), replans asked for
-    a conflict, and replans asked for an obstacle within the check's distance but not within
-    the brake's slack (``planning.monitor_obstacle_slack_m``). A record of an older service
+    ``/counters``: braking stops (each a stop and a second's hover in flight), the monitor's
+    looks (100 a second) that asked for a replan for a conflict, and the replans asked for an
+    obstacle within the check's distance but not within the brake's slack
+    (``planning.monitor_obstacle_slack_m``). A record of an older service
     without a counter adds 0 for it."""
     return {
         k.removeprefix("monitor_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
