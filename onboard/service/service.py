@@ -71,7 +71,7 @@ from onboard.agent import (
 )
 from onboard.comm.hearing import not_hearing
 from onboard.planner.planner import APPROACH, LAST_RESORT, PlanStatus
-from onboard.planner.trajectory import Trajectory, braking_duration_s
+from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
 from onboard.sensors.simulated import heading_yaw, look_velocity
 from onboard.service.config import OnboardConfig
@@ -482,25 +482,19 @@ class FlightService:
             return
         if traj is not None:
             p, v, a = traj.state(now)
-            a_max = self.cfg.planner.a_max_m_s2
-            tb = braking_duration_s(float(np.linalg.norm(v)), a_max)
-            along = traj.stop_along(now, tb)
-            if along is not None:
-                straight = braking_trajectory(now, p, v, a, a_max)
-                fld = self.field()
-                if fld is not None:
-                    ts = now + np.linspace(0.0, tb, 21)
-                    d, _ = fld.distance(np.concatenate([along.sample(ts), straight.sample(ts)]))
-                    if float(d[21:].min()) > float(d[:21].min()):
-                        self._control(straight)
-                        return
-                self._control(along)
-                return
         elif veh is not None:
             p, v, a = veh.position_m, veh.velocity_m_s, np.zeros(3)
         else:
             return
-        self._control(braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2))
+        straight = braking_trajectory(now, p, v, a, self.cfg.planner.a_max_m_s2)
+        along = None if traj is None else traj.stop_along(now, straight.duration_s)
+        fld = None if along is None else self.field()
+        if along is not None and fld is not None:
+            ts = now + np.linspace(0.0, straight.duration_s, 21)
+            d, _ = fld.distance(np.concatenate([along.sample(ts), straight.sample(ts)]))
+            if float(d[21:].min()) > float(d[:21].min()):
+                along = None  # the straight stop keeps further from every obstacle
+        self._control(straight if along is None else along)
 
     def _ask_replan(self) -> None:
         self.agent.request_replan()
