@@ -170,6 +170,8 @@ def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
         "plan_ms_p90": _num(plan.get("p90")),
         "plan_cpu_ms_median": _num((d.get("plan_cpu_ms") or {}).get("median")),
         "monitor_brakes": (d.get("monitor") or {}).get("brakes"),
+        "depth_holds": (d.get("depth_holds") or {}).get("holds"),
+        "map_lag_rides": (d.get("depth_holds") or {}).get("map_lag_rides"),
         "depth_frames": depth.get("frames"),
         "depth_frames_skipped": depth.get("skipped"),
         "cpu_s": sum((d.get("cpu_s") or {}).values()) or None,
@@ -384,7 +386,7 @@ def bench_demo(
             "clear. centre / body m", "min pair m"]  # fmt: skip
     if fc is not None:
         cols.append("new shape after s (command / switch)")
-    cols += ["plans med ms", "brakes", "depth frames / skipped"]
+    cols += ["plans med ms", "brakes / depth holds", "depth frames / skipped"]
     for c in cols:
         t.add_column(c, justify="right")
     for r in rows:
@@ -412,7 +414,9 @@ def bench_demo(
                 )
             cells += [
                 _fmt(g.get("plan_ms_median", g.get("replan_ms_median")), ".1f"),
-                str(g.get("monitor_brakes", "-")) if side == "demo" else "",
+                f"{_fmt(g.get('monitor_brakes'), 'd')} / {_fmt(g.get('depth_holds'), 'd')}"
+                if side == "demo"
+                else "",
                 f"{g.get('depth_frames', '-')} / {g.get('depth_frames_skipped', '-')}"
                 if side == "demo"
                 else "",

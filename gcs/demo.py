@@ -1247,6 +1247,8 @@ class Demo:
             },
             # the services' safety monitors: braking stops in flight, replans they asked for
             "monitor": summary.get("monitor"),
+            # the services' holds for lost depth (a silent camera, a map lagging a live one)
+            "depth_holds": summary.get("depth_holds"),
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),
@@ -1471,6 +1473,14 @@ def result_text(r: dict[str, Any]) -> str:
             f"{mon.get('replans', 0)} looks (100 a second) that asked for a replan for a "
             f"conflict, {mon.get('shallow_replans', 0)} replans asked for an obstacle within the "
             "check's distance by less than the brake's slack"
+        )
+    dh = r.get("depth_holds")
+    if dh:
+        lines.append(
+            f"depth: {dh.get('holds', 0)} holds for lost depth ({dh.get('map_lag_holds', 0)} "
+            f"for a map over map_lag_s behind a live camera), {dh.get('map_lag_rides', 0)} "
+            f"times the map lagged the camera past its timeout without a hold, "
+            f"{dh.get('frames_missed', 0)} frames the mapping never saw"
         )
     cpu_line = _cpu_text(r)
     if cpu_line:

@@ -588,6 +588,7 @@ def summarise(a: Analysis) -> dict[str, Any]:
             LatencyFigures.merge(x for f in a.flights if (x := f.peer_latency()) is not None)
         ),
         "monitor": monitor_counts(a.flights),
+        "depth_holds": depth_hold_counts(a.flights),
         "assignments": [
             {k: x.get(k) for k in ("name", "epoch", "effective_s")}
             for x in a.mission.get("assignments", [])
@@ -610,6 +611,23 @@ def monitor_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
     return {
         k.removeprefix("monitor_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
         for k in MONITOR_COUNTERS
+    }
+
+
+DEPTH_COUNTERS = ("depth_holds", "map_lag_holds", "map_lag_rides", "frames_missed")
+"""The services' depth reaction counters a flight's summary adds up (``depth_hold_counts``)."""
+
+
+def depth_hold_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
+    """The drones' holds for lost depth over the flight, summed from each record's last
+    ``/counters``: ``holds`` (a stop and a hover until frames come again), of them
+    ``map_lag_holds`` for a map more than ``map_lag_s`` behind a live camera, ``map_lag_rides``
+    (the map more than the camera's ``timeout_s`` behind frames that kept arriving, which
+    held no drone then: a starved mapping thread), ``frames_missed`` (frames the mapping
+    never saw). An older service's record adds 0 for a counter it lacks."""
+    return {
+        k.removeprefix("depth_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
+        for k in DEPTH_COUNTERS
     }
 
 

@@ -103,7 +103,12 @@ class InMemoryTruth:
                 img = self.depth.get(system_id)
             return img if img is not None and img.stamp_s > stamp_s else None
 
-        return TruthDepthSource(after)
+        def newest() -> float | None:
+            with self._lock:
+                img = self.depth.get(system_id)
+            return None if img is None else img.stamp_s
+
+        return TruthDepthSource(after, newest=newest)
 
     def pose_provider(self, system_id: int) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         """Camera pose of one vehicle, as ``onboard.sensors.PoseProvider``."""

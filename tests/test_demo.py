@@ -435,6 +435,15 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     assert result["monitor"] == summary["monitor"]
     assert set(result["monitor"]) == {"brakes", "replans", "shallow_replans"}
     assert "safety monitors: " in result_text(result)
+    # the holds for lost depth, with the map's lags behind a live camera
+    assert result["depth_holds"] == summary["depth_holds"]
+    assert set(result["depth_holds"]) == {
+        "holds",
+        "map_lag_holds",
+        "map_lag_rides",
+        "frames_missed",
+    }
+    assert "holds for lost depth" in result_text(result)
     keys = [p.read_text().strip() for p in sorted((out / "secrets").glob("mavlink-*.key"))]
     assert len(keys) == 3
     for p in out.rglob("*"):

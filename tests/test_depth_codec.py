@@ -222,6 +222,7 @@ def test_depth_source_reads_each_frame_once() -> None:
     closed: list[bool] = []
     src = TruthDepthSource(lambda _after: holder[0], on_close=lambda: closed.append(True))
     assert src.read() is None and src.intrinsics.width == 640  # D435 before any frame
+    assert src.newest_stamp_s() is None  # a source not told of arrivals cannot tell
     holder[0] = _image(stamp=2.0)
     f = src.read()
     assert f is not None and f.stamp_s == 2.0 and src.read() is None
@@ -309,11 +310,12 @@ def test_depth_source_owning_its_subscriber_on_a_shared_session(
     try:
         src = open_depth_source(7, prefix="t/own", session=session)
         try:
+            assert src.newest_stamp_s() is None  # nothing arrived yet
 
             def got_frame() -> bool:
                 pub.put("t/own/7/depth", _image(sid=7, stamp=time.monotonic()).to_bytes())
                 time.sleep(0.02)
-                return src.read() is not None
+                return src.newest_stamp_s() is not None and src.read() is not None
 
             _wait(got_frame, "a frame")
         finally:
@@ -397,11 +399,14 @@ def test_a_busy_reader_gets_the_frames_that_came_meanwhile_in_order(
             return sub.depth_image(5) is not None
 
         _wait(first, "the first frame")
+        assert src.newest_stamp_s() == 1.0
         f = src.read()
         assert f is not None and f.stamp_s == 1.0
         for stamp in (2.0, 3.0, 4.0):
             pub.put("t/q/5/depth", _image(sid=5, stamp=stamp).to_bytes())
         _wait(lambda: sub.counters()["depth.rx"] >= 4, "three more frames")
+        # the newest arrival is told before it is read (the service's map-lag judgement)
+        assert src.newest_stamp_s() == 4.0
         got = []
         while (f := src.read()) is not None:
             got.append(f.stamp_s)

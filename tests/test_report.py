@@ -113,10 +113,13 @@ def write_flight(d: Path) -> dict[str, object]:
             rec.event(T0 + 20.0, "near miss", level="warning")
             # the safety monitors' counters: the last snapshot counts (drone 2's service is
             # older: no shallow replans)
-            mon = {"service.monitor_brakes": i, "service.monitor_replans": 10 + i}
+            mon = {"service.monitor_brakes": i, "service.monitor_replans": 10 + i,
+                   "service.depth_holds": 2 * i, "service.frames_missed": 5}  # fmt: skip
             rec.counters(T0 + 10.0, {k: 0 for k in mon})
             if i < 2:
                 mon["service.monitor_shallow_replans"] = 3
+                mon["service.map_lag_holds"] = i
+                mon["service.map_lag_rides"] = 4
             rec.counters(T0 + 30.0, mon)
     return mission
 
@@ -156,6 +159,12 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
     assert s["monitor"] == {"brakes": 0 + 1 + 2, "replans": 33, "shallow_replans": 6}
+    assert s["depth_holds"] == {
+        "holds": 0 + 2 + 4,
+        "map_lag_holds": 1,
+        "map_lag_rides": 8,
+        "frames_missed": 15,
+    }
     # flight time: take-off transition at t=1 to landed at t=35
     assert s["flight_time_s"] == pytest.approx(34.0, abs=1e-6)
     # the near miss: drone 2 comes to 0.2 m of drone 1 (one drone-collision start)

@@ -59,6 +59,10 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
         ("planning:\n  resend_s: 0.05\n", "planning.resend_s", "list"),
         ("reactions:\n  gcs_lost: {action: rtl}\n", "reactions.gcs_lost.action", "land"),
         ("reactions:\n  depth_lost: {timeout_s: -1}\n", "timeout_s", "[0.05, 10]"),
+        # a map cannot be allowed to lag less than the camera's frames may
+        ("reactions:\n  depth_lost: {timeout_s: 2.0, map_lag_s: 1.0}\n",
+         "reactions.depth_lost: map_lag_s", "at least timeout_s (2 s)"),
+        ("reactions:\n  depth_lost: {map_lag_s: 40}\n", "map_lag_s", "[0.05, 30]"),
         ("geofence:\n  min_enu_m: [0, 0, 0]\n  max_enu_m: [1, -1, 3]\n", "geofence", "min"),
         ("planner:\n  v_max_m_s: fast\n", "planner.v_max_m_s", "expected a number"),
         ("mapping:\n  occupancy: {resolution_m: -1}\n", "mapping.occupancy", "resolution_m"),

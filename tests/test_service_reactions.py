@@ -32,6 +32,7 @@ from onboard.sensors.simulated import SWEEP_PERIOD_S, SWEEP_RAD
 from onboard.service.adapters import SwarmBusAdapter
 from onboard.service.config import default_config_path, load_onboard_config
 from onboard.service.fakes import (
+    FakeArrivingDepth,
     FakeAutopilot,
     FakeBus,
     FakeDepth,
@@ -64,7 +65,10 @@ moving = straight_trajectory
 class Harness:
     """One service, its fake edges, and a loop that steps them all on the same clock."""
 
-    def __init__(self, tmp_path: Path, depth: bool = True, **overrides: Any) -> None:
+    def __init__(
+        self, tmp_path: Path, depth: bool = True, arriving: bool = False, **overrides: Any
+    ) -> None:
+        """``arriving``: a depth source that tells when frames arrive (the mock's)."""
         self.clock = Clock()
         data = merge_mappings(
             {"record": {"directory": str(tmp_path)}, "planning": {"warm_up": False}},
@@ -74,7 +78,9 @@ class Harness:
         self.ap = FakeAutopilot(self.clock)
         self.bus = FakeBus()
         self.bus.gcs_heard = self.clock.t
-        self.depth = FakeDepth(self.clock, self.ap) if depth else None
+        kind = FakeArrivingDepth if arriving else FakeDepth
+        self.depth = kind(self.clock, self.ap) if depth else None
+        self.mapping = True  # False: the depth thread never runs (starved)
         self.svc = FlightService(
             self.cfg, self.ap, self.bus, self.depth, clock=self.clock, notifier=Notifier({})
         )
@@ -97,7 +103,7 @@ class Harness:
             for peer in self.peers.values():
                 peer.tick(self.clock.t)
             self.ap.tick()
-            if self.depth is not None:
+            if self.depth is not None and self.mapping:
                 svc.depth_step()
             svc.main_step()
             while svc.actions_step(0.0):
@@ -235,6 +241,52 @@ def test_depth_lost_stops_and_hovers_then_continues(tmp_path: Path) -> None:
     h.until(lambda: h.state is S.FORMATION_FLIGHT, 1.0, "flight resumed")
     h.until(lambda: h.state is S.HOVER, 40.0, "arrival after the depth came back")
     assert np.linalg.norm(h.ap.position - goal) < h.cfg.planning.goal_tolerance_m
+
+
+def test_a_map_lagging_a_live_camera_holds_only_after_map_lag_s(tmp_path: Path) -> None:
+    """The demo's starved host (forest-medium seed 3, 2026-12-02): frames kept arriving while
+    the (niced) mapping thread did not run for 1.3 s; judged by the frames it had mapped, the
+    drone held as if blind, ten times in the 13 s of a formation change. With a source that
+    tells when frames arrive, the camera is judged by them (``timeout_s``) and the map by
+    ``map_lag_s``; a silent camera and frames the mapper refuses still hold at ``timeout_s``."""
+    h = Harness(tmp_path, arriving=True)
+    rx = h.cfg.reactions.depth_lost
+    assert rx.timeout_s + 1.0 < rx.map_lag_s
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT
+    # frames arrive, none is mapped: no hold within the map's allowance (a ride)
+    h.mapping = False
+    t_cut = h.clock.t
+    h.until(lambda: h.clock.t - t_cut >= rx.timeout_s + 1.0, 5.0, "a second past the timeout")
+    assert h.state is S.FORMATION_FLIGHT
+    assert h.svc.counters["map_lag_rides"] == 1 and h.svc.counters["depth_holds"] == 0
+    h.until(lambda: h.state is S.HOVER, rx.map_lag_s, "a hold for the lagging map")
+    assert h.clock.t - t_cut == pytest.approx(rx.map_lag_s, abs=0.11)
+    assert "behind the camera" in h.svc.machine.history[-1].reason
+    assert h.svc.counters["map_lag_holds"] == 1 and h.svc.counters["depth_holds"] == 1
+    # the mapper runs again: flight resumes once frames come for recover_s, the map current
+    h.mapping = True
+    t_back = h.clock.t
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "flight resumed")
+    assert h.clock.t - t_back == pytest.approx(rx.recover_s, abs=0.16)
+    # the camera falls silent: the hold comes at timeout_s, whatever the map's allowance
+    h.step(20)
+    h.depth.on = False  # type: ignore[union-attr]
+    t_cut = h.clock.t
+    h.until(lambda: h.state is S.HOVER, 1.0, "hover after the camera fell silent")
+    assert h.clock.t - t_cut == pytest.approx(rx.timeout_s, abs=0.11)
+    assert h.svc.machine.history[-1].reason == "no depth frames"
+    h.depth.on = True  # type: ignore[union-attr,unused-ignore]
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "flight resumed")
+    # frames read and refused by the mapper are no frames: the hold at timeout_s
+    h.step(20)
+    h.depth.broken = True  # type: ignore[union-attr]
+    t_cut = h.clock.t
+    h.until(lambda: h.state is S.HOVER, 1.0, "hover for refused frames")
+    assert h.clock.t - t_cut == pytest.approx(rx.timeout_s, abs=0.11)
+    assert h.svc.counters["depth_holds"] == 3 and h.svc.counters["map_lag_holds"] == 1
 
 
 def test_a_hold_stops_along_the_plan_not_across_its_turn(tmp_path: Path) -> None:

@@ -628,6 +628,7 @@ def test_depth_frames_from_the_true_pose() -> None:
     assert check_frame(back.to_depth_frame()).shape == (120, 160)
     # the onboard side reads it as a depth source, with the camera pose alongside
     source = truth.depth_source(1)
+    assert source.newest_stamp_s() == img.stamp_s  # arrived, not yet read
     frame = source.read()
     assert frame is not None and source.read() is None
     assert source.intrinsics.width == 160 and frame.decimation == 4

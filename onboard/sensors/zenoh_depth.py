@@ -372,15 +372,19 @@ class TruthDepthSource:
     None when there is none. ``next_after(stamp_s)`` gives that frame: a subscriber that keeps a
     few recent frames hands them out in order, so a reader busy for a while (an ESDF refresh)
     catches up instead of losing the frames that came meanwhile. ``on_close``: called by
-    ``close`` (e.g. to close a subscriber it owns)."""
+    ``close`` (e.g. to close a subscriber it owns). ``newest``: the stamp of the newest frame
+    received, read or not (None before the first; ``newest_stamp_s``): whether the camera is
+    alive, apart from whether its reader keeps up."""
 
     def __init__(
         self,
         next_after: Callable[[float], DepthImage | None],
         on_close: Callable[[], None] | None = None,
+        newest: Callable[[], float | None] | None = None,
     ) -> None:
         self._next_after = next_after
         self._on_close = on_close
+        self._newest = newest
         self._last_stamp = -math.inf
         self._intrinsics: CameraIntrinsics | None = None
 
@@ -388,6 +392,12 @@ class TruthDepthSource:
     def intrinsics(self) -> CameraIntrinsics:
         """The intrinsics of the last frame read (D435 defaults before the first)."""
         return self._intrinsics if self._intrinsics is not None else CameraIntrinsics()
+
+    def newest_stamp_s(self) -> float | None:
+        """The stamp of the newest frame that has arrived, read or not (None: none yet, or a
+        source that cannot tell): frames still come when it moves on, even while ``read`` is
+        not called (a starved mapping thread)."""
+        return None if self._newest is None else self._newest()
 
     def read(self) -> DepthFrame | None:
         img = self._next_after(self._last_stamp)
@@ -571,9 +581,18 @@ class ZenohTruthSubscriber:
                     return img
         return None
 
+    def depth_newest_stamp(self, system_id: int) -> float | None:
+        """The stamp of the newest depth frame kept of a vehicle (None: none yet)."""
+        with self._lock:
+            q = self._depth.get(system_id)
+            return q[-1].stamp_s if q else None
+
     def depth_source(self, system_id: int) -> TruthDepthSource:
         """The frames of one vehicle (closing the source leaves the subscriber open)."""
-        return TruthDepthSource(lambda after: self.depth_after(system_id, after))
+        return TruthDepthSource(
+            lambda after: self.depth_after(system_id, after),
+            newest=lambda: self.depth_newest_stamp(system_id),
+        )
 
     def pose_provider(self, system_id: int) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         return pose_provider(lambda: self.pose(system_id))
@@ -602,4 +621,8 @@ def open_depth_source(
         system_id=system_id,
         poses=False,
     )
-    return TruthDepthSource(lambda after: sub.depth_after(system_id, after), on_close=sub.close)
+    return TruthDepthSource(
+        lambda after: sub.depth_after(system_id, after),
+        on_close=sub.close,
+        newest=lambda: sub.depth_newest_stamp(system_id),
+    )

@@ -425,15 +425,32 @@ class FlightSection:
 class DepthLostReaction:
     """No depth frame for ``timeout_s``: stop and hover until frames return, and keep coming
     for ``recover_s`` (no gap above ``timeout_s`` meanwhile): a camera stuttering around the
-    timeout holds the drone in hover instead of flipping its state at every frame."""
+    timeout holds the drone in hover instead of flipping its state at every frame.
+
+    A source that tells when frames arrive (``newest_stamp_s``: the SITL mock's) separates a
+    silent camera from a map that lags behind a live one (the mapping thread starved of CPU,
+    frames waiting): the camera is judged by its frames' arrival (``timeout_s``), the map by
+    its last ingested frame against ``map_lag_s``, the same hold once either is over. A lagging
+    map is a stale one, not a blind drone: the planner never accepts a plan that enters
+    unobserved space in its first ``check_known_s``, so a drone whose map does not grow stops
+    at the edge of what it has mapped. Recovery asks frames for ``recover_s`` and the map
+    within ``timeout_s`` of them again. For a source that cannot tell, arrival is ingestion
+    (``timeout_s`` alone)."""
 
     timeout_s: float = 0.5
     action: Literal["hover"] = "hover"
     recover_s: float = 0.5
+    map_lag_s: float = 3.0
 
     def __post_init__(self) -> None:
         _in_range("timeout_s", self.timeout_s, 0.05, 10.0)
         _in_range("recover_s", self.recover_s, 0.0, 10.0)
+        _in_range("map_lag_s", self.map_lag_s, 0.05, 30.0)
+        if self.map_lag_s < self.timeout_s:
+            raise ValueError(
+                f"map_lag_s: expected at least timeout_s ({self.timeout_s:g} s), got "
+                f"{self.map_lag_s!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -205,7 +205,8 @@ class FakeBus:
 
 class FakeDepth:
     """Depth frames of nothing (every pixel a far return) from the fake vehicle's pose while
-    ``on``; ``read`` gives one new frame per call."""
+    ``on``; ``read`` gives one new frame per call (``broken``: a frame the mapper refuses, its
+    camera pose not finite). It does not tell when frames arrive (``FakeArrivingDepth`` does)."""
 
     def __init__(self, clock: Callable[[], float], vehicle: FakeAutopilot) -> None:
         from onboard.mapping.camera import CameraIntrinsics
@@ -213,6 +214,7 @@ class FakeDepth:
         self.clock = clock
         self.vehicle = vehicle
         self.on = True
+        self.broken = False
         self.intrinsics = CameraIntrinsics(32, 24, 16.0, 16.0, 16.0, 12.0, 0.2, 5.0)
         self._last = -math.inf
 
@@ -225,10 +227,27 @@ class FakeDepth:
         self._last = now
         depth = np.zeros((24, 32), dtype=np.float32)  # no return: nothing mapped
         rot = look_rotation(self.vehicle.yaw)
-        return DepthFrame(depth, now, self.vehicle.position + [0, 0, 0.05], rot, self.intrinsics)
+        pos = self.vehicle.position + [0, 0, 0.05]
+        if self.broken:
+            pos = pos * math.nan
+        return DepthFrame(depth, now, pos, rot, self.intrinsics)
 
     def close(self) -> None:
         pass
+
+
+class FakeArrivingDepth(FakeDepth):
+    """``FakeDepth`` that tells when frames arrive (``newest_stamp_s``, as the SITL mock's
+    source does): a frame arrives at every clock time while ``on``, read or not."""
+
+    def __init__(self, clock: Callable[[], float], vehicle: FakeAutopilot) -> None:
+        super().__init__(clock, vehicle)
+        self._newest: float | None = None
+
+    def newest_stamp_s(self) -> float | None:
+        if self.on:
+            self._newest = self.clock()
+        return self._newest
 
 
 def straight_trajectory(

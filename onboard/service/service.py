@@ -261,6 +261,10 @@ class FlightService:
         self.mapper: Any = None
         self._last_frame_s = -math.inf
         self._last_frame_stamp = -math.inf
+        self._read_stamp = -math.inf  # the last frame the depth thread read (mapped or not)
+        self._arrival_stamp: float | None = None  # the newest frame the source told of
+        self._last_arrival_s = -math.inf  # when that moved on (frames arriving)
+        self._map_lag_riding = False  # the map over timeout_s behind a live camera
         self._next_esdf_s = -math.inf  # the ESDF refresh's next deadline (a fixed phase)
         self._offboard_seen = False
         self._land_seen = False
@@ -308,6 +312,9 @@ class FlightService:
             "frames": 0,
             "frames_rejected": 0,
             "frames_missed": 0,
+            "depth_holds": 0,  # holds for lost depth, for a silent camera or a lagging map
+            "map_lag_holds": 0,  # of those: a live camera, the map over map_lag_s behind
+            "map_lag_rides": 0,  # the map over timeout_s behind a live camera, no hold (yet)
             "esdf_builds": 0,
             "esdf_skipped": 0,  # refreshes that kept the field (nothing it reads changed)
             "esdf_new_buffer_sets": 0,
@@ -590,6 +597,7 @@ class FlightService:
         frame = self.depth.read()
         if frame is None:
             return False
+        self._read_stamp = float(frame.stamp_s)
         if self.mapper is None:
             self.mapper = self._make_mapper()
         res = self.mapper.ingest(frame, step=self.cfg.depth.step)
@@ -632,6 +640,20 @@ class FlightService:
                 self._last_map_record_s = now
                 self._record_map(now, np.asarray(frame.position, dtype=np.float64))
         return True
+
+    def _frames_arrived(self, now: float) -> tuple[float, bool]:
+        """When the newest depth frame arrived (our clock; the main loop notes when the
+        source's ``newest_stamp_s`` moves on) and whether frames wait that the depth thread
+        has not read (a map lagging a live camera). A source that cannot tell: the last frame
+        mapped, none waiting (frames judged by ``timeout_s`` alone)."""
+        newest = getattr(self.depth, "newest_stamp_s", None)
+        stamp = newest() if newest is not None else None
+        if stamp is None:
+            return self._last_frame_s, False
+        if stamp != self._arrival_stamp:
+            self._arrival_stamp = stamp
+            self._last_arrival_s = now
+        return max(self._last_arrival_s, self._last_frame_s), stamp > self._read_stamp
 
     def _cpu(self, name: str, seconds: float) -> None:
         """Add a worker's CPU time (its thread's) to the ``cpu_us.<name>`` counter."""
@@ -1059,20 +1081,34 @@ class FlightService:
                     self._land_seen = True
                 elif self._land_seen and not veh.landed:
                     m.pilot_took_over(veh.mode)
-        # depth frames
+        # depth frames: the camera by its frames' arrival, the map by the last one mapped
         if self.depth is not None and m.state in COMMANDING:
-            silent = now - max(self._last_frame_s, self._started_s)
             rx = self.cfg.reactions.depth_lost
-            if silent > rx.timeout_s:
+            arrived, waiting = self._frames_arrived(now)
+            silent = now - max(arrived, self._started_s)
+            lag = now - max(self._last_frame_s, self._started_s)
+            riding = waiting and silent <= rx.timeout_s < lag
+            if riding and not self._map_lag_riding and not self._depth_lost:
+                self.counters["map_lag_rides"] += 1
+            self._map_lag_riding = riding
+            if silent > rx.timeout_s or lag > (rx.map_lag_s if waiting else rx.timeout_s):
                 self._depth_back_since = None  # (still) lost: the recovery starts over
                 if not self._depth_lost:
                     self._depth_lost = True
-                    event(log, "depth_lost", logging.WARNING, silent_s=silent)
-                    m.depth_lost()
+                    behind = waiting and silent <= rx.timeout_s
+                    why = f"map {lag:.1f} s behind the camera" if behind else "no depth frames"
+                    event(
+                        log, "depth_lost", logging.WARNING, silent_s=silent, map_lag_s=lag,
+                        why=why,
+                    )  # fmt: skip
+                    self.counters["depth_holds"] += 1
+                    if behind:
+                        self.counters["map_lag_holds"] += 1
+                    m.depth_lost(why)
             elif self._depth_lost:
                 if self._depth_back_since is None:
-                    self._depth_back_since = self._last_frame_s
-                if self._last_frame_s - self._depth_back_since >= rx.recover_s:
+                    self._depth_back_since = arrived
+                if arrived - self._depth_back_since >= rx.recover_s and lag <= rx.timeout_s:
                     self._depth_lost = False
                     self._depth_back_since = None
                     event(log, "depth_back")

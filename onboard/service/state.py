@@ -457,8 +457,8 @@ class FlightStateMachine:
         """The link is back; nothing changes until a command says so."""
         self.link_ok = True
 
-    def depth_lost(self) -> None:
-        self._hold(HOLD_DEPTH, "no depth frames")
+    def depth_lost(self, why: str = "no depth frames") -> None:
+        self._hold(HOLD_DEPTH, why)
 
     def depth_restored(self) -> None:
         self._release(HOLD_DEPTH, "depth frames back")
