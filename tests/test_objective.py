@@ -40,7 +40,8 @@ def _pack(peers: list[Minco], K: int) -> tuple[np.ndarray, np.ndarray]:
     return pc, pT
 
 
-def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: int = 1):  # type: ignore[no-untyped-def]
+def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: int = 1,  # type: ignore[no-untyped-def]
+           front: float = 0.0):  # fmt: skip
     rng = np.random.default_rng(seed)
     M = 4
     head = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.0], [0.0, 0.1, 0.0]])
@@ -72,6 +73,8 @@ def _setup(seed: int, weights: dict[str, float], mode: str = "cubic", stride: in
     prm[obj.P_FORM_MODE] = obj.FORM_MODES[mode]
     prm[obj.P_TAU_SCALE] = 1.0
     prm[obj.P_FORM_STRIDE] = stride
+    prm[obj.P_FORM_FRONT] = front  # J_f heavier near the start, decaying over 1.5 s
+    prm[obj.P_FORM_FRONT_S] = 1.5
     # a band narrower than the trajectory's climb from 1.0 to 1.2 m: J_z active on both sides
     prm[obj.P_Z_LO] = 1.05
     prm[obj.P_Z_HI] = 1.12
@@ -167,11 +170,16 @@ def test_cost_term_gradient_in_c_and_T(term: str) -> None:
 
 
 @pytest.mark.parametrize(
-    ("mode", "stride"),
-    [("linear", 1), ("linear", 5), ("cubic", 5), ("relative", 1), ("relative", 5)],
-)
-def test_formation_variant_gradient(mode: str, stride: int) -> None:
-    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, mode=mode, stride=stride)
+    ("mode", "stride", "front"),
+    [("linear", 1, 0.0), ("linear", 5, 0.0), ("cubic", 5, 0.0), ("relative", 1, 0.0),
+     ("relative", 5, 0.0), ("linear", 1, 4.0), ("linear", 5, 4.0), ("cubic", 5, 4.0)],
+)  # fmt: skip
+def test_formation_variant_gradient(mode: str, stride: int, front: float) -> None:
+    """Each form of J_f, also weighted heavier near the plan's start (``front``: the weight's
+    decay with the sample's time enters the time gradient)."""
+    M, head, tail, q, T, prob, fld = _setup(
+        12, {"formation": 10.0}, mode=mode, stride=stride, front=front
+    )
     m = Minco(M)
     m.set_conditions(head, tail)
     m.set_parameters(q, T)
@@ -189,6 +197,32 @@ def test_formation_variant_gradient(mode: str, stride: int) -> None:
         lambda TT: obj.cost_c_T(c0, TT, prob, fld, np.zeros_like(c0), np.zeros(M), costs), T, 1e-6
     )
     assert _rel_err(gT, num_T) <= RTOL
+
+
+def test_the_front_weight_scales_the_formation_cost_by_its_decay() -> None:
+    """``P_FORM_FRONT`` g with time constant tau: each sample's J_f times 1 + g exp(-t / tau);
+    the total lies between the uniform cost and 1 + g times it, and nearer the top for a
+    slower decay."""
+    M, head, tail, q, T, prob, fld = _setup(12, {"formation": 10.0}, mode="linear")
+    m = Minco(M)
+    m.set_conditions(head, tail)
+    m.set_parameters(q, T)
+
+    def j_f(front: float, tau: float) -> float:
+        prm = prob[3].copy()
+        prm[obj.P_FORM_FRONT] = front
+        prm[obj.P_FORM_FRONT_S] = tau
+        prm.setflags(write=False)
+        costs = np.zeros(obj.N_TERMS)
+        p2 = (*prob[:3], prm, *prob[4:])
+        obj.cost_c_T(m.c, T, p2, fld, np.zeros_like(m.c), np.zeros(M), costs)
+        return float(costs[obj.C_F])
+
+    base = j_f(0.0, 1.5)
+    fast, slow = j_f(4.0, 0.5), j_f(4.0, 50.0)
+    assert base < fast < slow < 5.0 * base
+    assert slow > 4.5 * base  # over 4-8 s of plan a 50 s decay is nearly flat
+    assert j_f(4.0, 0.0) == base  # no time constant: off
 
 
 def test_time_gradient_includes_peer_motion() -> None:

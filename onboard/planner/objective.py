@@ -77,7 +77,9 @@ P_A_HARD = 23
 P_J_HARD = 24
 P_W_PACE = 25  # J_t's pace floor: weight per s^2 of total duration over P_T_CAP
 P_T_CAP = 26  # the longest total duration the pace floor leaves free [s]
-N_PRM = 27
+P_FORM_FRONT = 27  # J_f's weight at the plan's start: times (1 + this), decaying to 1 ...
+P_FORM_FRONT_S = 28  # ... as exp(-t / this) over the plan's own time t [s]
+N_PRM = 29
 
 # formation term variants (P_FORM_MODE)
 FORM_LINEAR = 0  # w f, exact gradient
@@ -177,6 +179,9 @@ def sampled_costs(
     mode = int(prm[P_FORM_MODE])
     use_form = w_fo > 0.0 and n_form > 1
     stride = max(int(prm[P_FORM_STRIDE]), 1)
+    front = prm[P_FORM_FRONT]
+    front_s = prm[P_FORM_FRONT_S]
+    use_front = front != 0.0 and front_s > 0.0
     w_alt = prm[P_W_ALT]
     z_lo = prm[P_Z_LO]
     z_hi = prm[P_Z_HI]
@@ -409,6 +414,13 @@ def sampled_costs(
                     # the coarser grid's trapezoid weight is stride times the fine one
                     pf *= stride
                     kf *= stride
+                    if use_front:
+                        # heavier near the plan's start: the weight's own rate of change with
+                        # the sample's time goes where the peers' does (d/d global time)
+                        ef = front * np.exp(-(t_piece0 + t) / front_s)
+                        gtau -= ef / front_s * pf
+                        pf *= 1.0 + ef
+                        kf *= 1.0 + ef
                     gder[0, 0] += kf * fgx
                     gder[0, 1] += kf * fgy
                     gder[0, 2] += kf * fgz

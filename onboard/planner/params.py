@@ -422,6 +422,22 @@ class PlannerParams:
     20 -> 24 of 30; arrow-7, seeds 1-20, 8 -> 8 of 20; rectangle-7 mapped (3 frames/s, step 3,
     band 0.4-1.8 m), seeds 1-5, 3 -> 4 of 5 (mean e_sim 0.055 -> 0.038); at 10.0: 2 of 5 mapped
     and the arrow's top speed 0.515 m/s (BENCHMARKS.md section 10). 1.0: unchanged."""
+    formation_front_gain: float = 0.0
+    """J_f weighs the plan's first seconds more: at the plan's own time t its weight is
+    ``w_formation`` times ``1 + formation_front_gain * exp(-t / formation_front_s)`` (0: a
+    uniform weight, the paper's). The plan's formation error is integrated over the whole
+    horizon (15 s at 0.5 m/s), where the shape the swarm holds now is what is flown next; set
+    for re-forming by ``reform_formation_front_gain``."""
+    formation_front_s: float = 3.0
+    """The time constant of ``formation_front_gain``'s decay along the plan [s]."""
+    reform_formation_front_gain: float = 4.0
+    """``formation_front_gain`` while re-forming (``reform_s``; recovery keeps the plain one).
+    The re-forming plans spread the move to the new slots over the horizon, and near misses
+    stayed near misses: the twin's slow seeds came within e_sim 0.0105-0.014 of the new shape
+    and the trunks pushed it apart again. Measured in the demo's twin (hexagon-7 -> rectangle-7
+    20 s after the goal, forest-medium, mapped; BENCHMARKS.md section 10, twenty-third session):
+    the new shape within 10 s in 12 of 12 (seeds 1-12) and 10 of 12 (13-24) at 4.0, against 10
+    and 8 of 12 at 0."""
     swarm_target: str = "centroid"
     """Swarm-consistent local target (issue #11). 'own-goal' (the option off, the default until
     2026-11-23; not 'off', which YAML reads as false): the local target lies ``horizon_m`` along the
@@ -591,6 +607,8 @@ class PlannerParams:
             "lead_slowest_beyond_m",
             "reform_s",
             "reform_replan_period_s",
+            "formation_front_gain",
+            "reform_formation_front_gain",
             "recover_e_sim",
             "recover_hold_s",
             "recover_replan_period_s",
@@ -625,6 +643,10 @@ class PlannerParams:
         ):
             raise ValueError(
                 f"fresh_guess_speed_frac must be in [0, 1], got {self.fresh_guess_speed_frac!r}"
+            )
+        if not (np.isfinite(self.formation_front_s) and self.formation_front_s > 0):
+            raise ValueError(
+                f"formation_front_s must be a positive number, got {self.formation_front_s!r}"
             )
         for name in ("speed_cap_frac", "reform_speed_cap_frac"):
             cap = getattr(self, name)
@@ -731,6 +753,7 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     p = dataclasses.replace(
         params,
         w_formation=params.w_formation * params.reform_formation_scale,
+        formation_front_gain=params.reform_formation_front_gain,
         fresh_alternative="astar" if params.reform_fresh_start else params.fresh_alternative,
         speed_cap_frac=params.reform_speed_cap_frac,
     )
@@ -749,6 +772,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
     return dataclasses.replace(
         reform_params(params),
         w_formation=params.w_formation * k,
+        formation_front_gain=params.formation_front_gain,
         w_altitude_hold=params.w_altitude_hold * k,
         w_feasibility=params.w_feasibility * params.recover_limit_scale,
         w_limit_hard=params.w_limit_hard * params.recover_limit_scale,

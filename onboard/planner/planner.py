@@ -557,6 +557,8 @@ class FormationPlanner:
         prm[obj.P_FORM_MODE] = obj.FORM_MODES[p.formation_penalty]
         prm[obj.P_TAU_SCALE] = p.tau_scale
         prm[obj.P_FORM_STRIDE] = p.formation_stride
+        prm[obj.P_FORM_FRONT] = p.formation_front_gain
+        prm[obj.P_FORM_FRONT_S] = p.formation_front_s
         prm[obj.P_W_ALT] = p.w_altitude
         prm[obj.P_Z_LO], prm[obj.P_Z_HI] = p.altitude_band_inner_m
         prm[obj.P_W_HOLD] = p.w_altitude_hold  # P_Z_HOLD: set per problem (the goal's z)
