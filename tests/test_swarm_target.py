@@ -371,6 +371,31 @@ def test_while_reforming_the_lead_is_measured_from_the_centroid_and_the_shape_pu
     )
 
 
+def test_the_front_weight_is_the_re_formings_alone() -> None:
+    """``reform_formation_front_gain`` reaches the problem while re-forming only: normal
+    flight and shape recovery (which derives from the re-forming's parameters) keep the
+    uniform weight; bad values are refused."""
+    base = PlannerParams()
+    assert base.formation_front_gain == 0.0 and base.reform_formation_front_gain > 0.0
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    for params, gain in (
+        (base, 0.0),
+        (reform_params(base), base.reform_formation_front_gain),
+        (recover_params(base), 0.0),
+    ):
+        problem = FormationPlanner(params, LINE3, slot=1).prepare(
+            0.0, sp, ZERO, ZERO, goal, peers, EMPTY
+        )
+        assert float(problem.prob[3][obj.P_FORM_FRONT]) == gain
+        assert float(problem.prob[3][obj.P_FORM_FRONT_S]) == base.formation_front_s
+    for key, bad in (("formation_front_s", 0.0), ("reform_formation_front_gain", -1.0),
+                     ("formation_front_gain", float("nan"))):  # fmt: skip
+        with pytest.raises(ValueError, match=key):
+            PlannerParams(**{key: bad})
+
+
 def _crawling_peer(
     slot: int, start: np.ndarray, goal: np.ndarray, duration_s: float
 ) -> PeerTrajectory:
