@@ -608,9 +608,17 @@ def monitor_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
     obstacle within the check's distance but not within the brake's slack
     (``planning.monitor_obstacle_slack_m``). A record of an older service
     without a counter adds 0 for it."""
+    return _service_counter_sums(flights, MONITOR_COUNTERS, "monitor_")
+
+
+def _service_counter_sums(
+    flights: Sequence[DroneFlight], names: Sequence[str], strip: str
+) -> dict[str, int]:
+    """Each of the services' counters ``names`` summed over the flights' last ``/counters``
+    (0 for a record without it), keyed by its name less the prefix ``strip``."""
     return {
-        k.removeprefix("monitor_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
-        for k in MONITOR_COUNTERS
+        k.removeprefix(strip): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
+        for k in names
     }
 
 
@@ -625,10 +633,7 @@ def depth_hold_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
     (the map more than the camera's ``timeout_s`` behind frames that kept arriving, which
     held no drone then: a starved mapping thread), ``frames_missed`` (frames the mapping
     never saw). An older service's record adds 0 for a counter it lacks."""
-    return {
-        k.removeprefix("depth_"): int(sum(f.counters.get(f"service.{k}", 0) for f in flights))
-        for k in DEPTH_COUNTERS
-    }
+    return _service_counter_sums(flights, DEPTH_COUNTERS, "depth_")
 
 
 def _closest_of_all(drones: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:

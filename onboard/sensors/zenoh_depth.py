@@ -587,10 +587,14 @@ class ZenohTruthSubscriber:
             q = self._depth.get(system_id)
             return q[-1].stamp_s if q else None
 
-    def depth_source(self, system_id: int) -> TruthDepthSource:
-        """The frames of one vehicle (closing the source leaves the subscriber open)."""
+    def depth_source(
+        self, system_id: int, on_close: Callable[[], None] | None = None
+    ) -> TruthDepthSource:
+        """The frames of one vehicle (closing the source calls ``on_close``, if given, and
+        leaves the subscriber open otherwise)."""
         return TruthDepthSource(
             lambda after: self.depth_after(system_id, after),
+            on_close=on_close,
             newest=lambda: self.depth_newest_stamp(system_id),
         )
 
@@ -621,8 +625,4 @@ def open_depth_source(
         system_id=system_id,
         poses=False,
     )
-    return TruthDepthSource(
-        lambda after: sub.depth_after(system_id, after),
-        on_close=sub.close,
-        newest=lambda: sub.depth_newest_stamp(system_id),
-    )
+    return sub.depth_source(system_id, on_close=sub.close)

@@ -1087,15 +1087,16 @@ class FlightService:
             arrived, waiting = self._frames_arrived(now)
             silent = now - max(arrived, self._started_s)
             lag = now - max(self._last_frame_s, self._started_s)
-            riding = waiting and silent <= rx.timeout_s < lag
+            camera_ok = silent <= rx.timeout_s
+            behind = waiting and camera_ok  # frames wait unread behind a live camera
+            riding = behind and lag > rx.timeout_s
             if riding and not self._map_lag_riding and not self._depth_lost:
                 self.counters["map_lag_rides"] += 1
             self._map_lag_riding = riding
-            if silent > rx.timeout_s or lag > (rx.map_lag_s if waiting else rx.timeout_s):
+            if not camera_ok or lag > (rx.map_lag_s if behind else rx.timeout_s):
                 self._depth_back_since = None  # (still) lost: the recovery starts over
                 if not self._depth_lost:
                     self._depth_lost = True
-                    behind = waiting and silent <= rx.timeout_s
                     why = f"map {lag:.1f} s behind the camera" if behind else "no depth frames"
                     event(
                         log, "depth_lost", logging.WARNING, silent_s=silent, map_lag_s=lag,
