@@ -289,6 +289,46 @@ def test_a_map_lagging_a_live_camera_holds_only_after_map_lag_s(tmp_path: Path) 
     assert h.svc.counters["depth_holds"] == 3 and h.svc.counters["map_lag_holds"] == 1
 
 
+def test_a_frame_in_the_mappers_hands_is_a_frame_waiting_not_a_silent_camera(
+    tmp_path: Path,
+) -> None:
+    """The demo's starved host (forest-medium seeds 13 and 14, 2026-12-02): the camera live
+    (its last frame 0.1-0.4 s old), the map 1.4 s behind, and the depth thread had read the
+    newest frame but not yet mapped it. Counted as read, no frame waited, and the drone held
+    for "no depth frames". A frame in hand is a frame waiting: the map's allowance applies."""
+    h = Harness(tmp_path, arriving=True)
+    rx = h.cfg.reactions.depth_lost
+    h.airborne()
+    h.fly_to(8.0)
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT
+    h.mapping = False  # the mapping thread starved past the camera's timeout
+    t_cut = h.clock.t
+    h.until(lambda: h.clock.t - t_cut >= rx.timeout_s + 0.3, 5.0, "past the timeout")
+    assert h.state is S.FORMATION_FLIGHT and h.svc.counters["map_lag_rides"] == 1
+    # it wakes and reads the newest frame; the main loop looks while that frame is ingested
+    seen: list[tuple[FlightState, int]] = []
+    inner = h.svc.mapper
+    assert inner is not None
+
+    class InHand:
+        def ingest(self, frame: Any, step: int) -> Any:
+            h.svc.main_step()
+            seen.append((h.state, h.svc.counters["depth_holds"]))
+            return inner.ingest(frame, step=step)
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(inner, name)
+
+    h.svc.mapper = InHand()
+    assert h.svc.depth_step()
+    assert seen == [(S.FORMATION_FLIGHT, 0)]
+    h.svc.mapper = inner
+    h.mapping = True
+    h.step(20)
+    assert h.state is S.FORMATION_FLIGHT and h.svc.counters["depth_holds"] == 0
+
+
 def test_a_hold_stops_along_the_plan_not_across_its_turn(tmp_path: Path) -> None:
     """The real stack on a starved host (seed 9, 2026-12-02): a drone held for lost depth
     frames while its plan turned round a trunk stopped straight along its velocity, 0.03 m from

@@ -429,13 +429,13 @@ class DepthLostReaction:
 
     A source that tells when frames arrive (``newest_stamp_s``: the SITL mock's) separates a
     silent camera from a map that lags behind a live one (the mapping thread starved of CPU,
-    frames waiting): the camera is judged by its frames' arrival (``timeout_s``), the map by
-    its last ingested frame against ``map_lag_s``, the same hold once either is over. A lagging
-    map is a stale one, not a blind drone: the planner never accepts a plan that enters
-    unobserved space in its first ``check_known_s``, so a drone whose map does not grow stops
-    at the edge of what it has mapped. Recovery asks frames for ``recover_s`` and the map
-    within ``timeout_s`` of them again. For a source that cannot tell, arrival is ingestion
-    (``timeout_s`` alone)."""
+    frames waiting: unread, or read and not yet ingested): the camera is judged by its frames'
+    arrival (``timeout_s``), the map by its last ingested frame against ``map_lag_s``, the same
+    hold once either is over. A lagging map is a stale one, not a blind drone: the planner never
+    accepts a plan that enters unobserved space in its first ``check_known_s``, so a drone whose
+    map does not grow stops at the edge of what it has mapped. Recovery asks frames for
+    ``recover_s`` and the map within ``timeout_s`` of them again. For a source that cannot tell,
+    arrival is ingestion (``timeout_s`` alone)."""
 
     timeout_s: float = 0.5
     action: Literal["hover"] = "hover"

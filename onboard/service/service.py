@@ -261,7 +261,7 @@ class FlightService:
         self.mapper: Any = None
         self._last_frame_s = -math.inf
         self._last_frame_stamp = -math.inf
-        self._read_stamp = -math.inf  # the last frame the depth thread read (mapped or not)
+        self._read_stamp = -math.inf  # the last frame the depth thread ingested (mapped or not)
         self._arrival_stamp: float | None = None  # the newest frame the source told of
         self._last_arrival_s = -math.inf  # when that moved on (frames arriving)
         self._map_lag_riding = False  # the map over timeout_s behind a live camera
@@ -597,10 +597,14 @@ class FlightService:
         frame = self.depth.read()
         if frame is None:
             return False
-        self._read_stamp = float(frame.stamp_s)
         if self.mapper is None:
             self.mapper = self._make_mapper()
-        res = self.mapper.ingest(frame, step=self.cfg.depth.step)
+        try:
+            res = self.mapper.ingest(frame, step=self.cfg.depth.step)
+        finally:
+            # read only once ingested (mapped, refused or failed): a frame in hand, its ingest
+            # starved, is a frame waiting, as those the thread has not read yet
+            self._read_stamp = float(frame.stamp_s)
         now = self.clock()
         c1 = time.thread_time()
         self._cpu("depth_ingest", c1 - c0)
@@ -644,8 +648,9 @@ class FlightService:
     def _frames_arrived(self, now: float) -> tuple[float, bool]:
         """When the newest depth frame arrived (our clock; the main loop notes when the
         source's ``newest_stamp_s`` moves on) and whether frames wait that the depth thread
-        has not read (a map lagging a live camera). A source that cannot tell: the last frame
-        mapped, none waiting (frames judged by ``timeout_s`` alone)."""
+        has not ingested yet, unread or in hand (a map lagging a live camera). A source that
+        cannot tell: the last frame mapped, none waiting (frames judged by ``timeout_s``
+        alone)."""
         newest = getattr(self.depth, "newest_stamp_s", None)
         stamp = newest() if newest is not None else None
         if stamp is None:
