@@ -1093,7 +1093,7 @@ class FlightService:
             silent = now - max(arrived, self._started_s)
             lag = now - max(self._last_frame_s, self._started_s)
             camera_ok = silent <= rx.timeout_s
-            behind = waiting and camera_ok  # frames wait unread behind a live camera
+            behind = waiting and camera_ok  # frames wait (unread or in hand) behind a live camera
             riding = behind and lag > rx.timeout_s
             if riding and not self._map_lag_riding and not self._depth_lost:
                 self.counters["map_lag_rides"] += 1
