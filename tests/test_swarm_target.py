@@ -396,6 +396,30 @@ def test_the_front_weight_is_the_re_formings_alone() -> None:
             PlannerParams(**{key: bad})
 
 
+def test_the_obstacle_weight_is_scaled_while_re_forming_alone() -> None:
+    """``reform_obstacle_scale`` reaches the problem while re-forming only: normal flight and
+    shape recovery (which derives from the re-forming's parameters) keep ``w_obstacle``; a
+    scale below 1 or not finite is refused."""
+    base = PlannerParams(reform_obstacle_scale=7.0)
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    for params, w in (
+        (base, base.w_obstacle),
+        (reform_params(base), 7.0 * base.w_obstacle),
+        (recover_params(base), base.w_obstacle),
+    ):
+        problem = FormationPlanner(params, LINE3, slot=1).prepare(
+            0.0, sp, ZERO, ZERO, goal, peers, EMPTY
+        )
+        assert float(problem.prob[3][obj.P_W_OBS]) == pytest.approx(w)
+    for bad in (0.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="reform_obstacle_scale"):
+            PlannerParams(reform_obstacle_scale=bad)
+    key = "reform_obstacle_scale=3"
+    assert load_planner_params(**parse_override(key)).reform_obstacle_scale == 3.0
+
+
 def _crawling_peer(
     slot: int, start: np.ndarray, goal: np.ndarray, duration_s: float
 ) -> PeerTrajectory:

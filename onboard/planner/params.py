@@ -422,6 +422,12 @@ class PlannerParams:
     20 -> 24 of 30; arrow-7, seeds 1-20, 8 -> 8 of 20; rectangle-7 mapped (3 frames/s, step 3,
     band 0.4-1.8 m), seeds 1-5, 3 -> 4 of 5 (mean e_sim 0.055 -> 0.038); at 10.0: 2 of 5 mapped
     and the arrow's top speed 0.515 m/s (BENCHMARKS.md section 10). 1.0: unchanged."""
+    reform_obstacle_scale: float = 1.0
+    """While re-forming (``reform_s``), ``w_obstacle`` is multiplied by this (shape recovery keeps
+    the plain weight). The formation term pulls ``reform_formation_scale`` times harder then,
+    times ``1 + reform_formation_front_gain`` at the plan's start, and against the plain cubic
+    obstacle term it won down to 0.27-0.29 m from a trunk: the check refused those plans and the
+    drone flew plans without the formation, round the trunk's other side (1.0: unchanged)."""
     formation_front_gain: float = 0.0
     """J_f weighs the plan's first seconds more: at the plan's own time t its weight is
     ``w_formation`` times ``1 + formation_front_gain * exp(-t / formation_front_s)`` (0: a
@@ -671,6 +677,10 @@ class PlannerParams:
                 "reform_formation_scale must be a positive number, "
                 f"got {self.reform_formation_scale!r}"
             )
+        if not (np.isfinite(self.reform_obstacle_scale) and self.reform_obstacle_scale >= 1.0):
+            raise ValueError(
+                f"reform_obstacle_scale must be a number >= 1, got {self.reform_obstacle_scale!r}"
+            )
         if not (np.isfinite(self.target_speed_frac) and 0.0 <= self.target_speed_frac <= 1.0):
             raise ValueError(f"target_speed_frac must be in [0, 1], got {self.target_speed_frac!r}")
         if not 0.0 < self.lead_min_speed_frac <= 1.0:
@@ -754,6 +764,7 @@ def reform_params(params: PlannerParams) -> PlannerParams:
         params,
         w_formation=params.w_formation * params.reform_formation_scale,
         formation_front_gain=params.reform_formation_front_gain,
+        w_obstacle=params.w_obstacle * params.reform_obstacle_scale,
         fresh_alternative="astar" if params.reform_fresh_start else params.fresh_alternative,
         speed_cap_frac=params.reform_speed_cap_frac,
     )
@@ -773,6 +784,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
         reform_params(params),
         w_formation=params.w_formation * k,
         formation_front_gain=params.formation_front_gain,
+        w_obstacle=params.w_obstacle,
         w_altitude_hold=params.w_altitude_hold * k,
         w_feasibility=params.w_feasibility * params.recover_limit_scale,
         w_limit_hard=params.w_limit_hard * params.recover_limit_scale,
