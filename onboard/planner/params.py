@@ -426,13 +426,13 @@ class PlannerParams:
     """While re-forming (``reform_s``), ``w_obstacle`` is multiplied by this (shape recovery keeps
     the plain weight). The formation term pulls ``reform_formation_scale`` times harder then,
     times ``1 + reform_formation_front_gain`` at the plan's start, and against the plain cubic
-    obstacle term it won down to 0.27-0.29 m from a trunk: the check refused those plans and the
+    obstacle term it won down to 0.26-0.30 m from a trunk: the check refused those plans and the
     drone flew plans without the formation, round the trunk's other side (1.0: unchanged).
     Measured at 10 and not taken (BENCHMARKS.md section 10, twenty-fifth session): the demo's
     twin 44 of 48 seeds within 10 s either way (mean e_sim 0.0164 against 0.0177, closest trunk
     0.332 against 0.322 m); the real stack, seeds 6-15, 6 of 10 against 7 of 10, on a busier
     host; the plans without the formation while re-forming fell from 0-53 to 0-7 a flight, and
-    the late drones were those the trunks pushed off their slots after the shape had formed."""
+    the late drones were those the trunks pushed off their slots while the shape formed."""
     formation_front_gain: float = 0.0
     """J_f weighs the plan's first seconds more: at the plan's own time t its weight is
     ``w_formation`` times ``1 + formation_front_gain * exp(-t / formation_front_s)`` (0: a
