@@ -262,7 +262,8 @@ def main(
     # running for ever after the demo that started it was killed)
     stopping = SignalStop(fleet.request_stop, 10.0, give_up, thread_name="sitl-stopper")
     usr1 = getattr(signal, "SIGUSR1", None)
-    old_usr1 = signal.signal(usr1, on_usr1) if usr1 is not None else None
+    if usr1 is not None:
+        signal.signal(usr1, on_usr1)
     with stopping:
         if not quiet:
             click.echo(
@@ -286,7 +287,11 @@ def main(
                 fleet._depth.stop()
             fleet.close()
             if usr1 is not None:
-                signal.signal(usr1, old_usr1)
+                # ignored from here to the process's end, not handed back: the default action
+                # of SIGUSR1 ends the process, and a reset asked for during the teardown (a
+                # benchmark's, an operator's) killed the mock before it wrote its statistics;
+                # after the loop there is nothing left to reset
+                signal.signal(usr1, signal.SIG_IGN)
     summary = fleet.summary()
     summary["process_cpu_s"] = _process_cpu_s()
     if stats_json is not None:
