@@ -432,7 +432,8 @@ class PlannerParams:
     twin 44 of 48 seeds within 10 s either way (mean e_sim 0.0164 against 0.0177, closest trunk
     0.332 against 0.322 m); the real stack, seeds 6-15, 6 of 10 against 7 of 10, on a busier
     host; the plans without the formation while re-forming fell from 0-53 to 0-7 a flight, and
-    the late drones were those the trunks pushed off their slots while the shape formed."""
+    the slow flights stayed slow (seed 7: trunks pushed two drones off their slots after the
+    shape had come to e_sim 0.035)."""
     formation_front_gain: float = 0.0
     """J_f weighs the plan's first seconds more: at the plan's own time t its weight is
     ``w_formation`` times ``1 + formation_front_gain * exp(-t / formation_front_s)`` (0: a
