@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -70,25 +71,38 @@ def test_bench_sitl_small(tmp_path: Path) -> None:
     assert data["step_model"]["rise_time_s"] > 0
 
 
-def test_a_burst_of_signals_still_stops_the_fleet(tmp_path: Path) -> None:
-    """SIGTERMs and SIGUSR1s close together (a killed demo's children get SIGTERM from the
-    kernel, an operator presses Ctrl-C twice): the mock ends. Its handlers used to take
-    ``Event.set``'s lock, and one nested in another left the process running for ever."""
+def _signalled_mock(
+    extra: list[str], send: Callable[[subprocess.Popen[bytes]], object]
+) -> subprocess.Popen[bytes]:
+    """One mock vehicle on loopback (``extra``: more options), connected to, then signalled by
+    ``send``; waits for its end (killed if it has not ended 20 s on) and returns the process."""
     (sock,) = bind_consecutive_udp(1)
     client = MavClient(sock=sock)
     cmd = [sys.executable, "-m", "sitl_mock.cli", "--base-port", str(client.port),
-           "--local-port-offset", "-1", "--quiet"]  # fmt: skip
+           "--local-port-offset", "-1", "--quiet", *extra]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         client.connect(timeout_s=30.0)
-        for i in range(40):
-            proc.send_signal(signal.SIGUSR1 if i % 4 else signal.SIGTERM)
+        send(proc)
         proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
         client.close()
+    return proc
+
+
+def test_a_burst_of_signals_still_stops_the_fleet() -> None:
+    """SIGTERMs and SIGUSR1s close together (a killed demo's children get SIGTERM from the
+    kernel, an operator presses Ctrl-C twice): the mock ends. Its handlers used to take
+    ``Event.set``'s lock, and one nested in another left the process running for ever."""
+
+    def burst(proc: subprocess.Popen[bytes]) -> None:
+        for i in range(40):
+            proc.send_signal(signal.SIGUSR1 if i % 4 else signal.SIGTERM)
+
+    proc = _signalled_mock([], burst)
     # in order, at once on the second SIGTERM (1), or by its default action when the fleet's
     # loop had already ended and handed SIGTERM back (a loaded machine: the teardown ran
     # between two signals of the burst); never hanging, never killed by a SIGUSR1
@@ -100,27 +114,18 @@ def test_a_stats_reset_signal_while_the_fleet_shuts_down_does_not_kill_it(tmp_pa
     the mock ends with status 0 and writes its statistics. Its teardown used to put SIGUSR1's
     default action back before the process ended, and a SIGUSR1 in that window killed it (status
     -10, no statistics: seen in a burst of signals on a loaded CI machine)."""
-    (sock,) = bind_consecutive_udp(1)
-    client = MavClient(sock=sock)
     stats = tmp_path / "stats.json"
-    cmd = [sys.executable, "-m", "sitl_mock.cli", "--base-port", str(client.port),
-           "--local-port-offset", "-1", "--quiet", "--duration", "1.0",
-           "--stats-json", str(stats)]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     sent = 0
-    try:
-        client.connect(timeout_s=30.0)
+
+    def until_it_ends(proc: subprocess.Popen[bytes]) -> None:
+        nonlocal sent
         deadline = time.monotonic() + 30.0
         while proc.poll() is None and time.monotonic() < deadline:
             proc.send_signal(signal.SIGUSR1)
             sent += 1
             time.sleep(0.0005)
-        proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-        client.close()
+
+    proc = _signalled_mock(["--duration", "1.0", "--stats-json", str(stats)], until_it_ends)
     assert sent > 100  # the signals kept coming through the end
     assert proc.returncode == 0
     assert json.loads(stats.read_text())["wall_s"] > 0
