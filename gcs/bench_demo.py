@@ -32,6 +32,7 @@ from typing import Any
 
 import click
 import numpy as np
+import psutil
 
 from gcs.fastsim import FORMATION_REACHED_E_SIM
 from gcs.pools import sigterm_interrupts
@@ -49,12 +50,34 @@ def _num(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def host_cpu_share(before: Any, after: Any) -> dict[str, float | None]:
+    """The host's CPU time between two ``psutil.cpu_times()`` samples, as shares of all of it
+    (every core): ``busy`` (neither idle nor waiting for I/O) and ``steal`` (taken by the
+    hypervisor for other guests: a busy neighbour slows a real-stack run the way a busy stack
+    does; None where the platform does not report it). Both None when no time passed."""
+    total = sum(after) - sum(before)
+    if not total > 0.0:
+        return {"busy": None, "steal": None}
+    idle = (after.idle - before.idle) + (
+        getattr(after, "iowait", 0.0) - getattr(before, "iowait", 0.0)
+    )
+    steal = getattr(after, "steal", None)
+    return {
+        "busy": min(max(1.0 - idle / total, 0.0), 1.0),
+        "steal": None
+        if steal is None
+        else min(max((steal - getattr(before, "steal", 0.0)) / total, 0.0), 1.0),
+    }
+
+
 def run_demo_seed(seed: int, argv: list[str], out_dir: Path, timeout_s: float) -> dict[str, Any]:
     """One ``swarm-gcs demo`` process for ``seed``; its JSON result (or, when it failed
     before printing one, its ``result.json`` and the tail of its error output) plus the
-    centre clearance of its flight records."""
+    centre clearance of its flight records and the host's CPU over the run (``host_cpu``:
+    ``host_cpu_share``)."""
     cmd = [sys.executable, "-m", "gcs.cli", "demo", *argv, "--seed", str(seed)]
     cmd += ["--json", "-q", "--out", str(out_dir)]
+    cpu0 = psutil.cpu_times()
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -69,6 +92,7 @@ def run_demo_seed(seed: int, argv: list[str], out_dir: Path, timeout_s: float) -
             proc.communicate()
         raise
     wall = time.monotonic() - t0
+    host_cpu = host_cpu_share(cpu0, psutil.cpu_times())
     result: dict[str, Any] = {}
     for line in reversed(out.splitlines()):
         if line.startswith("{"):
@@ -88,6 +112,7 @@ def run_demo_seed(seed: int, argv: list[str], out_dir: Path, timeout_s: float) -
             result["error"] = f"exit {proc.returncode}"
     result["exit_code"] = proc.returncode
     result["bench_wall_s"] = wall
+    result["host_cpu"] = host_cpu
     summary = out_dir / "report" / "summary.json"
     centre = None
     if summary.exists():
@@ -175,6 +200,7 @@ def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
         "depth_frames": depth.get("frames"),
         "depth_frames_skipped": depth.get("skipped"),
         "cpu_s": sum((d.get("cpu_s") or {}).values()) or None,
+        "host_cpu": d.get("host_cpu"),
         "flight_dir": d.get("flight_dir"),
     }
 
@@ -228,6 +254,10 @@ def fly_twins(args: list[tuple[Any, ...]], jobs: int) -> list[dict[str, Any]]:
         return [_fastsim_job(a) for a in args]
     with sigterm_interrupts(), multiprocessing.get_context("spawn").Pool(jobs) as pool:
         return pool.map(_fastsim_job, args, chunksize=1)
+
+
+def _pct(x: float | None) -> float | None:
+    return None if x is None else 100.0 * x
 
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
@@ -352,6 +382,11 @@ def bench_demo(
             console.print(f"seed {seed}: demo ...")
             d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
             row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
+            hc = d["host_cpu"]
+            console.print(
+                f"seed {seed}: the host's CPU busy {_fmt(_pct(hc['busy']), '.0f')} %, "
+                f"stolen by the hypervisor {_fmt(_pct(hc['steal']), '.1f')} %"
+            )
             if not no_fastsim:
                 console.print(f"seed {seed}: fast-time flight ...")
                 row["fastsim"] = _fastsim_job(args)

@@ -6,7 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from gcs.bench_demo import run_demo_seed, summarise
+import pytest
+
+from gcs.bench_demo import host_cpu_share, run_demo_seed, summarise
 
 
 def _row(
@@ -64,6 +66,25 @@ def test_a_failed_demo_is_reported_with_its_error(tmp_path: Path) -> None:
     assert r["success"] is False and r["exit_code"] != 0
     assert "no-such-formation" in r["error"]
     assert r["min_obstacle_clearance_centre_m"] is None
+    busy = r["host_cpu"]["busy"]  # the host's CPU over the run, a share of all cores
+    assert busy is not None and 0.0 <= busy <= 1.0
+
+
+def test_the_hosts_cpu_share_counts_idle_and_io_wait_as_free_and_steal_apart() -> None:
+    """``host_cpu_share`` on two samples of the host's CPU times (psutil's fields, seconds over
+    every core): 10 s of 40 idle or waiting for I/O -> 75 % busy, 4 s stolen -> 10 %; a
+    platform without ``steal`` gives None for it; no time passed gives None for both."""
+    from collections import namedtuple
+
+    Times = namedtuple("Times", "user nice system idle iowait steal")
+    before = Times(100.0, 0.0, 20.0, 500.0, 5.0, 1.0)
+    after = Times(120.0, 0.0, 26.0, 508.0, 7.0, 5.0)  # 20 + 6 + 8 + 2 + 4 = 40 s
+    share = host_cpu_share(before, after)
+    assert share["busy"] == pytest.approx(0.75) and share["steal"] == pytest.approx(0.10)
+    Plain = namedtuple("Plain", "user system idle")
+    share = host_cpu_share(Plain(1.0, 1.0, 1.0), Plain(2.0, 1.0, 4.0))
+    assert share["busy"] == pytest.approx(0.25) and share["steal"] is None
+    assert host_cpu_share(before, before) == {"busy": None, "steal": None}
 
 
 def test_a_formation_of_another_size_is_refused_before_the_first_seed(tmp_path: Path) -> None:
