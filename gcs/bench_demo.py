@@ -54,8 +54,13 @@ def host_cpu_share(before: Any, after: Any) -> dict[str, float | None]:
     """The host's CPU time between two ``psutil.cpu_times()`` samples, as shares of all of it
     (every core): ``busy`` (neither idle nor waiting for I/O) and ``steal`` (taken by the
     hypervisor for other guests: a busy neighbour slows a real-stack run the way a busy stack
-    does; None where the platform does not report it). Both None when no time passed."""
-    total = sum(after) - sum(before)
+    does; None where the platform does not report it). Both None when no time passed. As
+    psutil's ``cpu_percent``: a guest's time (Linux) is counted in ``user`` already, not twice."""
+
+    def whole(t: Any) -> float:
+        return float(sum(t)) - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0)
+
+    total = whole(after) - whole(before)
     if not total > 0.0:
         return {"busy": None, "steal": None}
     idle = (after.idle - before.idle) + (
