@@ -387,10 +387,10 @@ def bench_demo(
             console.print(f"seed {seed}: demo ...")
             d = run_demo_seed(seed, argv, base / f"seed-{seed}", timeout_s)
             row: dict[str, Any] = {"seed": seed, "demo": _demo_row(d), "fastsim": None}
-            hc = d["host_cpu"]
+            hc = d.get("host_cpu") or {}
             console.print(
-                f"seed {seed}: the host's CPU busy {_fmt(_pct(hc['busy']), '.0f')} %, "
-                f"stolen by the hypervisor {_fmt(_pct(hc['steal']), '.1f')} %"
+                f"seed {seed}: the host's CPU busy {_fmt(_pct(hc.get('busy')), '.0f')} %, "
+                f"stolen by the hypervisor {_fmt(_pct(hc.get('steal')), '.1f')} %"
             )
             if not no_fastsim:
                 console.print(f"seed {seed}: fast-time flight ...")
