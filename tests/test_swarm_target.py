@@ -371,25 +371,30 @@ def test_while_reforming_the_lead_is_measured_from_the_centroid_and_the_shape_pu
     )
 
 
+def _prm_by_mode(base: PlannerParams) -> list[np.ndarray]:
+    """The cost parameters (``prob[3]``) of one problem (the middle drone of LINE3, two peers)
+    planned in normal flight, while re-forming and while recovering the shape, in that order."""
+    sp = np.array([3.0, 0.0, 1.0])
+    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
+    goal = GOAL_ORIGIN + LINE3[1]
+    return [
+        FormationPlanner(params, LINE3, slot=1)
+        .prepare(0.0, sp, ZERO, ZERO, goal, peers, EMPTY)
+        .prob[3]
+        for params in (base, reform_params(base), recover_params(base))
+    ]
+
+
 def test_the_front_weight_is_the_re_formings_alone() -> None:
     """``reform_formation_front_gain`` reaches the problem while re-forming only: normal
     flight and shape recovery (which derives from the re-forming's parameters) keep the
     uniform weight; bad values are refused."""
     base = PlannerParams()
     assert base.formation_front_gain == 0.0 and base.reform_formation_front_gain > 0.0
-    sp = np.array([3.0, 0.0, 1.0])
-    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
-    goal = GOAL_ORIGIN + LINE3[1]
-    for params, gain in (
-        (base, 0.0),
-        (reform_params(base), base.reform_formation_front_gain),
-        (recover_params(base), 0.0),
-    ):
-        problem = FormationPlanner(params, LINE3, slot=1).prepare(
-            0.0, sp, ZERO, ZERO, goal, peers, EMPTY
-        )
-        assert float(problem.prob[3][obj.P_FORM_FRONT]) == gain
-        assert float(problem.prob[3][obj.P_FORM_FRONT_S]) == base.formation_front_s
+    gains = (0.0, base.reform_formation_front_gain, 0.0)
+    for prm, gain in zip(_prm_by_mode(base), gains, strict=True):
+        assert float(prm[obj.P_FORM_FRONT]) == gain
+        assert float(prm[obj.P_FORM_FRONT_S]) == base.formation_front_s
     for key, bad in (("formation_front_s", 0.0), ("reform_formation_front_gain", -1.0),
                      ("formation_front_gain", float("nan"))):  # fmt: skip
         with pytest.raises(ValueError, match=key):
@@ -401,18 +406,9 @@ def test_the_obstacle_weight_is_scaled_while_re_forming_alone() -> None:
     shape recovery (which derives from the re-forming's parameters) keep ``w_obstacle``; a
     scale below 1 or not finite is refused."""
     base = PlannerParams(reform_obstacle_scale=7.0)
-    sp = np.array([3.0, 0.0, 1.0])
-    peers = [_peer(0, [0.0, -1.5, 1.0]), _peer(2, [1.0, 1.5, 1.0])]
-    goal = GOAL_ORIGIN + LINE3[1]
-    for params, w in (
-        (base, base.w_obstacle),
-        (reform_params(base), 7.0 * base.w_obstacle),
-        (recover_params(base), base.w_obstacle),
-    ):
-        problem = FormationPlanner(params, LINE3, slot=1).prepare(
-            0.0, sp, ZERO, ZERO, goal, peers, EMPTY
-        )
-        assert float(problem.prob[3][obj.P_W_OBS]) == pytest.approx(w)
+    weights = (base.w_obstacle, 7.0 * base.w_obstacle, base.w_obstacle)
+    for prm, w in zip(_prm_by_mode(base), weights, strict=True):
+        assert float(prm[obj.P_W_OBS]) == pytest.approx(w)
     for bad in (0.5, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="reform_obstacle_scale"):
             PlannerParams(reform_obstacle_scale=bad)
