@@ -788,6 +788,8 @@ class DroneAgent:
         # ends (``PlannerParams.reform_s``)
         self._shape_seen: tuple[int, int, bytes] | None = None
         self._reform_until_s = -math.inf
+        # ... and goes on until then while the shape is not reached (``reform_hold_e_sim``)
+        self._reform_hold_until_s = -math.inf
         # shape recovery (``PlannerParams.recover_e_sim``) lasts until then
         self._recover_until_s = -math.inf
         self._active: FormationPlanner | None = None
@@ -1346,8 +1348,11 @@ class DroneAgent:
         shape = (a.epoch, a.slot, a.formation.tobytes())
         if self._shape_seen is not None and shape != self._shape_seen:
             self._reform_until_s = now + self.params.reform_s
+            self._reform_hold_until_s = now + max(
+                self.params.reform_s, self.params.reform_hold_max_s
+            )
         self._shape_seen = shape
-        reforming = now < self._reform_until_s and self.params.lead_slowdown_m > 0.0
+        reforming = self._reforming(now, sp, a, formed, t_start)
         recovering = False
         if not reforming and self.params.recover_e_sim > 0.0 and self.params.lead_slowdown_m > 0.0:
             if len(formed) >= 2 and (
@@ -1545,6 +1550,31 @@ class DroneAgent:
             if old is not None:
                 sent = max(sent, old.sent_s)
             self._seen[pid] = _Seen(m, sent)
+
+    def _reforming(
+        self,
+        now: float,
+        sp: np.ndarray,
+        a: _Assignment,
+        formed: Sequence[TrajectoryMsg],
+        t_s: float,
+    ) -> bool:
+        """Whether this replan re-forms (``reform_params``): within ``reform_s`` of the last
+        formation change, and after it while the shape this drone sees (``_shape_error``) is
+        further than ``reform_hold_e_sim`` from the template, up to ``reform_hold_max_s``. The
+        hold ends for good at the first replan that sees the shape reached (or too few formation
+        peers to judge it); shape recovery looks after it from then on."""
+        p = self.params
+        if p.lead_slowdown_m <= 0.0:
+            return False
+        if now < self._reform_until_s:
+            return True
+        if p.reform_hold_e_sim <= 0.0 or now >= self._reform_hold_until_s:
+            return False
+        if len(formed) >= 2 and _shape_error(sp, a, formed, t_s) > p.reform_hold_e_sim:
+            return True
+        self._reform_hold_until_s = -math.inf
+        return False
 
     def _peers_now(
         self, msgs: dict[int, TrajectoryMsg], a: _Assignment, now: float

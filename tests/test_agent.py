@@ -181,6 +181,80 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
     assert times == [(float(t), True) for t in range(5)]
 
 
+def test_reforming_is_held_until_the_new_shape_is_seen() -> None:
+    """With reform_hold_e_sim, re-forming goes on past reform_s while the shape the drone sees
+    (its start and its formation peers' plans against the new template) is further than that,
+    until the first replan that sees it reached or reform_hold_max_s after the change; it does
+    not come back when the shape leaves again. Off (0): re-forming ends at reform_s."""
+    me = np.array([0.0, 0, 1])
+    narrow = np.array([[0.0, 0.0, 0.0], [-2.0, 0.5, 0.0], [-2.0, -0.5, 0.0]])
+    old = {k: me + TRIANGLE[k] for k in (1, 2)}
+    new = {k: me + narrow[k] for k in (1, 2)}
+    assert similarity(np.vstack([me, old[1], old[2]]), narrow)[0] > 0.05
+
+    def run(params: PlannerParams, moves: dict[float, dict[int, np.ndarray]]) -> list:
+        """The drone holds still; the peers hover where ``moves`` puts them from each time on
+        (``moves`` is used up); the new template is assigned after the first replan."""
+        bus = InMemoryBus()
+        a = DroneAgent(
+            0, params, TRIANGLE, 0, Trajectory.hover(me, 0.0), bus, EMPTY, goal=me,
+            first_replan_s=0.0,
+        )  # fmt: skip
+        flags = []
+        t = 0.0
+        peers: dict[int, np.ndarray] = {}
+        sent = 0
+        while t < 5.0:
+            peers.update(moves.pop(t, {}))
+            sent += 1
+            for pid, p in peers.items():  # broadcast as a swarm does (the new epoch after 0)
+                hover = Trajectory.hover(p, t, 30.0)
+                bus.publish(TrajectoryMsg(pid, sent, pid, hover, formation_epoch=int(t > 0)), t)
+            rep = a.step(t)
+            if rep is not None:
+                flags.append((t, rep.reforming))
+            if t == 0.0:
+                a.set_formation(narrow, 0, goal=me)
+            t = round(t + 0.05, 2)
+        return flags
+
+    base = PlannerParams(
+        v_max_m_s=1.0,
+        reform_s=1.0,
+        reform_replan_period_s=0.25,
+        reform_hold_e_sim=0.01,
+        reform_hold_max_s=3.0,
+        recover_e_sim=0.0,
+    )
+    # the change is planned at 0.05; re-forming every 0.25 s after the last replan
+    during = [(0.0, False)] + [(t, True) for t in (0.05, 0.3, 0.55, 0.8, 1.0)]
+    # the peers stay in the old shape: held until 3.05 (reform_hold_max_s), then the grid
+    flags = run(base, {0.0: old})
+    assert flags == during + [
+        (t, True) for t in (1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75, 3.0)
+    ] + [(3.25, False), (4.0, False)], flags  # fmt: skip
+    # they take the new shape at 1.6: the replan at 1.75 sees it and the hold ends for good,
+    # also when they leave it again at 2.5
+    flags = run(base, {0.0: old, 1.6: new, 2.5: old})
+    assert flags == during + [(1.25, True), (1.5, True), (1.75, False), (2.0, False)] + [
+        (3.0, False), (4.0, False)
+    ], flags  # fmt: skip
+    # in the new shape by reform_s: re-forming ends there, as without the hold
+    # (the replan at 1.25 was set by the last re-forming one)
+    after = [(1.25, False), (2.0, False), (3.0, False), (4.0, False)]
+    flags = run(base, {0.0: old, 0.6: new})
+    assert flags == during + after, flags
+    for off in (
+        dataclasses.replace(base, reform_hold_e_sim=0.0),
+        dataclasses.replace(base, reform_hold_max_s=0.5),  # at least reform_s
+    ):
+        flags = run(off, {0.0: old})
+        assert flags == during + after, flags
+    for bad in ({"reform_hold_e_sim": -0.01}, {"reform_hold_max_s": math.nan}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            PlannerParams(**bad)  # type: ignore[arg-type]
+
+
 def test_trajectory_queue() -> None:
     bus = InMemoryBus()
     p0 = np.array([0.0, 0, 1])

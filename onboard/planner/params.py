@@ -316,6 +316,17 @@ class PlannerParams:
     slow-down from the slowest member, 2.0 / 1.0 m: the triangle reached after ~35 s instead of
     ~16 s, the swarm shrunk to a knot of crossing drones). ``DroneAgent`` applies it; the
     planner itself has no notion of time since."""
+    reform_hold_e_sim: float = 0.0
+    """Re-forming (``reform_params``) goes on past ``reform_s`` while the swarm's shape as this
+    drone sees it at a replan (as ``recover_e_sim`` scores it) is further than this from the new
+    template, until it first is not or ``reform_hold_max_s`` after the change (0: off; re-forming
+    ends at ``reform_s`` whatever the shape). Shape recovery then takes over as usual. Without
+    it a swarm that has not reached the new shape by ``reform_s`` falls back to recovery's
+    weaker formation weight and can spread again (BENCHMARKS.md section 10, twenty-fifth
+    session: e_sim 0.016 at 10 s, 0.043 at 13 s, the shape at 54.8 s)."""
+    reform_hold_max_s: float = 30.0
+    """The longest re-forming lasts after a change with ``reform_hold_e_sim`` (at least
+    ``reform_s``)."""
     reform_lead_from_centroid: bool = True
     """While re-forming (``reform_s``): keep the lead slow-down, measured from the centroid
     reference instead of the slowest member (``lead_from_slowest`` off): a drone ahead of its new
@@ -618,6 +629,8 @@ class PlannerParams:
             "lead_deadband_m",
             "lead_slowest_beyond_m",
             "reform_s",
+            "reform_hold_e_sim",
+            "reform_hold_max_s",
             "reform_replan_period_s",
             "formation_front_gain",
             "reform_formation_front_gain",
