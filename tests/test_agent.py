@@ -44,6 +44,14 @@ def _agent(
     )
 
 
+def _still_agent(params: PlannerParams, bus: InMemoryBus, p: np.ndarray) -> DroneAgent:
+    """Drone 0 in slot 0 of TRIANGLE, hovering at ``p`` with its goal there (only its peers'
+    plans move the shape), replanning from time 0."""
+    return DroneAgent(
+        0, params, TRIANGLE, 0, Trajectory.hover(p, 0.0), bus, EMPTY, goal=p, first_replan_s=0.0
+    )
+
+
 def _hover_msg(i: int, p: np.ndarray, slot: int, **kw: object) -> TrajectoryMsg:
     return TrajectoryMsg(i, 0, slot, Trajectory.hover(p, 0.0, 30.0), **kw)  # type: ignore[arg-type]
 
@@ -118,16 +126,13 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
     recover_replan_period_s (not re-forming's period), until recover_hold_s after the last such
     replan; in shape, or with recover_e_sim 0, on the grid with the plain parameters."""
     me = np.array([0.0, 0, 1])
-    goal = me  # the drone holds still: only the peers' plans move the shape
+    # the drone holds still: only the peers' plans move the shape
 
     def run(params: PlannerParams, peers: dict[int, np.ndarray], switch_s: float | None = None):
         bus = InMemoryBus()
         for pid, p in peers.items():
             bus.publish(_hover_msg(pid, p, pid), 0.0)
-        a = DroneAgent(
-            0, params, TRIANGLE, 0, Trajectory.hover(me, 0.0), bus, EMPTY, goal=goal,
-            first_replan_s=0.0,
-        )  # fmt: skip
+        a = _still_agent(params, bus, me)
         times = []
         t = 0.0
         while t < 5.0:
@@ -196,10 +201,7 @@ def test_reforming_is_held_until_the_new_shape_is_seen() -> None:
         """The drone holds still; the peers hover where ``moves`` puts them from each time on
         (``moves`` is used up); the new template is assigned after the first replan."""
         bus = InMemoryBus()
-        a = DroneAgent(
-            0, params, TRIANGLE, 0, Trajectory.hover(me, 0.0), bus, EMPTY, goal=me,
-            first_replan_s=0.0,
-        )  # fmt: skip
+        a = _still_agent(params, bus, me)
         flags = []
         t = 0.0
         peers: dict[int, np.ndarray] = {}
