@@ -128,7 +128,9 @@ def test_recovers_the_shape_when_the_peers_plans_leave_it() -> None:
     me = np.array([0.0, 0, 1])
     # the drone holds still: only the peers' plans move the shape
 
-    def run(params: PlannerParams, peers: dict[int, np.ndarray], switch_s: float | None = None):
+    def run(
+        params: PlannerParams, peers: dict[int, np.ndarray], switch_s: float | None = None
+    ) -> tuple[DroneAgent, list]:
         bus = InMemoryBus()
         for pid, p in peers.items():
             bus.publish(_hover_msg(pid, p, pid), 0.0)
