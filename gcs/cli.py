@@ -905,9 +905,11 @@ def _register_bench_plugins() -> None:
     from gcs.bench_mapping import bench_mapping
     from gcs.bench_service import bench_service
     from gcs.bench_sitl import sitl
+    from gcs.map_replay import bench_map_replay
 
     bench.add_command(sitl)
     bench.add_command(bench_mapping)
+    bench.add_command(bench_map_replay)
     bench.add_command(bench_bus)
     bench.add_command(fuzz_command)
     bench.add_command(bench_service)
