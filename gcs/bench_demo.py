@@ -135,10 +135,12 @@ def run_fastsim_seed(
     depth_step: int,
     planner: Any,
     replan_period_s: float = REPLAN_PERIOD_S,
+    occupancy_overrides: tuple[tuple[str, Any], ...] = (),
 ) -> dict[str, Any]:
     """The fast-time flight of the demo's world for ``seed``: mapped perception at the demo's
     depth rate and step, the demo's planner parameters and replan period (the flight service's
-    ``planning.replan_period_s``), the same formation change."""
+    ``planning.replan_period_s``), the same formation change; ``occupancy_overrides``: the map
+    parameters set on the command line (``--set-onboard mapping.occupancy.NAME=VALUE``)."""
     from gcs.fastsim import SimConfig, run_sim
     from onboard.config import load_formation, load_world_spec
 
@@ -152,6 +154,7 @@ def run_fastsim_seed(
         camera_skip_pixel=depth_step,
         formation_change=None if change is None else (load_formation(change[0]), change[1]),
         replan_period_s=replan_period_s,
+        occupancy_overrides=occupancy_overrides,
     )
     r = run_sim(cfg)
     return {
@@ -374,7 +377,10 @@ def bench_demo(
     replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
     seed_list = list(range(first_seed, first_seed + seeds))
-    twin_args = [(seed, formation, world, fc, rate, step, planner, replan_s)
+    # the map's parameters set on the command line reach the twins' maps too
+    occ_sets = parse_overrides(onboard_sets).get("mapping", {}).get("occupancy", {})
+    occ_over = tuple(sorted((str(k), v) for k, v in occ_sets.items()))
+    twin_args = [(seed, formation, world, fc, rate, step, planner, replan_s, occ_over)
                  for seed in seed_list]  # fmt: skip
     rows: list[dict[str, Any]] = []
     if fastsim_only:

@@ -126,6 +126,9 @@ class SimConfig:
     """Depth frames per second per drone ('mapped')."""
     camera_skip_pixel: int = 2
     """Every n-th pixel row and column of a frame is rendered and ray cast ('mapped')."""
+    occupancy_overrides: tuple[tuple[str, Any], ...] = ()
+    """('mapped') ``OccupancyParams`` fields set on top of the drones' maps' defaults (field
+    name, value), e.g. (("occluded_fill_near_m", 0.1),)."""
     bus_faults: BusFaults | None = None
     """Faults on every trajectory message (``onboard.comm.faults.FaultyBus`` around the bus,
     seeded with ``fault_seed``); receivers then keep the newest trajectory of each sender, as
@@ -1329,11 +1332,16 @@ def _mapped_perception(
     cfg: SimConfig, world: World, starts: np.ndarray, goals: np.ndarray
 ) -> list[Any]:
     """One simulated depth camera and local map per drone, facing its goal at the start."""
+    from onboard.mapping.occupancy import OccupancyParams
     from onboard.sensors.simulated import SimulatedPerception
 
+    occ = dataclasses.replace(
+        OccupancyParams(skip_pixel=cfg.camera_skip_pixel), **dict(cfg.occupancy_overrides)
+    )
     eyes = [
         SimulatedPerception(
             world,
+            occupancy=occ,
             skip_pixel=cfg.camera_skip_pixel,
             seed=cfg.seed * 1000 + i,
             initial_yaw=math.atan2(goals[i, 1] - starts[i, 1], goals[i, 0] - starts[i, 0]),

@@ -161,12 +161,18 @@ def _record_poses(path: Path) -> list[tuple[float, list[float], list[float]]]:
 
 
 def replay_flight(
-    flight: Path, drone_id: int, t_from_s: float | None = None, t_to_s: float | None = None
+    flight: Path,
+    drone_id: int,
+    t_from_s: float | None = None,
+    t_to_s: float | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> tuple[list[ReplayFrame], dict[str, Any]]:
     """``replay_poses`` of drone ``drone_id``'s record in ``flight`` (a flight directory of
     ``swarm-gcs demo``: the records, ``mission.json``, ``onboard.yaml``), between global times
-    ``t_from_s`` and ``t_to_s`` (default: the whole record). Also returns what it replayed with
-    (the mission's changes of formation, the map's parameters)."""
+    ``t_from_s`` and ``t_to_s`` (default: the whole record), with the drone's configuration
+    changed by ``overrides`` (nested, as ``--set-onboard`` gives them: a map parameter tried on
+    the poses that flew). Also returns what it replayed with (the mission's changes of
+    formation, the map's parameters)."""
     from gcs.report import find_mission, find_records, load_mission, mission_world
     from onboard.record import read_record
     from onboard.service.config import load_onboard_config
@@ -183,7 +189,9 @@ def replay_flight(
     if record is None:
         raise MapReplayError(f"{flight}: no record of drone {drone_id}")
     cfg_file = Path(flight) / "onboard.yaml"
-    cfg = load_onboard_config(cfg_file if cfg_file.is_file() else None, drone_id=drone_id)
+    cfg = load_onboard_config(
+        cfg_file if cfg_file.is_file() else None, drone_id=drone_id, overrides=overrides
+    )
     poses = [
         x
         for x in _record_poses(record)
@@ -205,6 +213,7 @@ def replay_flight(
         "step": cfg.depth.step,
         "inflation_m": occ.inflation_m,
         "check_obstacle_m": cfg.planner.check_obstacle_m,
+        "occluded_fill_near_m": occ.occluded_fill_near_m,
     }
     return frames, meta
 
@@ -230,6 +239,13 @@ def replay_flight(
     default=None,
     help="List the frames whose overestimate exceeds this [m] (default: the map's inflation).",
 )
+@click.option(
+    "--set-onboard",
+    "onboard_sets",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Change the drone's configuration, e.g. mapping.occupancy.occluded_fill_near_m=0.1.",
+)
 @click.option("--json", "json_path", type=click.Path(path_type=Path), default=None)
 def bench_map_replay(
     flight: Path,
@@ -238,6 +254,7 @@ def bench_map_replay(
     t_to: float | None,
     near_m: float,
     show_over: float | None,
+    onboard_sets: tuple[str, ...],
     json_path: Path | None,
 ) -> None:
     """Replay a flight's poses through the drone's map and compare it with the truth.
@@ -248,6 +265,7 @@ def bench_map_replay(
     import json
 
     from gcs.report import find_mission, load_mission
+    from onboard.config import ConfigError, parse_overrides
 
     mission = load_mission(find_mission([flight]))
     eff = sorted(float(a["effective_s"]) for a in mission.get("assignments", []))
@@ -258,8 +276,9 @@ def bench_map_replay(
             drone_id,
             None if t_from is None else t0 + t_from,
             None if t_to is None else t0 + t_to,
+            parse_overrides(onboard_sets),
         )
-    except MapReplayError as e:
+    except (MapReplayError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     infl = float(meta["inflation_m"])
     s = summarise(frames, infl, near_m)

@@ -196,3 +196,31 @@ def test_a_flight_reports_its_refusals(small_flight: tuple[SimResult, list[PlanC
     # plans flown although every attempt was refused: counted once each, under their status
     flown = sum(v for k, v in r.status_counts.items() if k in ("ok", "ok-no-formation"))
     assert d["approach"] + d["last_resort"] <= flown
+
+
+def test_map_overrides_reach_every_drones_map() -> None:
+    """``SimConfig.occupancy_overrides`` (``bench demo --set-onboard mapping.occupancy.*``)
+    set the drones' map parameters on top of the defaults, for the camera's frame rate; none
+    leaves the defaults."""
+    from gcs.fastsim import _mapped_perception
+    from onboard.mapping.occupancy import OccupancyParams
+    from onboard.world import World
+
+    world = World(np.zeros((0, 5)), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
+    starts = np.array([[0.0, 0.0, 1.0], [0.0, 1.5, 1.0]])
+    goals = starts + [10.0, 0.0, 0.0]
+    base = SimConfig(
+        load_formation("line-3"),
+        load_world_spec("forest-small"),
+        perception="mapped",
+        camera_rate_hz=3.0,
+        camera_skip_pixel=3,
+    )
+    plain = _mapped_perception(base, world, starts, goals)
+    want = OccupancyParams(skip_pixel=3).for_frame_rate(3.0)
+    assert [e.mapper.params for e in plain] == [want, want]
+    over = dataclasses.replace(base, occupancy_overrides=(("occluded_fill_near_m", 0.1),))
+    eyes = _mapped_perception(over, world, starts, goals)
+    assert [e.mapper.params for e in eyes] == [
+        dataclasses.replace(want, occluded_fill_near_m=0.1)
+    ] * 2

@@ -134,3 +134,18 @@ def test_the_command_prints_the_figures_and_writes_json(tmp_path: Path) -> None:
     assert data["summary"]["frames"] == 12
     r = CliRunner().invoke(main, ["bench", "map-replay", str(tmp_path), "--drone", "5"])
     assert r.exit_code != 0 and "no record of drone 5" in r.output
+
+
+def test_a_map_parameter_is_tried_on_the_recorded_poses(tmp_path: Path) -> None:
+    _write_flight(tmp_path, drone=0)
+    out = tmp_path / "near.json"
+    args = ["bench", "map-replay", str(tmp_path), "--drone", "0", "--json", str(out)]
+    r = CliRunner().invoke(
+        main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_near_m=0.1"]
+    )
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.read_text())["occluded_fill_near_m"] == 0.1
+    bad = CliRunner().invoke(
+        main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_near_m=0.9"]
+    )
+    assert bad.exit_code != 0 and "occluded_fill_near_m" in bad.output
