@@ -63,46 +63,6 @@ def test_fill_is_the_layer_dilation_kept_to_unknown_cells(cells: int, seed: int)
     assert np.all(got[unknown & ~expect] == UNKNOWN_LOGODDS)
 
 
-@pytest.mark.parametrize(("cells", "near"), [(2, 0), (2, 1), (4, 1), (3, 3)])
-@pytest.mark.parametrize("seed", [0, 1])
-def test_fill_behind_hits_with_the_near_square(cells: int, near: int, seed: int) -> None:
-    """``occluded_fill_near_m``: with the fill behind hits, the never-observed cells within
-    ``near`` cells of an occupied one are filled too, whether a ray marked them or not; those
-    further out only when one did, up to ``cells``. 0 leaves the fill behind hits as it was."""
-    rng = np.random.default_rng(10 + seed)
-    prm = OccupancyParams(size_m=(1.3, 1.1, 0.7), floor_z_m=None)
-    omap = OccupancyMap(prm, center=rng.uniform(-3.0, 3.0, 3))
-    state = rng.choice(3, size=omap.shape, p=[0.6, 0.3, 0.1])  # unknown, free, occupied
-    window = np.where(state == 0, UNKNOWN_LOGODDS, np.where(state == 1, prm.l_min, prm.l_max))
-    omap.logodds[_slots(omap)] = window.astype(np.float32).reshape(-1)
-    marked = (rng.random(omap.shape) < 0.3) & (state == 0)  # points a hit's ray left behind
-    rows = np.ravel_multi_index(_slots(omap), omap.shape).reshape(omap.shape)  # surf's rows
-    omap.surf[:, 3] = 0.0
-    omap.surf[rows[marked], 3] = 1.0
-    unknown = state == 0
-
-    def dil(k: int) -> np.ndarray:
-        if k == 0:
-            return np.zeros(omap.shape, bool)
-        return ndimage.binary_dilation(state == 2, structure=np.ones((2 * k + 1,) * 2 + (1,), bool))
-
-    expect = (state == 2) | (unknown & ((dil(cells) & marked) | dil(near)))
-    out = np.empty_like(omap.logodds)
-    queue = np.empty(omap.logodds.size, np.int64)
-    fill_occluded(omap.logodds, omap.lo, prm.l_occ, cells, out, queue, omap.surf, True, near)
-    got = out[_slots(omap)].reshape(omap.shape) >= prm.l_occ
-    np.testing.assert_array_equal(got, expect)
-    if near:
-        assert np.count_nonzero(expect & unknown & ~marked) > 0  # the square added cells
-
-
-def test_the_near_fill_is_bounded_by_the_fill() -> None:
-    assert OccupancyParams(occluded_fill_near_m=0.1).occluded_fill_near_cells == 1
-    for bad in (-0.1, 0.5):  # the fill is 0.4 m
-        with pytest.raises(ValueError, match="occluded_fill_near_m"):
-            OccupancyParams(occluded_fill_near_m=bad)
-
-
 def _passed_trunk(
     fill_m: float, behind_hits: bool = False, chord_m: float = 0.0
 ) -> tuple[LocalMapper, float]:

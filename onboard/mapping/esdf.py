@@ -503,7 +503,6 @@ def fill_occluded(
     queue: np.ndarray,
     surf: np.ndarray,
     behind_hits: bool,
-    near: int = 0,
 ) -> tuple[int, int]:
     """``out`` = ``logodds`` (the ring buffer, same storage order) with every never-observed
     cell within ``cells`` cells of an occupied cell in the same layer (Chebyshev distance in x
@@ -511,8 +510,7 @@ def fill_occluded(
     (``OccupancyParams.occluded_fill_m``); with ``behind_hits``, only those whose row of
     ``surf`` (the map's surface accumulators) holds points, which in a never-observed cell are
     the points a hit's ray marked behind it (``OccupancyParams.occluded_fill_behind_hits``;
-    their mean is then the filled cell's surface point for the ESDF), and those within ``near``
-    cells whatever their points (``OccupancyParams.occluded_fill_near_m``). Only sideways: the
+    their mean is then the filled cell's surface point for the ESDF). Only sideways: the
     shadows of a level camera lie behind what it saw, not above or below it, and each layer's
     fill depends on that layer alone (a band window's layers get what a taller window's get).
     ``queue`` (int64, at least one slot per cell) receives window-order flat indices
@@ -553,9 +551,7 @@ def fill_occluded(
             for aj in range(max(wj - cells, 0), min(wj + cells + 1, ny)):
                 sj = sy[aj]
                 if out[si, sj, sk] < _UNKNOWN_BELOW and (
-                    not behind_hits
-                    or surf[(si * ny + sj) * nz + sk, 3] > 0.0
-                    or (abs(ai - wi) <= near and abs(aj - wj) <= near)
+                    not behind_hits or surf[(si * ny + sj) * nz + sk, 3] > 0.0
                 ):
                     out[si, sj, sk] = l_occ
                     queue[m] = (ai * ny + aj) * nz + wk
@@ -877,7 +873,6 @@ class EsdfBuilder:
                 queue,
                 omap.surf,
                 omap.params.occluded_fill_behind_hits,
-                min(omap.params.occluded_fill_near_cells, fill),
             )
         _n_occ, bad = esdf_kernel(
             logodds,

@@ -152,14 +152,6 @@ class OccupancyParams:
     0.233 m p95; in mapped fast time (12 seeds, formation change) the shape held better (mean
     e_sim 0.033 against 0.050), re-formed sooner and kept the trunks further (closest 0.324
     against 0.315 m) (BENCHMARKS.md sections 4 and 8, 2026-11-30)."""
-    occluded_fill_near_m: float = 0.0
-    """With ``occluded_fill_behind_hits``, also fill every never-observed cell within this
-    distance (whole cells, Chebyshev in x and y, at most ``occluded_fill_m``) of an occupied
-    cell of its layer, whether or not a ray went on into it: the side of a trunk that no frame
-    faced (the camera looks where the drone goes) grown by a cell. In the real stack's seeds 1-5
-    of 2026-12-03 the map read a surface more than the inflation too far in 32 of 1 903 replayed
-    frames within 0.5 m of it (`bench map-replay`), every one with that surface out of the
-    camera's view (BENCHMARKS.md section 10). 0: off (the default; not yet flown)."""
     occluded_fill_chord_m: float = 0.7
     """A depth pixel's fill behind its hit reaches at most this times the cosine of its ray's
     incidence on the surface (a cylinder of diameter D is D cos(i) deep along a ray at incidence
@@ -205,8 +197,6 @@ class OccupancyParams:
             raise ValueError("max_ray_m must be > 0 and inflation_m >= 0")
         if not 0.0 <= self.occluded_fill_m <= 1.0:
             raise ValueError("occluded_fill_m must lie in [0, 1] m")
-        if not 0.0 <= self.occluded_fill_near_m <= self.occluded_fill_m:
-            raise ValueError("occluded_fill_near_m must lie in [0, occluded_fill_m]")
         if not 0.0 <= self.occluded_fill_chord_m <= 5.0:
             raise ValueError("occluded_fill_chord_m must lie in [0, 5] m")
         if self.floor_z_m is not None and not 0.0 < self.headroom_m < self.size_m[2]:
@@ -275,11 +265,6 @@ class OccupancyParams:
     def occluded_fill_cells(self) -> int:
         """``occluded_fill_m`` in whole cells."""
         return int(round(self.occluded_fill_m / self.resolution_m))
-
-    @property
-    def occluded_fill_near_cells(self) -> int:
-        """``occluded_fill_near_m`` in whole cells."""
-        return int(round(self.occluded_fill_near_m / self.resolution_m))
 
     @property
     def shape(self) -> tuple[int, int, int]:
