@@ -128,7 +128,7 @@ class SimConfig:
     """Every n-th pixel row and column of a frame is rendered and ray cast ('mapped')."""
     occupancy_overrides: tuple[tuple[str, Any], ...] = ()
     """('mapped') ``OccupancyParams`` fields set on top of the drones' maps' defaults (field
-    name, value), e.g. (("occluded_fill_near_m", 0.1),)."""
+    name, value), e.g. (("occluded_fill_m", 0.2),)."""
     bus_faults: BusFaults | None = None
     """Faults on every trajectory message (``onboard.comm.faults.FaultyBus`` around the bus,
     seeded with ``fault_seed``); receivers then keep the newest trajectory of each sender, as

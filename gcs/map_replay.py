@@ -213,7 +213,7 @@ def replay_flight(
         "step": cfg.depth.step,
         "inflation_m": occ.inflation_m,
         "check_obstacle_m": cfg.planner.check_obstacle_m,
-        "occluded_fill_near_m": occ.occluded_fill_near_m,
+        "occluded_fill_m": occ.occluded_fill_m,
     }
     return frames, meta
 
@@ -244,7 +244,7 @@ def replay_flight(
     "onboard_sets",
     multiple=True,
     metavar="KEY=VALUE",
-    help="Change the drone's configuration, e.g. mapping.occupancy.occluded_fill_near_m=0.1.",
+    help="Change the drone's configuration, e.g. mapping.occupancy.occluded_fill_m=0.2.",
 )
 @click.option("--json", "json_path", type=click.Path(path_type=Path), default=None)
 def bench_map_replay(

@@ -134,7 +134,7 @@ def test_onboard_settings_reach_every_demo_and_the_fast_time_twin(
     base = ["bench", "demo", "--seeds", "1", "--drones", "3", "--formation", "triangle-3"]
     sets = ["--set-onboard", "planning.replan_period_s=0.5"]
     sets += ["--set-onboard", "planner.w_formation=2e5"]
-    sets += ["--set-onboard", "mapping.occupancy.occluded_fill_near_m=0.1"]
+    sets += ["--set-onboard", "mapping.occupancy.occluded_fill_m=0.2"]
     js = tmp_path / "b.json"
     res = CliRunner().invoke(main, [*base, *sets, "--out", str(tmp_path / "f"), "--json", str(js)])
     assert res.exit_code == 0, res.output
@@ -142,7 +142,7 @@ def test_onboard_settings_reach_every_demo_and_the_fast_time_twin(
     assert argv[argv.index("planning.replan_period_s=0.5") - 1] == "--set-onboard"
     assert "planner.w_formation=2e5" in argv
     assert seen["replan_s"] == 0.5 and seen["planner"].w_formation == 2e5
-    assert seen["occupancy"] == (("occluded_fill_near_m", 0.1),)  # the twins' maps too
+    assert seen["occupancy"] == (("occluded_fill_m", 0.2),)  # the twins' maps too
     assert json.loads(js.read_text())["config"]["replan_period_s"] == 0.5
     too_fast = ["--set-onboard", "planning.replan_period_s=0.01"]
     bad = CliRunner().invoke(main, [*base, *too_fast, "--out", str(tmp_path / "g")])

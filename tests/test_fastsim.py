@@ -219,8 +219,6 @@ def test_map_overrides_reach_every_drones_map() -> None:
     plain = _mapped_perception(base, world, starts, goals)
     want = OccupancyParams(skip_pixel=3).for_frame_rate(3.0)
     assert [e.mapper.params for e in plain] == [want, want]
-    over = dataclasses.replace(base, occupancy_overrides=(("occluded_fill_near_m", 0.1),))
+    over = dataclasses.replace(base, occupancy_overrides=(("occluded_fill_m", 0.2),))
     eyes = _mapped_perception(over, world, starts, goals)
-    assert [e.mapper.params for e in eyes] == [
-        dataclasses.replace(want, occluded_fill_near_m=0.1)
-    ] * 2
+    assert [e.mapper.params for e in eyes] == [dataclasses.replace(want, occluded_fill_m=0.2)] * 2

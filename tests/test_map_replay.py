@@ -140,12 +140,10 @@ def test_a_map_parameter_is_tried_on_the_recorded_poses(tmp_path: Path) -> None:
     _write_flight(tmp_path, drone=0)
     out = tmp_path / "near.json"
     args = ["bench", "map-replay", str(tmp_path), "--drone", "0", "--json", str(out)]
-    r = CliRunner().invoke(
-        main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_near_m=0.1"]
-    )
+    r = CliRunner().invoke(main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_m=0.2"])
     assert r.exit_code == 0, r.output
-    assert json.loads(out.read_text())["occluded_fill_near_m"] == 0.1
+    assert json.loads(out.read_text())["occluded_fill_m"] == 0.2
     bad = CliRunner().invoke(
-        main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_near_m=0.9"]
+        main, [*args, "--set-onboard", "mapping.occupancy.occluded_fill_m=2.0"]
     )
-    assert bad.exit_code != 0 and "occluded_fill_near_m" in bad.output
+    assert bad.exit_code != 0 and "occluded_fill_m" in bad.output
