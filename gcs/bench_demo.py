@@ -346,7 +346,8 @@ def bench_demo(
         raise click.BadParameter(str(e), param_hint="--formation-change") from e
     try:
         demo_templates(drones, formation, fc)  # the demo's own check, before the first seed
-        service = load_onboard_config(None, drone_id=0, overrides=parse_overrides(onboard_sets))
+        overrides = parse_overrides(onboard_sets)
+        service = load_onboard_config(None, drone_id=0, overrides=overrides)
     except (DemoError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     demo_cfg = DemoConfig(drones=drones, depth_rate_hz=depth_rate, altitude_band_m=altitude_band)
@@ -377,9 +378,10 @@ def bench_demo(
     replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
     seed_list = list(range(first_seed, first_seed + seeds))
-    # the map's parameters set on the command line reach the twins' maps too
-    occ_sets = parse_overrides(onboard_sets).get("mapping", {}).get("occupancy", {})
-    occ_over = tuple(sorted((str(k), v) for k, v in occ_sets.items()))
+    # the map's parameters set on the command line (as the service read them) reach the twins'
+    occ = service.mapping.occupancy
+    occ_keys = sorted(overrides.get("mapping", {}).get("occupancy", {}))
+    occ_over = tuple((str(k), getattr(occ, k)) for k in occ_keys)
     twin_args = [(seed, formation, world, fc, rate, step, planner, replan_s, occ_over)
                  for seed in seed_list]  # fmt: skip
     rows: list[dict[str, Any]] = []

@@ -79,12 +79,11 @@ def replay_poses(
     truth (the map's window stops above it)."""
     from onboard.mapping.mapper import LocalMapper
     from onboard.sensors.mount import camera_pose
-    from onboard.world import World
     from sitl_mock.truth import simulated_d435
 
     if not rate_hz > 0.0:
         raise ValueError(f"rate_hz must be positive, got {rate_hz}")
-    solid = World(world.cylinders, world.rings, world.boxes, ground_z=None, name=world.name)
+    solid = world.without_ground()
     cam = camera if camera is not None else simulated_d435(world, seed=0, step=step)
     mapper = LocalMapper(occ)
     out: list[ReplayFrame] = []
@@ -139,10 +138,8 @@ def summarise(frames: Sequence[ReplayFrame], inflation_m: float, near_m: float) 
     }
 
 
-def _record_poses(path: Path) -> list[tuple[float, list[float], list[float]]]:
-    from onboard.record import read_record
-
-    rec = read_record(path)
+def _record_poses(rec: Any) -> list[tuple[float, list[float], list[float]]]:
+    """(time, position, quaternion w, x, y, z) of each ``/pose`` of a ``FlightRecord``."""
     out = []
     for t, m in rec.topics.get("/pose", []):
         pose = m.get("pose", {})
@@ -168,11 +165,12 @@ def replay_flight(
     overrides: dict[str, Any] | None = None,
 ) -> tuple[list[ReplayFrame], dict[str, Any]]:
     """``replay_poses`` of drone ``drone_id``'s record in ``flight`` (a flight directory of
-    ``swarm-gcs demo``: the records, ``mission.json``, ``onboard.yaml``), between global times
-    ``t_from_s`` and ``t_to_s`` (default: the whole record), with the drone's configuration
-    changed by ``overrides`` (nested, as ``--set-onboard`` gives them: a map parameter tried on
-    the poses that flew). Also returns what it replayed with (the mission's changes of
-    formation, the map's parameters)."""
+    ``swarm-gcs demo``: the records, ``mission.json``, ``onboard.yaml``), between ``t_from_s``
+    and ``t_to_s`` seconds after the mission's first assignment (``t0_s`` in what it returns;
+    the record's own times without one; default: the whole record), with the drone's
+    configuration changed by ``overrides`` (nested, as ``--set-onboard`` gives them: a map
+    parameter tried on the poses that flew). Also returns what it replayed with (the mission's
+    changes of formation, the map's parameters)."""
     from gcs.report import find_mission, find_records, load_mission, mission_world
     from onboard.record import read_record
     from onboard.service.config import load_onboard_config
@@ -181,34 +179,31 @@ def replay_flight(
     world = mission_world(mission)
     if world is None:
         raise MapReplayError(f"{flight}: no mission.json with the world")
-    record = None
-    for path in find_records([flight]):
-        if read_record(path).drone_id == drone_id:
-            record = path
-            break
+    record = next(
+        (r for r in map(read_record, find_records([flight])) if r.drone_id == drone_id), None
+    )
     if record is None:
         raise MapReplayError(f"{flight}: no record of drone {drone_id}")
     cfg_file = Path(flight) / "onboard.yaml"
     cfg = load_onboard_config(
         cfg_file if cfg_file.is_file() else None, drone_id=drone_id, overrides=overrides
     )
+    changes = sorted(float(a["effective_s"]) for a in mission.get("assignments", []))
+    t0 = changes[0] if changes else 0.0
     poses = [
         x
         for x in _record_poses(record)
-        if (t_from_s is None or x[0] >= t_from_s) and (t_to_s is None or x[0] <= t_to_s)
+        if (t_from_s is None or x[0] >= t0 + t_from_s) and (t_to_s is None or x[0] <= t0 + t_to_s)
     ]
     if not poses:
-        raise MapReplayError(f"{record}: no pose between the times asked")
+        raise MapReplayError(f"{record.path}: no pose between the times asked")
     occ = cfg.map_params
     frames = replay_poses(poses, world, occ, cfg.depth.step, cfg.depth.rate_hz)
-    changes = [
-        float(a["effective_s"])
-        for a in sorted(mission.get("assignments", []), key=lambda a: float(a["effective_s"]))
-    ]
     meta = {
-        "record": str(record),
+        "record": str(record.path),
         "drone": drone_id,
         "assignments_effective_s": changes,
+        "t0_s": t0,
         "rate_hz": cfg.depth.rate_hz,
         "step": cfg.depth.step,
         "inflation_m": occ.inflation_m,
@@ -264,22 +259,13 @@ def bench_map_replay(
     printed beside them."""
     import json
 
-    from gcs.report import find_mission, load_mission
     from onboard.config import ConfigError, parse_overrides
 
-    mission = load_mission(find_mission([flight]))
-    eff = sorted(float(a["effective_s"]) for a in mission.get("assignments", []))
-    t0 = eff[0] if eff else 0.0
     try:
-        frames, meta = replay_flight(
-            flight,
-            drone_id,
-            None if t_from is None else t0 + t_from,
-            None if t_to is None else t0 + t_to,
-            parse_overrides(onboard_sets),
-        )
+        frames, meta = replay_flight(flight, drone_id, t_from, t_to, parse_overrides(onboard_sets))
     except (MapReplayError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
+    t0, eff = float(meta["t0_s"]), meta["assignments_effective_s"]
     infl = float(meta["inflation_m"])
     s = summarise(frames, infl, near_m)
     limit = infl if show_over is None else show_over
@@ -306,7 +292,6 @@ def bench_map_replay(
     if json_path is not None:
         out = {
             **meta,
-            "t0_s": t0,
             "summary": s,
             "frames": [{**asdict(f), "overestimate_m": f.overestimate_m} for f in frames],
         }

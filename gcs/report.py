@@ -404,9 +404,7 @@ def analyse(
     # clearances: obstacles (no ground) for airborne drones; every pair with both positions
     obst = np.full(t.shape[0], np.nan)
     if world is not None:
-        from onboard.world import World
-
-        solid = World(world.cylinders, world.rings, world.boxes, ground_z=None, name=world.name)
+        solid = world.without_ground()
         if solid.n_primitives:
             flat = pos.reshape(-1, 3)
             ok = np.isfinite(flat).all(axis=1) & air.reshape(-1)

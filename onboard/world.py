@@ -416,6 +416,10 @@ class World:
         )
         return d, g
 
+    def without_ground(self) -> World:
+        """The same primitives with no ground plane (clearances to obstacles alone)."""
+        return World(self.cylinders, self.rings, self.boxes, ground_z=None, name=self.name)
+
     def within(self, center: np.ndarray, radius: float) -> World:
         """The primitives with some solid point within ``radius`` of ``center`` (ground kept).
 

@@ -110,12 +110,13 @@ def test_a_flight_directory_is_replayed_and_bad_requests_are_refused(tmp_path: P
     assert meta["rate_hz"] == rate and rate >= 10.0
     assert len(frames) == 12 and meta["assignments_effective_s"] == [100.0, 110.0]
     assert all(math.isfinite(f.map_m) and math.isfinite(f.true_m) for f in frames)
-    frames, _ = replay_flight(tmp_path, 1, t_from_s=100.5)
+    frames, meta = replay_flight(tmp_path, 1, t_from_s=0.5)  # after the first assignment
+    assert meta["t0_s"] == 100.0
     assert [f.t_s for f in frames] == pytest.approx([100.5 + 0.1 * k for k in range(7)])
     with pytest.raises(MapReplayError, match="no record of drone 4"):
         replay_flight(tmp_path, 4)
     with pytest.raises(MapReplayError, match="no pose"):
-        replay_flight(tmp_path, 1, t_from_s=200.0)
+        replay_flight(tmp_path, 1, t_from_s=100.0)
     (tmp_path / "mission.json").write_text("{}")
     with pytest.raises(MapReplayError, match="no mission.json with the world"):
         replay_flight(tmp_path, 1)
