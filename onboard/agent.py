@@ -254,6 +254,8 @@ class PlanInputs:
     n_ghosts: int = 0
     """The last ``n_ghosts`` of ``peers`` are hovers where quiet peers (silent ones included)
     may have stopped, or where deviating peers reported themselves."""
+    first_attempt: int = 0
+    """The plan call's ``first_attempt`` (after a replan that gave up at its time budget)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -648,7 +650,8 @@ class DroneAgent:
     has taken this long by ``timer`` (the flight service; inf: no budget, the fast-time
     simulator, whose results must not depend on the host's speed), it starts no further
     attempt while the trajectory in control is safe and moves on (``PlanStatus.OVER_BUDGET``:
-    that trajectory flies on and a replan follows at once); resend_s: each published
+    that trajectory flies on and a replan follows at once, starting at the attempt given up,
+    ``PlanResult.resume_at``, unless the shape changed meanwhile); resend_s: each published
     trajectory goes out again this long after it unless a newer one went out first, as
     ``resend`` is called (``RESEND_S`` in the flight service and fast time; () none);
     resend_plans: False: only what ``announce`` publishes (braking stops, hovers) is sent
@@ -793,6 +796,9 @@ class DroneAgent:
         # shape recovery (``PlannerParams.recover_e_sim``) lasts until then
         self._recover_until_s = -math.inf
         self._active: FormationPlanner | None = None
+        # where the next replan starts the planner's attempts: those the last one gave up at
+        # its time budget (``PlanResult.resume_at``), else the first
+        self._resume_at = 0
         self._next_replan_s = float(initial.t0_s if first_replan_s is None else first_replan_s)
         if not math.isfinite(self._next_replan_s):
             raise ValueError("first_replan_s must be finite")
@@ -1347,6 +1353,7 @@ class DroneAgent:
         )
         shape = (a.epoch, a.slot, a.formation.tobytes())
         if self._shape_seen is not None and shape != self._shape_seen:
+            self._resume_at = 0  # what was given up was for the old shape
             self._reform_until_s = now + self.params.reform_s
             self._reform_hold_until_s = now + max(
                 self.params.reform_s, self.params.reform_hold_max_s
@@ -1379,6 +1386,7 @@ class DroneAgent:
                     planner.formation,
                     None if not (avoided or ghosts) else planner.mask,
                     len(ghosts),
+                    self._resume_at,
                 )
             )
         self._active = planner
@@ -1392,9 +1400,12 @@ class DroneAgent:
                 return self.timer() >= budget_end
 
         try:
-            res = planner.plan(t_start, sp, sv, sa, a.goal, peers, field, flying, give_up)
+            res = planner.plan(
+                t_start, sp, sv, sa, a.goal, peers, field, flying, give_up, self._resume_at
+            )
         finally:
             self._active = None
+        self._resume_at = res.resume_at if res.status is PlanStatus.OVER_BUDGET else 0
         plan_ms = (self.timer() - p0) * 1e3
         plan_cpu_ms = (time.thread_time() - q0) * 1e3
         new = res.trajectory

@@ -787,6 +787,57 @@ def test_the_plan_budget_is_measured_by_the_timer_and_an_over_budget_plan_flies_
             _agent(0, bus, start, None, plan_budget_s=bad)
 
 
+def test_the_replan_after_an_over_budget_one_starts_at_the_attempt_it_gave_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An 'over-budget' result's ``resume_at`` is the next replan's ``first_attempt`` (the
+    attempts it gave up, from the newer start), and only that replan's: after any other
+    result, and after a change of shape (what was given up was for the old one), the planner
+    starts at its first attempt. The inputs handed to ``on_inputs`` carry it too."""
+    tm = {"t": 100.0}
+    firsts: list[int] = []
+    outcome: list[PlanResult | None] = []
+    real_plan = FormationPlanner.plan
+
+    def plan(self: FormationPlanner, *args: object, **kw: object) -> PlanResult:
+        first = args[9] if len(args) > 9 else kw.get("first_attempt", 0)
+        assert isinstance(first, int)
+        firsts.append(first)
+        canned = outcome.pop(0)
+        if canned is not None:
+            previous = args[7]
+            assert isinstance(previous, Trajectory)
+            return dataclasses.replace(canned, trajectory=previous)
+        return real_plan(self, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(FormationPlanner, "plan", plan)
+    seen: list[PlanInputs] = []
+    bus = InMemoryBus()
+    start = np.array([0.0, 0.0, 1.0])
+    a = _agent(
+        1,
+        bus,
+        start,
+        np.array([6.0, 0, 1]),
+        timer=lambda: tm["t"],
+        plan_budget_s=0.3,
+        on_inputs=seen.append,
+    )
+    hold = Trajectory.hover(start, 0.0)
+    over = [PlanResult(PlanStatus.OVER_BUDGET, hold, resume_at=k) for k in (1, 2)]
+    outcome += [over[0], over[1], None, None, over[0], None]
+    statuses = [a.replan(0.2 * k).status for k in range(4)]
+    assert statuses[:2] == [PlanStatus.OVER_BUDGET] * 2
+    assert PlanStatus.OVER_BUDGET not in statuses[2:]
+    assert firsts == [0, 1, 2, 0]
+    now = 0.8
+    a.replan(now)  # over budget, resume at 1 ...
+    a.set_formation(TRIANGLE[[0, 2, 1]], 1)  # ... but the shape changes
+    a.replan(now + 0.2)
+    assert firsts == [0, 1, 2, 0, 0, 0]
+    assert [i.first_attempt for i in seen] == firsts
+
+
 def test_the_plan_reports_its_cpu_apart_from_its_wait(monkeypatch: pytest.MonkeyPatch) -> None:
     """``plan_cpu_ms`` is the planning thread's CPU within ``plan_ms``: a planner that waits
     (here a sleep, on a starved host a core or the interpreter lock) shows in ``plan_ms``

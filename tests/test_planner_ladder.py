@@ -394,6 +394,53 @@ def test_a_replan_over_its_time_budget_keeps_the_safe_previous_and_tries_no_more
     )
 
 
+def test_the_replan_after_one_over_its_budget_goes_on_with_the_attempts_it_gave_up() -> None:
+    """The scenario above. A replan that gave up at its budget says which attempt it gave up
+    (``resume_at``); the next one, started there (``first_attempt``), runs that attempt first
+    (its message says so) and not those already refused, which on a starved CPU would spend
+    the budget again on the same refusals. Chained, the replans walk the whole sequence of
+    attempts, each trying one; the last starts no budget question and goes on to the rescue.
+    Started at 0, a replan is the usual one; past the end, at the last attempt."""
+    world = _wall(0.3, False)
+    field = AnalyticField(world)
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
+    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
+    full = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
+    assert full.resume_at == 0
+    labels = [part.split(":")[0] for part in full.message.split("; ") if "drone 7 at" in part]
+    assert len(labels) >= 3  # every optimised attempt refused by the peer
+    resumed: list[int] = []
+    first = 0
+    while True:
+        res = planner.plan(
+            0.0, start, ZERO, ZERO, goal, peers, field, back, lambda: True, first_attempt=first
+        )
+        if res.status is not PlanStatus.OVER_BUDGET:
+            break
+        assert res.trajectory is back
+        assert res.message.count("drone 7 at") == 1  # one attempt, then the budget
+        assert res.resume_at == first + 1
+        if first > 0:
+            assert res.message.startswith(f"resumed at {labels[first]}; {labels[first]}:")
+        resumed.append(first)
+        first = res.resume_at
+    assert resumed == list(range(len(labels) - 1))
+    # the last attempt asks no budget question: the rescue and the rest follow as without one
+    assert res.status == full.status == PlanStatus.KEPT_PREVIOUS
+    assert res.message.startswith(f"resumed at {labels[-1]}; {labels[-1]}:")
+    assert res.message.endswith(full.message.split("; ", len(labels))[-1])
+    assert res.resume_at == 0
+    again = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back, first_attempt=0)
+    assert (again.status, again.message) == (full.status, full.message)
+    past = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back, first_attempt=99)
+    assert (past.status, past.message) == (res.status, res.message)
+    for bad in (-1, 1.0, True, None):
+        with pytest.raises(ValueError, match="first_attempt"):
+            planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back, first_attempt=bad)
+
+
 @pytest.mark.parametrize("see_still", [True, False])
 def test_the_a_star_path_leads_around_peers_out_of_the_formation_that_hold_still(
     monkeypatch: Any, see_still: bool

@@ -197,6 +197,9 @@ class PlanResult:
         default=None, repr=False, compare=False
     )
     """Computes ``costs`` (the replan does not spend an objective evaluation on them)."""
+    resume_at: int = 0
+    """``OVER_BUDGET``: the index of the first attempt it gave up (``FormationPlanner.plan``'s
+    ``first_attempt`` for the replan that follows); else 0."""
 
     @functools.cached_property
     def costs(self) -> dict[str, float]:
@@ -1222,13 +1225,22 @@ class FormationPlanner:
         field: DistanceField,
         previous: Trajectory | None = None,
         give_up: Callable[[], bool] | None = None,
+        first_attempt: int = 0,
     ) -> PlanResult:
         """One replan; see the module docstring for the sequence of attempts. ``give_up``
         (a time budget; the planner reads no clock itself) is asked before every attempt but
         the first: once it returns True, a ``previous`` that the check accepts and that moves
-        the drone on is kept (``PlanStatus.OVER_BUDGET``) instead of trying on; without one
-        the attempts go on as usual, since the alternative would be a stop. An accepted plan
-        then skips the comfort alternative (``comfort_obstacle_m``)."""
+        the drone on is kept (``PlanStatus.OVER_BUDGET``, with the index of the attempt it gave
+        up in ``resume_at``) instead of trying on; without one the attempts go on as usual,
+        since the alternative would be a stop. An accepted plan then skips the comfort
+        alternative (``comfort_obstacle_m``). ``first_attempt``: the sequence starts at that
+        optimised attempt (the last one where there are fewer), so that the replan after one
+        that gave up goes on with the attempts it gave up, from its newer start, instead of
+        trying again, on a starved CPU again past the budget, those the check just refused."""
+        if isinstance(first_attempt, bool) or not isinstance(first_attempt, int):
+            raise ValueError(f"first_attempt must be an int, got {first_attempt!r}")
+        if first_attempt < 0:
+            raise ValueError(f"first_attempt must be >= 0, got {first_attempt}")
         sp, sv, sa, gl = self._vectors_in_band(start_p, start_v, start_a, goal)
         gx, gy, gz = (gl - sp).tolist()
         vx, vy, vz = sv.tolist()
@@ -1592,19 +1604,31 @@ class FormationPlanner:
             """Whether ``traj`` ends at least ``KEEP_MOVING_M`` from the replan's start."""
             return math.dist(traj.end_position.tolist(), sp.tolist()) >= KEEP_MOVING_M
 
-        def over_budget() -> PlanResult | None:
-            """The kept previous trajectory when ``give_up`` says stop and it moves on."""
+        def over_budget(k: int) -> PlanResult | None:
+            """The kept previous trajectory when ``give_up`` says stop before attempt ``k``
+            and it moves on."""
             if not late():
                 return None
             safe_prev = keep_previous()
             if safe_prev is None or not moves_on(safe_prev):
                 return None
             return PlanResult(
-                PlanStatus.OVER_BUDGET, safe_prev, iters, evals, last_status, "; ".join(messages)
+                PlanStatus.OVER_BUDGET,
+                safe_prev,
+                iters,
+                evals,
+                last_status,
+                "; ".join(messages),
+                resume_at=k,
             )
 
-        for k, (use_formation, force_astar, ok_status, what, scale) in enumerate(attempts):
-            if k > 0 and (stop := over_budget()) is not None:
+        first = min(first_attempt, len(attempts) - 1)
+        if first > 0:
+            use_formation, _, _, what, _ = attempts[first]
+            messages.append(f"resumed at {what}{'' if use_formation else ' without formation'}")
+        for k in range(first, len(attempts)):
+            use_formation, force_astar, ok_status, what, scale = attempts[k]
+            if k > first and (stop := over_budget(k)) is not None:
                 return stop
             result, problem, canceled = attempt(
                 use_formation, force_astar, ok_status, what, formation_scale=scale

@@ -327,8 +327,11 @@ class PlanningSection:
     plan_budget_s: float = 0.3
     """A replan that has taken this long starts no further attempt (A* retries, rescue) while
     the trajectory in control is safe and moves on: that one flies on (status 'over-budget')
-    and a replan follows at once, from a newer start. On a starved CPU a refused first attempt
-    and its retries took seconds, and such a plan comes back too late to be flown."""
+    and a replan follows at once, from a newer start, starting with the attempts given up (not
+    those just refused again: on a starved CPU they would spend the budget once more, and the
+    drone flew its old plan replan after replan while its peers re-formed). On a starved CPU a
+    refused first attempt and its retries took seconds, and such a plan comes back too late to
+    be flown."""
     monitor_rate_hz: float = 100.0
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
