@@ -165,9 +165,11 @@ def replay_flight(
     overrides: dict[str, Any] | None = None,
 ) -> tuple[list[ReplayFrame], dict[str, Any]]:
     """``replay_poses`` of drone ``drone_id``'s record in ``flight`` (a flight directory of
-    ``swarm-gcs demo``: the records, ``mission.json``, ``onboard.yaml``), between ``t_from_s``
-    and ``t_to_s`` seconds after the mission's first assignment (``t0_s`` in what it returns;
-    the record's own times without one; default: the whole record), with the drone's
+    ``swarm-gcs demo``: the records, ``mission.json``, ``onboard.yaml``), the frames between
+    ``t_from_s`` and ``t_to_s`` seconds after the mission's first assignment (``t0_s`` in what
+    it returns; the record's own times without one; default: the whole record; the map is
+    built from the record's first pose on, as the drone's was, not from an empty one at
+    ``t_from_s``, which would read the surfaces seen before as unknown), with the drone's
     configuration changed by ``overrides`` (nested, as ``--set-onboard`` gives them: a map
     parameter tried on the poses that flew). Also returns what it replayed with (the mission's
     changes of formation, the map's parameters)."""
@@ -190,15 +192,17 @@ def replay_flight(
     )
     changes = sorted(float(a["effective_s"]) for a in mission.get("assignments", []))
     t0 = changes[0] if changes else 0.0
-    poses = [
-        x
-        for x in _record_poses(record)
-        if (t_from_s is None or x[0] >= t0 + t_from_s) and (t_to_s is None or x[0] <= t0 + t_to_s)
-    ]
+    poses = [x for x in _record_poses(record) if t_to_s is None or x[0] <= t0 + t_to_s]
+    if t_from_s is not None and poses and poses[-1][0] < t0 + t_from_s:
+        poses = []
     if not poses:
         raise MapReplayError(f"{record.path}: no pose between the times asked")
     occ = cfg.map_params
     frames = replay_poses(poses, world, occ, cfg.depth.step, cfg.depth.rate_hz)
+    if t_from_s is not None:
+        frames = [f for f in frames if f.t_s >= t0 + t_from_s]
+        if not frames:
+            raise MapReplayError(f"{record.path}: no frame between the times asked")
     meta = {
         "record": str(record.path),
         "drone": drone_id,
@@ -217,7 +221,11 @@ def replay_flight(
 @click.argument("flight", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--drone", "drone_id", type=int, required=True, help="The drone's id.")
 @click.option(
-    "--from", "t_from", type=float, default=None, help="Start, seconds after the first assignment."
+    "--from",
+    "t_from",
+    type=float,
+    default=None,
+    help="Report from here, seconds after the first assignment (the map is built from the start).",
 )
 @click.option("--to", "t_to", type=float, default=None, help="End, seconds after it.")
 @click.option(
@@ -259,11 +267,12 @@ def bench_map_replay(
     printed beside them."""
     import json
 
+    from gcs.report import ReportError
     from onboard.config import ConfigError, parse_overrides
 
     try:
         frames, meta = replay_flight(flight, drone_id, t_from, t_to, parse_overrides(onboard_sets))
-    except (MapReplayError, ConfigError) as e:
+    except (MapReplayError, ReportError, ConfigError) as e:
         raise click.ClickException(str(e)) from e
     t0, eff = float(meta["t0_s"]), meta["assignments_effective_s"]
     infl = float(meta["inflation_m"])

@@ -110,9 +110,14 @@ def test_a_flight_directory_is_replayed_and_bad_requests_are_refused(tmp_path: P
     assert meta["rate_hz"] == rate and rate >= 10.0
     assert len(frames) == 12 and meta["assignments_effective_s"] == [100.0, 110.0]
     assert all(math.isfinite(f.map_m) and math.isfinite(f.true_m) for f in frames)
+    whole = frames
     frames, meta = replay_flight(tmp_path, 1, t_from_s=0.5)  # after the first assignment
     assert meta["t0_s"] == 100.0
     assert [f.t_s for f in frames] == pytest.approx([100.5 + 0.1 * k for k in range(7)])
+    # the window's frames are the whole replay's: its map was built from the first pose on
+    assert frames == whole[5:]
+    frames, _ = replay_flight(tmp_path, 1, t_from_s=0.25, t_to_s=0.55)
+    assert frames == whole[3:6]
     with pytest.raises(MapReplayError, match="no record of drone 4"):
         replay_flight(tmp_path, 4)
     with pytest.raises(MapReplayError, match="no pose"):
@@ -135,6 +140,12 @@ def test_the_command_prints_the_figures_and_writes_json(tmp_path: Path) -> None:
     assert data["summary"]["frames"] == 12
     r = CliRunner().invoke(main, ["bench", "map-replay", str(tmp_path), "--drone", "5"])
     assert r.exit_code != 0 and "no record of drone 5" in r.output
+    # a directory without records: a one-line error, not a traceback
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = CliRunner().invoke(main, ["bench", "map-replay", str(empty), "--drone", "0"])
+    assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.output
+    assert r.output.startswith("Error: ")
 
 
 def test_a_map_parameter_is_tried_on_the_recorded_poses(tmp_path: Path) -> None:
