@@ -406,10 +406,11 @@ class SimResult:
     refusals: dict[str, int] = field(default_factory=dict)
     """Optimised attempts the safety check refused, over all replans (a replan that ends
     ok-no-formation, kept-previous or emergency refused one or more): ``attempts`` in all,
-    ``unobserved`` of them because they entered unobserved map space within
-    ``check_known_s``, ``obstacle`` / ``drone`` / ``altitude`` for those reasons (from the
-    plan reports' messages); ``approach`` / ``last_resort``: replans that flew a refused way
-    toward a conflict far ahead (``APPROACH``), or one no closer than a stop
+    ``unobserved`` of them because they entered unobserved map space, or came within
+    ``check_known_margin_m`` of it, within ``check_known_s``, ``obstacle`` / ``drone`` /
+    ``altitude`` for those reasons (from the plan reports' messages); ``approach`` /
+    ``last_resort``: replans that flew a refused way toward a conflict far ahead
+    (``APPROACH``), or one no closer than a stop
     (``count_refusals``)."""
 
     def to_json(self, include_tracks: bool = False) -> dict[str, Any]:
@@ -494,7 +495,7 @@ def count_refusals(message: str, counts: dict[str, int]) -> None:
             continue
         why = part.split(": ", 1)[1]
         counts["attempts"] += 1
-        if why.startswith("enters unobserved space"):
+        if why.startswith(("enters unobserved space", "unobserved space")):
             counts["unobserved"] += 1
         elif why.startswith("obstacle clearance"):
             counts["obstacle"] += 1

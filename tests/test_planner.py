@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from gcs.fastsim import REFUSAL_KEYS, count_refusals
+from onboard.mapping.esdf import EsdfField
 from onboard.planner import objective as obj
 from onboard.planner.field import AnalyticField, GridField
 from onboard.planner.lbfgs import P_DELTA, LbfgsStatus, minimize
@@ -300,6 +301,75 @@ def test_no_plan_enters_unobserved_space_before_the_next_replan() -> None:
     back = planner.plan(0.0, np.array([0.5, 0.0, 1.0]), ZERO, ZERO, np.array([-1.5, 0, 1]), [],
                         field)  # fmt: skip
     assert back.status == PlanStatus.OK, back.message
+
+
+def _hidden_trunk_field(occupied_hidden: bool = False) -> EsdfField:
+    """Free space observed everywhere on a 0.1 m grid but for the cells of a trunk (axis at
+    x 1.5, y -0.4, radius 0.2) the camera never saw: the map's distances ignore it (free to the
+    optimiser); ``occupied_hidden``: those cells count occupied (the shadow fill), still not
+    observed."""
+    exact = AnalyticField(World.empty(0.0))
+    grid = GridField.from_function(exact.distance, [-2.0, -2.0, 0.0], [6.0, 2.0, 2.0], 0.1)
+    c = grid.cell_centres()
+    trunk = np.hypot(c[..., 0] - 1.5, c[..., 1] + 0.4) < 0.2
+    occupied = trunk & occupied_hidden
+    return EsdfField(grid.values, grid.origin, grid.res, ~trunk, occupied, 0.1)
+
+
+def _line_at(start: np.ndarray, v: np.ndarray, duration_s: float = 3.0) -> Trajectory:
+    c = np.zeros((1, 6, 3))
+    c[0, 0], c[0, 1] = start, v
+    return Trajectory(0.0, c, np.array([duration_s]))
+
+
+def test_no_plan_comes_close_to_unobserved_space_before_the_next_replan() -> None:
+    """``check_known_margin_m``: a way that passes 0.1 m from a trunk the map never observed
+    within its first second (its samples all in observed free space) is refused; without the
+    margin, and where it passes that trunk only after its first second, it is accepted. A way
+    that leaves unobserved space (a drone whose camera never looked behind it), or that starts
+    about as close to it as it comes (beside a drone that has not moved yet), passes, and cells
+    counted occupied (the shadow behind a hit) are not unobserved to it."""
+    field = _hidden_trunk_field()
+    start = np.array([0.8, 0.0, 1.0])
+    past = _line_at(start, np.array([1.0, 0.0, 0.0]))  # 0.2 m from the trunk's axis at 0.7 s
+    assert field.is_known(past.sample(np.arange(0.0, 3.0, 0.05))).all()
+    off = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
+    assert off.params.check_known_margin_m == 0.0
+    assert off.check(past, 0.0, field, []) == (True, "")
+    on = FormationPlanner(PlannerParams(v_max_m_s=1.0, check_known_margin_m=0.3), LINE3, slot=1)
+    ok, why = on.check(past, 0.0, field, [])
+    assert not ok and why.startswith("unobserved space 0.") and "at t=0." in why, why
+    # the trunk met only after the first second: the next replan will have looked again
+    late = _line_at(np.array([-1.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
+    assert on.check(late, 0.0, field, []) == (True, "")
+    # leaving it: from beside the trunk, away from it
+    away = _line_at(np.array([1.5, 0.05, 1.0]), np.array([0.0, 0.5, 0.0]), 2.0)
+    assert on.check(away, 0.0, field, []) == (True, "")
+    # past the trunk 0.15 m from its surface, from 0.2 m at the start: not half the margin closer
+    along = _line_at(np.array([1.3, -0.05, 1.0]), np.array([0.5, 0.0, 0.0]), 2.0)
+    assert on.check(along, 0.0, field, []) == (True, "")
+    # the same trunk counted occupied (not observed): the obstacle distances judge it
+    assert on.check(past, 0.0, _hidden_trunk_field(occupied_hidden=True), []) == (True, "")
+    # a drone flying at it: the optimiser does not see the trunk (unobserved space is free to
+    # it), so without the margin the plan passes it at 0.1 m; with it, that plan is refused
+    # and the drone stops, its camera to look again (the flight service's hover and retry)
+    goal, v = np.array([4.0, 0.0, 1.0]), np.array([0.8, 0.0, 0.0])
+    res = off.plan(0.0, start, v, ZERO, goal, [], field)
+    assert res.status is PlanStatus.OK and _passes_near(res.trajectory, 0.3)
+    res = on.plan(0.0, start, v, ZERO, goal, [], field)
+    assert res.status is PlanStatus.EMERGENCY and "unobserved space 0." in res.message
+    assert not _passes_near(res.trajectory, 0.3)
+    with pytest.raises(ValueError, match="check_known_margin_m"):
+        PlannerParams(check_known_margin_m=-0.1)
+    with pytest.raises(ValueError, match="check_known_margin_m"):
+        PlannerParams(check_known_margin_m=2.5)
+
+
+def _passes_near(tr: Trajectory, margin_m: float) -> bool:
+    """Whether ``tr`` comes within ``margin_m`` of the hidden trunk's surface in its first
+    second."""
+    p = tr.sample(np.arange(tr.t0_s, tr.t0_s + 1.0, 0.02))
+    return bool((np.hypot(p[:, 0] - 1.5, p[:, 1] + 0.4) - 0.2 < margin_m).any())
 
 
 def test_a_drone_ahead_of_its_slot_slows_down_for_the_swarm() -> None:

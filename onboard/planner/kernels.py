@@ -57,6 +57,9 @@ CHECK_ALTITUDE = 2
 CHECK_OBSTACLE = 3
 CHECK_DRONE = 4
 CHECK_UNKNOWN = 5
+CHECK_UNKNOWN_NEAR = 6
+"""Comes within ``known_r`` of an unobserved cell, and closer to it than it starts (the
+unknown-space test's neighbourhood: a surface the camera never faced beside the way)."""
 # what the unknown-space test (2) of the check looks at
 KNOWN_SKIP = 0
 """No test: ``check_known_s`` is 0 or the field is known everywhere."""
@@ -704,6 +707,65 @@ def _is_known(fld: tuple, mode: int, known: np.ndarray, x: float, y: float, z: f
 
 
 @njit(cache=True, nogil=True)
+def _near_unseen(
+    fld: tuple, seen: np.ndarray, pos: np.ndarray, n: int, r: float
+) -> tuple[int, float, float]:
+    """The first of the samples ``pos[1:n]`` within ``r`` of the centre of a grid cell that
+    ``seen`` says was not observed, in the sample's layer or the next one up or down, and at
+    least ``r / 2`` closer to that centre than ``pos[0]`` is: a way that approaches unobserved
+    space, as a trunk the camera never faced (trunks stand: its layer shows one). Cells
+    already about as close at the start are not judged: beside a drone that has not moved
+    yet, and above and below its camera's field of view, space is unobserved at any start, and
+    a way that leaves it (a drone whose camera never faced behind it) passes. Returns (sample,
+    its distance to that cell, the first sample's); (-1, nan, nan) without one. Cells outside
+    the grid are not judged (the sample's own test covers leaving the grid's box)."""
+    grid = fld[1]
+    origin = fld[2]
+    res = fld[3]
+    nx = grid.shape[0]
+    ny = grid.shape[1]
+    nz = grid.shape[2]
+    m = int(math.ceil(r / res))
+    r2 = r * r
+    approach = 0.5 * r
+    x0 = pos[0, 0]
+    y0 = pos[0, 1]
+    z0 = pos[0, 2]
+    for s_i in range(1, n):
+        px = pos[s_i, 0]
+        py = pos[s_i, 1]
+        pz = pos[s_i, 2]
+        ci = int(math.floor((px - origin[0]) / res))
+        cj = int(math.floor((py - origin[1]) / res))
+        ck = int(math.floor((pz - origin[2]) / res))
+        for a in range(max(ci - m, 0), min(ci + m + 1, nx)):
+            cx = origin[0] + (a + 0.5) * res
+            dx = cx - px
+            dx0 = cx - x0
+            for b in range(max(cj - m, 0), min(cj + m + 1, ny)):
+                cy = origin[1] + (b + 0.5) * res
+                dy = cy - py
+                dy0 = cy - y0
+                dxy = dx * dx + dy * dy
+                if dxy >= r2:
+                    continue
+                for c in range(max(ck - 1, 0), min(ck + 2, nz)):
+                    if seen[a, b, c]:
+                        continue
+                    cz = origin[2] + (c + 0.5) * res
+                    dz = cz - pz
+                    d2 = dxy + dz * dz
+                    if d2 >= r2:
+                        continue
+                    dz0 = cz - z0
+                    d0 = math.sqrt(dx0 * dx0 + dy0 * dy0 + dz0 * dz0)
+                    d = math.sqrt(d2)
+                    if d <= d0 - approach:
+                        return s_i, d, d0
+    return -1, math.nan, math.nan
+
+
+@njit(cache=True, nogil=True)
 def _positions(coeffs: np.ndarray, T: np.ndarray, t_rel: np.ndarray) -> np.ndarray:
     """Positions (K, 3) of the trajectory (coeffs, T) at the times ``t_rel`` (K,) from its
     start."""
@@ -741,6 +803,8 @@ def check_trajectory(
     ref_T: np.ndarray,
     ref_t0: float,
     ref_s: float,
+    known_r: float,
+    seen_mask: np.ndarray,
 ) -> tuple[int, int, int, int, float, float, float, float, float, int]:
     """The safety check of ``FormationPlanner.check`` on the samples ``ts`` = every ``step``
     from t_from to the end (the end included) of the trajectory (coeffs (M, 6, 3), T (M,),
@@ -749,7 +813,11 @@ def check_trajectory(
     stop's window, not only while it moves), the obstacles only on those up to t_from +
     obstacle_s when obstacle_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
-    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX). A trajectory that comes
+    (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX), and with KNOWN_MASK and
+    ``known_r`` > 0 its neighbourhood (``_near_unseen``): no such sample within ``known_r`` of
+    a cell that ``seen_mask`` (the grid's shape: observed, or counted occupied) says is not, in
+    its layer, and half of that closer to it than the first sample (CHECK_UNKNOWN_NEAR; the
+    value is that distance, the value at the start the first sample's). A trajectory that comes
     closer than the threshold to an obstacle or a peer is judged by ``_band`` with the floor
     of the reference (ref_c (M, 6, 3), ref_T (M,), from global time ref_t0: the braking stop
     that would be flown instead): its closest approach to that obstacle or peer over the
@@ -875,6 +943,13 @@ def check_trajectory(
                 seen = True
             elif seen:
                 return CHECK_UNKNOWN, BAND_OK, i, -1, nan, nan, ts[i] - t_from, clearance, ahead, n
+        if known_mode == KNOWN_MASK and known_r > 0.0 and lo > 1:
+            i, d_i, d_0 = _near_unseen(fld, seen_mask, pos, lo, known_r)
+            if i >= 0:
+                return (
+                    CHECK_UNKNOWN_NEAR, BAND_OK, i, -1, d_i, d_0, ts[i] - t_from, clearance,
+                    ahead, n,
+                )  # fmt: skip
     if m_band != BAND_OK:
         t_m = ts[m_k] - t_from
         return CHECK_OK, m_band, m_k, m_ph, m_value, m_floor, t_m, clearance, ahead, n

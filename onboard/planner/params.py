@@ -189,6 +189,19 @@ class PlannerParams:
     arrived); since the map clears free space along such pixels (``OccupancyParams.no_return_m``)
     that flight arrives 7 of 7 with no attempt refused for unobserved space (BENCHMARKS.md
     section 4)."""
+    check_known_margin_m: float = 0.0
+    """> 0: nor may it, during those ``check_known_s``, come within this of an unobserved cell
+    of the map (one neither observed nor counted occupied behind a hit) in its layer, at least
+    half of this closer than it starts: a trunk the camera never faced beside the way (out of
+    its field of view, or hidden behind another) is unobserved space, not free space, to the
+    check (``kernels._near_unseen``; a grid with a mask of observed cells only). Cells about as
+    close at the start are not judged: beside a drone that has not moved yet space is always
+    unobserved (with any cell closer than the start judged, no drone of the twin left its start
+    with 0.3). 0: only the trajectory's own samples are tested.
+    On a real-stack flight (2026-12-03, forest-medium seed 18) a drone curved toward a trunk
+    hidden behind another and then 40-65 deg off its camera's axis; every plan the check
+    accepted over the last 3 s passed through that trunk beyond its first second, and the one
+    inside its first second 0.10 m from it: it collided."""
     lead_slowdown_m: float = 2.0
     """Time-consistent formation: a drone ahead of its slot (relative to the centroid of itself
     and its peers, along its way to the goal) by ``lead`` metres plans with the speed limit of
@@ -629,6 +642,7 @@ class PlannerParams:
             "check_drone_m",
             "check_obstacle_horizon_s",
             "check_known_s",
+            "check_known_margin_m",
             "lead_slowdown_m",
             "lead_deadband_m",
             "lead_slowest_beyond_m",
@@ -653,6 +667,10 @@ class PlannerParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if self.check_known_margin_m > 2.0:  # the cells it reads grow with its cube
+            raise ValueError(
+                f"check_known_margin_m must be at most 2 m, got {self.check_known_margin_m!r}"
+            )
         k = self.refine_kappa_factor
         if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= 8):
             raise ValueError(f"refine_kappa_factor must be an integer 1-8, got {k!r}")

@@ -360,6 +360,9 @@ class _FieldView:
     known_mode: int
     known: np.ndarray
     python_known: bool
+    seen: np.ndarray = field(default_factory=lambda: _NO_KNOWN)
+    """KNOWN_MASK: cells observed or counted occupied (an ``EsdfField``'s ``occupied``: the
+    shadow behind a hit), for the neighbourhood test (``check_known_margin_m``)."""
 
 
 def _pack_peers(peers: Sequence[PeerTrajectory]) -> _PeerPack:
@@ -984,7 +987,12 @@ class FormationPlanner:
         if isinstance(field, GridField) and is_known is GridField.is_known:
             if field.known is None:
                 return _FieldView(fld, kn.KNOWN_BOX, _NO_KNOWN, False)
-            return _FieldView(fld, kn.KNOWN_MASK, field.known, False)
+            seen = field.known
+            occupied = getattr(field, "occupied", None)
+            if self.params.check_known_margin_m > 0.0 and isinstance(occupied, np.ndarray):
+                if occupied.shape == seen.shape and occupied.dtype == np.bool_:
+                    seen = seen | occupied
+            return _FieldView(fld, kn.KNOWN_MASK, field.known, False, seen)
         return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, True)
 
     def _check(
@@ -1028,6 +1036,8 @@ class FormationPlanner:
             brake.durations_s,
             brake.t0_s,
             p.brake_reference_s,
+            p.check_known_margin_m,
+            view.seen,
         )
         return self._verdict(res, traj, t_from_s, field, view, peers)
 
@@ -1052,6 +1062,9 @@ class FormationPlanner:
             return True, why, clearance, ahead
         if code == kn.CHECK_UNKNOWN:
             return False, f"enters unobserved space at t={t_k:.2f} s", clearance, ahead
+        if code == kn.CHECK_UNKNOWN_NEAR:
+            why = f"unobserved space {value:.2f} m away at t={t_k:.2f} s (from {start:.2f} m)"
+            return False, why, clearance, ahead
         if code == kn.CHECK_NON_FINITE:
             return False, "non-finite trajectory", clearance, ahead
         if code == kn.CHECK_ALTITUDE:
