@@ -172,6 +172,7 @@ def run_fastsim_seed(
         "formation_change_reached_after_switch_s": (r.formation_change or {}).get("reached_s"),
         "replan_ms_median": _num(r.replan_ms.get("median")),
         "sim_wall_s": _num(r.sim_wall_s),
+        "refusals": dict(r.refusals),
     }
 
 

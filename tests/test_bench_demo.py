@@ -219,6 +219,7 @@ def test_twins_flown_in_worker_processes_are_the_twins_flown_here() -> None:
     """``fly_twins`` with two jobs (spawned workers: the arguments and results cross a process
     boundary) gives, in the seeds' order, the flights of one job: fast time is deterministic."""
     from gcs.bench_demo import fly_twins
+    from gcs.fastsim import REFUSAL_KEYS
     from onboard.planner.params import PlannerParams
 
     planner = PlannerParams(z_limits_m=(0.4, 1.8))
@@ -230,4 +231,5 @@ def test_twins_flown_in_worker_processes_are_the_twins_flown_here() -> None:
         for timing in ("sim_wall_s", "replan_ms_median"):
             r.pop(timing)
         assert r["success"] and r["collisions"] == 0
+        assert set(r["refusals"]) == set(REFUSAL_KEYS)  # how many plans the check refused, why
     assert pooled[1] == here[0] and pooled[0] != pooled[1]

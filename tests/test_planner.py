@@ -333,8 +333,8 @@ def test_no_plan_comes_close_to_unobserved_space_before_the_next_replan() -> Non
     start = np.array([0.8, 0.0, 1.0])
     past = _line_at(start, np.array([1.0, 0.0, 0.0]))  # 0.2 m from the trunk's axis at 0.7 s
     assert field.is_known(past.sample(np.arange(0.0, 3.0, 0.05))).all()
-    off = FormationPlanner(PlannerParams(v_max_m_s=1.0), LINE3, slot=1)
-    assert off.params.check_known_margin_m == 0.0
+    assert PlannerParams().check_known_margin_m == 0.3  # config/planner.yaml's too
+    off = FormationPlanner(PlannerParams(v_max_m_s=1.0, check_known_margin_m=0.0), LINE3, slot=1)
     assert off.check(past, 0.0, field, []) == (True, "")
     on = FormationPlanner(PlannerParams(v_max_m_s=1.0, check_known_margin_m=0.3), LINE3, slot=1)
     ok, why = on.check(past, 0.0, field, [])

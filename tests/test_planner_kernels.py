@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from onboard.mapping.esdf import EsdfField
 from onboard.planner import kernels as kn
 from onboard.planner.astar import astar_path, segment_is_free
 from onboard.planner.field import AnalyticField, DistanceField, GridField
@@ -301,7 +302,41 @@ def _oracle_check(
                     (clearance),
                     ahead,
                 )
+        r = p.check_known_margin_m
+        mask = getattr(field, "known", None)
+        if r > 0.0 and isinstance(field, GridField) and mask is not None and n > 1:
+            near = _oracle_near_unseen(field, mask, pos[:n], r)
+            if near is not None:
+                k, d_k, d_0 = near
+                why = f"unobserved space {d_k:.2f} m away at t={ts[k] - t_from:.2f} s"
+                return False, f"{why} (from {d_0:.2f} m)", clearance, ahead
     return True, last_resort, clearance, ahead
+
+
+def _oracle_near_unseen(
+    field: GridField, known: np.ndarray, pos: np.ndarray, r: float
+) -> tuple[int, float, float] | None:
+    """The neighbourhood of the unknown-space test by brute force: every unobserved cell's
+    centre; for a point, those in its layer and the next up and down."""
+    seen = known | field.occupied if isinstance(field, EsdfField) else known
+    idx = np.argwhere(~seen)
+    centres = field.origin + (idx + 0.5) * field.res
+
+    def nearest(x: np.ndarray, cap: float) -> float:
+        layer = int(np.floor((x[2] - field.origin[2]) / field.res))
+        sel = np.abs(idx[:, 2] - layer) <= 1
+        d = np.linalg.norm(centres[sel] - x, axis=1)
+        return float(min(cap, d.min())) if d.size else cap
+
+    d0 = nearest(pos[0], 2.0 * r)
+    t = min(r, d0 - 0.5 * r)
+    if t <= 0.0:
+        return None
+    for k in range(1, len(pos)):
+        d = nearest(pos[k], t)
+        if d < t:
+            return k, d, d0
+    return None
 
 
 # --- random problems ---------------------------------------------------------------------------
@@ -546,7 +581,11 @@ def test_safety_check_is_the_numpy_one() -> None:
     rng = np.random.default_rng(8)
     seen: dict[str, int] = {}
     for trial in range(120):
-        params = PlannerParams(check_obstacle_m=0.3, check_known_s=(0.0, 1.0, 3.0)[trial % 3])
+        params = PlannerParams(
+            check_obstacle_m=0.3,
+            check_known_s=(0.0, 1.0, 3.0)[trial % 3],
+            check_known_margin_m=(0.0, 0.3, 0.5)[trial // 3 % 3],
+        )
         planner = FormationPlanner(params, HEX, slot=0)
         for field in _fields(rng):
             t0 = float(rng.uniform(0, 50))
@@ -579,6 +618,36 @@ def test_safety_check_is_the_numpy_one() -> None:
     outcomes = ("ok", "altitude", "obstacle", "obstacle inside", "drone", "last resort obstacle")
     for key in (*outcomes, "enters mask", "enters python"):
         assert seen.get(key, 0) >= 3, seen  # every outcome was compared
+
+
+def test_the_unknown_neighbourhood_is_the_numpy_one() -> None:
+    """``check_known_margin_m``: observed free space with a hidden trunk (a column of
+    unobserved cells, some counted occupied) near a random way, and random holes: the kernel's
+    verdict is the brute-force one's, and both verdicts occur."""
+    rng = np.random.default_rng(9)
+    exact = AnalyticField(World.empty(0.0))
+    grid = GridField.from_function(exact.distance, (-3.0, -6.0, -0.5), (16.0, 6.0, 4.0), 0.1)
+    centres = grid.cell_centres()
+    seen: dict[str, int] = {}
+    for trial in range(80):
+        params = PlannerParams(
+            check_known_s=(1.0, 3.0)[trial % 2], check_known_margin_m=(0.3, 0.5, 1.0)[trial % 3]
+        )
+        planner = FormationPlanner(params, HEX, slot=0)
+        t0 = float(rng.uniform(0, 50))
+        start = np.array([rng.uniform(-1, 3), rng.uniform(-3, 3), rng.uniform(1.0, 2.0)])
+        traj = _random_trajectory(rng, t0, start)
+        t_from = t0 + float(rng.choice([0.0, rng.uniform(0.0, 0.5)]))
+        axis = traj.sample(t_from + rng.uniform(0.1, 1.5)) + rng.normal(0.0, 0.3, 3)
+        trunk = np.hypot(centres[..., 0] - axis[0], centres[..., 1] - axis[1]) < 0.15
+        known = ~trunk & (rng.uniform(size=grid.shape) > (0.0, 0.002)[trial % 2])
+        occupied = trunk & (rng.uniform(size=grid.shape) < (0.0, 0.5)[trial // 2 % 2])
+        field = EsdfField(grid.values, grid.origin, grid.res, known, occupied, 0.0)
+        want = _oracle_check(params, traj, t_from, field, [])
+        assert planner.check(traj, t_from, field, []) == want[:2]
+        key = want[1].split(" ")[0] if want[1] else "ok"
+        seen[key] = seen.get(key, 0) + 1
+    assert seen.get("ok", 0) >= 10 and seen.get("unobserved", 0) >= 10, seen
 
 
 # --- what the planner hands out ----------------------------------------------------------------

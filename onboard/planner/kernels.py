@@ -58,7 +58,7 @@ CHECK_OBSTACLE = 3
 CHECK_DRONE = 4
 CHECK_UNKNOWN = 5
 CHECK_UNKNOWN_NEAR = 6
-"""Comes within ``known_r`` of an unobserved cell, and closer to it than it starts (the
+"""Comes within ``known_r`` of unobserved space, and closer to it than it starts (the
 unknown-space test's neighbourhood: a surface the camera never faced beside the way)."""
 # what the unknown-space test (2) of the check looks at
 KNOWN_SKIP = 0
@@ -707,18 +707,13 @@ def _is_known(fld: tuple, mode: int, known: np.ndarray, x: float, y: float, z: f
 
 
 @njit(cache=True, nogil=True)
-def _near_unseen(
-    fld: tuple, seen: np.ndarray, pos: np.ndarray, n: int, r: float
-) -> tuple[int, float, float]:
-    """The first of the samples ``pos[1:n]`` within ``r`` of the centre of a grid cell that
-    ``seen`` says was not observed, in the sample's layer or the next one up or down, and at
-    least ``r / 2`` closer to that centre than ``pos[0]`` is: a way that approaches unobserved
-    space, as a trunk the camera never faced (trunks stand: its layer shows one). Cells
-    already about as close at the start are not judged: beside a drone that has not moved
-    yet, and above and below its camera's field of view, space is unobserved at any start, and
-    a way that leaves it (a drone whose camera never faced behind it) passes. Returns (sample,
-    its distance to that cell, the first sample's); (-1, nan, nan) without one. Cells outside
-    the grid are not judged (the sample's own test covers leaving the grid's box)."""
+def _unseen_within(
+    fld: tuple, seen: np.ndarray, px: float, py: float, pz: float, r: float
+) -> float:
+    """The distance from (px, py, pz) to the centre of the nearest grid cell within ``r`` that
+    ``seen`` says was not observed, in the point's layer or the next one up or down (trunks
+    stand: their layer shows them); ``r`` without one. Cells outside the grid are not judged
+    (the check's own test covers leaving the grid's box)."""
     grid = fld[1]
     origin = fld[2]
     res = fld[3]
@@ -726,42 +721,48 @@ def _near_unseen(
     ny = grid.shape[1]
     nz = grid.shape[2]
     m = int(math.ceil(r / res))
-    r2 = r * r
-    approach = 0.5 * r
-    x0 = pos[0, 0]
-    y0 = pos[0, 1]
-    z0 = pos[0, 2]
-    for s_i in range(1, n):
-        px = pos[s_i, 0]
-        py = pos[s_i, 1]
-        pz = pos[s_i, 2]
-        ci = int(math.floor((px - origin[0]) / res))
-        cj = int(math.floor((py - origin[1]) / res))
-        ck = int(math.floor((pz - origin[2]) / res))
-        for a in range(max(ci - m, 0), min(ci + m + 1, nx)):
-            cx = origin[0] + (a + 0.5) * res
-            dx = cx - px
-            dx0 = cx - x0
-            for b in range(max(cj - m, 0), min(cj + m + 1, ny)):
-                cy = origin[1] + (b + 0.5) * res
-                dy = cy - py
-                dy0 = cy - y0
-                dxy = dx * dx + dy * dy
-                if dxy >= r2:
+    best2 = r * r
+    ci = int(math.floor((px - origin[0]) / res))
+    cj = int(math.floor((py - origin[1]) / res))
+    ck = int(math.floor((pz - origin[2]) / res))
+    for a in range(max(ci - m, 0), min(ci + m + 1, nx)):
+        dx = origin[0] + (a + 0.5) * res - px
+        for b in range(max(cj - m, 0), min(cj + m + 1, ny)):
+            dy = origin[1] + (b + 0.5) * res - py
+            dxy = dx * dx + dy * dy
+            if dxy >= best2:
+                continue
+            for c in range(max(ck - 1, 0), min(ck + 2, nz)):
+                if seen[a, b, c]:
                     continue
-                for c in range(max(ck - 1, 0), min(ck + 2, nz)):
-                    if seen[a, b, c]:
-                        continue
-                    cz = origin[2] + (c + 0.5) * res
-                    dz = cz - pz
-                    d2 = dxy + dz * dz
-                    if d2 >= r2:
-                        continue
-                    dz0 = cz - z0
-                    d0 = math.sqrt(dx0 * dx0 + dy0 * dy0 + dz0 * dz0)
-                    d = math.sqrt(d2)
-                    if d <= d0 - approach:
-                        return s_i, d, d0
+                dz = origin[2] + (c + 0.5) * res - pz
+                d2 = dxy + dz * dz
+                if d2 < best2:
+                    best2 = d2
+    return math.sqrt(best2)
+
+
+@njit(cache=True, nogil=True)
+def _near_unseen(
+    fld: tuple, seen: np.ndarray, pos: np.ndarray, n: int, r: float
+) -> tuple[int, float, float]:
+    """The first of the samples ``pos[1:n]`` within ``r`` of unobserved space (a grid cell
+    that ``seen`` says was not observed, in the sample's layer or the next one up or down;
+    ``_unseen_within``) and at least ``r / 2`` closer to it than ``pos[0]`` is to unobserved
+    space (looked for within ``2 r``): a way that approaches unobserved space, as a trunk the
+    camera never faced (trunks stand: its layer shows one). A way that starts about as close
+    to unobserved space as it comes is not judged: beside a drone that has not moved yet, and
+    above and below its camera's field of view, space is unobserved at any start; nor one that
+    starts in it and leaves it (a drone whose camera never faced behind it). Returns (sample,
+    its distance to unobserved space, the first sample's); (-1, nan, nan) without one."""
+    d0 = _unseen_within(fld, seen, pos[0, 0], pos[0, 1], pos[0, 2], 2.0 * r)
+    t = min(r, d0 - 0.5 * r)
+    if t <= 0.0:
+        return -1, math.nan, math.nan
+    for s_i in range(1, n):
+        d = _unseen_within(fld, seen, pos[s_i, 0], pos[s_i, 1], pos[s_i, 2], t)
+        if d < t:
+            return s_i, d, d0
     return -1, math.nan, math.nan
 
 
@@ -815,12 +816,13 @@ def check_trajectory(
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
     (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX), and with KNOWN_MASK and
     ``known_r`` > 0 its neighbourhood (``_near_unseen``): no such sample within ``known_r`` of
-    a cell that ``seen_mask`` (the grid's shape: observed, or counted occupied) says is not, in
-    its layer, and half of that closer to it than the first sample (CHECK_UNKNOWN_NEAR; the
-    value is that distance, the value at the start the first sample's). A trajectory that comes
-    closer than the threshold to an obstacle or a peer is judged by ``_band`` with the floor
-    of the reference (ref_c (M, 6, 3), ref_T (M,), from global time ref_t0: the braking stop
-    that would be flown instead): its closest approach to that obstacle or peer over the
+    cells that ``seen_mask`` (the grid's shape: observed, or counted occupied) says are not, in
+    its layer, and half of that closer to them than the first sample (CHECK_UNKNOWN_NEAR; the
+    value is that distance, the value at the start the first sample's, at most 2 known_r). A
+    trajectory that comes closer than the threshold to an obstacle or a peer is judged by
+    ``_band`` with the floor of the reference (ref_c (M, 6, 3), ref_T (M,), from global time
+    ref_t0: the braking stop that would be flown instead): its closest approach to that
+    obstacle or peer over the
     samples up to t_from + ref_s.
 
     Returns (code, band code, sample k, peer index, value at k, value at the start, t_k -

@@ -189,15 +189,16 @@ class PlannerParams:
     arrived); since the map clears free space along such pixels (``OccupancyParams.no_return_m``)
     that flight arrives 7 of 7 with no attempt refused for unobserved space (BENCHMARKS.md
     section 4)."""
-    check_known_margin_m: float = 0.0
-    """> 0: nor may it, during those ``check_known_s``, come within this of an unobserved cell
-    of the map (one neither observed nor counted occupied behind a hit) in its layer, at least
-    half of this closer than it starts: a trunk the camera never faced beside the way (out of
+    check_known_margin_m: float = 0.3
+    """> 0: nor may it, during those ``check_known_s``, come within this of unobserved space
+    (map cells neither observed nor counted occupied behind a hit) in its layer, at least half
+    of this closer to it than it starts: a trunk the camera never faced beside the way (out of
     its field of view, or hidden behind another) is unobserved space, not free space, to the
-    check (``kernels._near_unseen``; a grid with a mask of observed cells only). Cells about as
-    close at the start are not judged: beside a drone that has not moved yet space is always
-    unobserved (with any cell closer than the start judged, no drone of the twin left its start
-    with 0.3). 0: only the trajectory's own samples are tested.
+    check (``kernels._near_unseen``; a grid with a mask of observed cells only). A way that
+    starts about as close to unobserved space is not judged: beside a drone that has not moved
+    yet space is always unobserved (with every cell closer than the start judged, no drone of
+    the twin left its start at 0.3), and one that leaves it for observed space passes. 0: only
+    the trajectory's own samples are tested.
     On a real-stack flight (2026-12-03, forest-medium seed 18) a drone curved toward a trunk
     hidden behind another and then 40-65 deg off its camera's axis; every plan the check
     accepted over the last 3 s passed through that trunk beyond its first second, and the one
