@@ -352,6 +352,20 @@ def test_a_canceled_replan_makes_no_rescue_attempt(
     assert [ladder for ladder, _ in ladders] == [TWO_STEP]
 
 
+def _peer_in_the_gap() -> tuple[
+    AnalyticField, np.ndarray, np.ndarray, list[PeerTrajectory], Trajectory, FormationPlanner
+]:
+    """The scenario of the budget tests: a peer hovers in the narrow gap of a wall, so every
+    plan through it is refused; the previous trajectory backs away and still moves. (field,
+    start, goal, peers, previous, planner)."""
+    field = AnalyticField(_wall(0.3, False))
+    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
+    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
+    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
+    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
+    return field, start, goal, peers, back, planner
+
+
 def test_a_replan_over_its_time_budget_keeps_the_safe_previous_and_tries_no_more(
     ladders: list[tuple[tuple[float, ...], float]],
 ) -> None:
@@ -360,12 +374,7 @@ def test_a_replan_over_its_time_budget_keeps_the_safe_previous_and_tries_no_more
     keeps the previous trajectory that still moves (status 'over-budget'), without the A*
     retries; a previous that holds the drone where it is (or none) is no reason to stop, and the
     attempts go on to the rescue as without a budget. A budget never spent changes nothing."""
-    world = _wall(0.3, False)
-    field = AnalyticField(world)
-    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
-    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
-    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
-    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
+    field, start, goal, peers, back, planner = _peer_in_the_gap()
     full = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
     assert full.status == PlanStatus.KEPT_PREVIOUS and full.message.count("drone 7 at") == 3
     asked = [0]
@@ -401,12 +410,7 @@ def test_the_replan_after_one_over_its_budget_goes_on_with_the_attempts_it_gave_
     the budget again on the same refusals. Chained, the replans walk the whole sequence of
     attempts, each trying one; the last starts no budget question and goes on to the rescue.
     Started at 0, a replan is the usual one; past the end, at the last attempt."""
-    world = _wall(0.3, False)
-    field = AnalyticField(world)
-    start, goal = np.array([3.5, 0.0, 1.0]), np.array([9.0, 0.0, 1.0])
-    peers = [PeerTrajectory(7, 0, Trajectory.hover(np.array([4.3, 0.0, 1.0]), 0.0, 30.0))]
-    back = _line(start, np.array([2.5, 0.0, 1.0]), 0.0, 4.0)
-    planner = FormationPlanner(_params(v_max_m_s=1.0), LINE3, slot=1)
+    field, start, goal, peers, back, planner = _peer_in_the_gap()
     full = planner.plan(0.0, start, ZERO, ZERO, goal, peers, field, back)
     assert full.resume_at == 0
     labels = [part.split(":")[0] for part in full.message.split("; ") if "drone 7 at" in part]
