@@ -601,6 +601,50 @@ def test_the_obstacle_horizon_judges_only_the_near_part() -> None:
         PlannerParams(check_obstacle_horizon_s=-1.0)
 
 
+def test_the_peer_horizon_judges_only_the_near_part() -> None:
+    """``check_drone_horizon_s``: a peer hovering on the way 8 s ahead refuses a plan judged
+    to its end and not one judged over its first 4 s; 2 s ahead, it refuses both; a trunk far
+    ahead still refuses both (obstacles have their own horizon); and a short stop is still
+    judged over the stop's window however short the horizon."""
+    z3 = np.zeros(3)
+    m = Minco(1)
+    m.set_conditions(np.array([[0.0, 0.0, 1.0], z3, z3]), np.array([[5.0, 0.0, 1.0], z3, z3]))
+    m.set_parameters(np.zeros((0, 3)), np.array([10.0]))
+    traj = Trajectory(0.0, m.coeffs, np.array([10.0]))  # 0.5 m/s along x for 10 s
+
+    def hover_at(t_s: float) -> PeerTrajectory:
+        return PeerTrajectory(5, 0, Trajectory.hover(traj.sample(np.array([t_s]))[0], 0.0, 20.0))
+
+    whole = FormationPlanner(PlannerParams(), LINE3, slot=1)
+    near = FormationPlanner(PlannerParams(check_drone_horizon_s=4.0), LINE3, slot=1)
+    empty = AnalyticField(World.empty())
+    ok, why = whole.check(traj, 0.0, empty, [hover_at(8.0)])
+    assert not ok and why.startswith("drone 5 at 0.00 m at t=8.00 s"), why
+    assert near.check(traj, 0.0, empty, [hover_at(8.0)]) == (True, "")
+    for planner in (whole, near):
+        ok, why = planner.check(traj, 0.0, empty, [hover_at(2.0)])
+        assert not ok and why.startswith("drone 5 at 0.00 m at t=2.00 s"), why
+    # judged from where the check starts: from 5 s on, 8 s is within the horizon
+    assert not near.check(traj, 5.0, empty, [hover_at(8.0)])[0]
+    # a trunk on the way 8 s ahead: the obstacle part is judged to the end
+    x8 = float(traj.sample(np.array([8.0]))[0, 0])
+    cyl = np.array([[x8, 0.0, 0.2, 0.0, 3.0]])
+    trunk = AnalyticField(World(cyl, np.zeros((0, 7)), np.zeros((0, 6)), 0.0))
+    assert not near.check(traj, 0.0, trunk, [])[0]
+    # a hover of 0.2 s, and a peer that arrives at its spot 0.6 s later: the stop's window
+    # (brake_reference_s, 1 s) is judged even with a horizon of 0.1 s (the conflict is seen;
+    # no better way than the stop exists, so it is a last resort, not refused)
+    tiny = FormationPlanner(PlannerParams(check_drone_horizon_s=0.1), LINE3, slot=1)
+    stop = Trajectory.hover(np.array([0.0, 0.0, 1.0]), 0.0, 0.2)
+    m2 = Minco(1)
+    m2.set_conditions(np.array([[3.0, 0.0, 1.0], z3, z3]), np.array([[0.0, 0.0, 1.0], z3, z3]))
+    m2.set_parameters(np.zeros((0, 3)), np.array([0.6]))
+    coming = PeerTrajectory(6, 0, Trajectory(0.0, m2.coeffs, np.array([0.6])))
+    assert "drone 6 at 0.00 m at t=0.60 s" in tiny.check(stop, 0.0, empty, [coming])[1]
+    with pytest.raises(ValueError, match="check_drone_horizon_s"):
+        PlannerParams(check_drone_horizon_s=-1.0)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [

@@ -266,8 +266,12 @@ def _oracle_check(
     early = ts <= t_from + 1.0 + 1e-9
     brake = braking_trajectory(t_from, *traj.state(t_from), p.a_max_m_s2).sample(ts[early])
     last_resort = ""  # the first obstacle or peer met only as a last resort
-    ok, why = _oracle_band(d, p.check_obstacle_m, field.distance(brake)[0])
-    k = int(np.argmin(d))
+    def through(horizon_s: float) -> int:  # the samples judged: those up to t_from + horizon
+        return max(1, int(np.count_nonzero(ts <= t_from + horizon_s + 1e-9)))
+
+    n_obs = through(p.check_obstacle_horizon_s) if p.check_obstacle_horizon_s > 0 else len(ts)
+    ok, why = _oracle_band(d[:n_obs], p.check_obstacle_m, field.distance(brake)[0])
+    k = int(np.argmin(d[:n_obs]))
     if not ok:
         return (
             False,
@@ -277,9 +281,11 @@ def _oracle_check(
         )
     if why.startswith(" (a braking stop"):
         last_resort = f"{MARGINAL}obstacle clearance {d[k]:.2f} m at t={ts[k] - t_from:.2f} s{why}"
+    h = p.check_drone_horizon_s
+    n_dr = through(max(h, p.brake_reference_s)) if h > 0 else len(ts)
     for pt in peers:
         other = pt.trajectory.sample(ts)
-        dd = np.linalg.norm(pos - other, axis=1)
+        dd = np.linalg.norm(pos - other, axis=1)[:n_dr]
         brake_dd = np.linalg.norm(brake - other[early], axis=1)
         ok, why = _oracle_band(dd, p.check_drone_m, brake_dd, closer_marginal=True)
         k = int(np.argmin(dd))
@@ -585,6 +591,8 @@ def test_safety_check_is_the_numpy_one() -> None:
             check_obstacle_m=0.3,
             check_known_s=(0.0, 1.0, 3.0)[trial % 3],
             check_known_margin_m=(0.0, 0.3, 0.5)[trial // 3 % 3],
+            check_obstacle_horizon_s=(0.0, 0.0, 1.3)[trial // 9 % 3],
+            check_drone_horizon_s=(0.0, 0.0, 0.5, 1.7)[trial // 27 % 4],
         )
         planner = FormationPlanner(params, HEX, slot=0)
         for field in _fields(rng):

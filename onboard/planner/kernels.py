@@ -796,6 +796,7 @@ def check_trajectory(
     peer_n: np.ndarray,
     peer_t0: np.ndarray,
     check_drone: float,
+    drone_s: float,
     lookahead: float,
     known_mode: int,
     known_s: float,
@@ -812,7 +813,8 @@ def check_trajectory(
     starting at global time t0), or to t_from + ``ref_s`` if that is later (the drone holds at
     the end meanwhile: a short stop or hover is judged against the peers that come on over the
     stop's window, not only while it moves), the obstacles only on those up to t_from +
-    obstacle_s when obstacle_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
+    obstacle_s when obstacle_s > 0, the peers only on those up to t_from + drone_s (or ref_s
+    if that is later) when drone_s > 0; the unknown-space test (2) with ``known_mode`` (KNOWN_*), on
     the samples up to t_from + known_s, for a grid field (``fld``) and its mask ``known``
     (nx, ny, nz) bool (any array for KNOWN_SKIP and KNOWN_BOX), and with KNOWN_MASK and
     ``known_r`` > 0 its neighbourhood (``_near_unseen``): no such sample within ``known_r`` of
@@ -905,13 +907,15 @@ def check_trajectory(
         m_band, m_k, m_value, m_floor = band, k, dist[k], floor
     elif band != BAND_OK:
         return CHECK_OBSTACLE, band, k, -1, dist[k], dist[0], ts[k] - t_from, clearance, ahead, n
-    # (1) peers
-    dd = np.empty(n)
+    # (1) peers, on the samples up to t_from + drone_s (at least the stop's window) when
+    # drone_s > 0
+    n_dr = _samples_through(ts, t_from + max(drone_s, ref_s)) if drone_s > 0.0 else n
+    dd = np.empty(n_dr)
     for ph in range(peer_c.shape[0]):
         m = peer_n[ph]
         pc = peer_c[ph, :m]
         pT = peer_T[ph, :m]
-        for i in range(n):
+        for i in range(n_dr):
             x, y, z = eval_position(pc, pT, ts[i] - peer_t0[ph])
             dd[i] = norm3(pos[i, 0] - x, pos[i, 1] - y, pos[i, 2] - z)
         k = _argmin(dd)

@@ -165,6 +165,21 @@ class PlannerParams:
     the far part is judged once it is within this horizon. On exact fields (the table) it
     loosened the shape (0.0078 -> 0.0119): off by default, set for the flight service's map
     (``config/onboard.yaml``)."""
+    check_drone_horizon_s: float = 0.0
+    """> 0: the peer part of the check judges a new trajectory over this many seconds from its
+    start only (at least ``brake_reference_s``; 0: to its end). A peer's broadcast trajectory
+    far ahead is a guess that its next replans replace (every second, every 0.1 s while
+    re-forming), and on the real stack those replans also come late and off it; a formation
+    plan refused for a conflict 10-20 s ahead is replaced by a retry without the formation
+    term. Real stack, 2026-12-03, seed 1: one drone refused its formation plans 29 times in
+    14 s for a peer 0.0-0.4 m away 11-23 s ahead, flew without the formation term, and the
+    hexagon spread to e_sim 0.3 (BENCHMARKS.md section 10). A plan kept by a later replan is
+    checked again from that replan's start, and the service's monitor watches the peers'
+    newest trajectories over its own horizon, so a conflict is judged once it is within
+    this horizon. Off by default. The fast-time twin of the demo (seeds 1-12, the change to
+    rectangle-7) at 4 s: the same figures within the flights' spread (11 of 12 within 10 s
+    either way, mean e_sim 0.0153 against 0.0146): the twin's peers fly their plans exactly
+    and replan in time, so it meets few such conflicts (BENCHMARKS.md section 10)."""
     check_drone_m: float = 0.5
     """A trajectory is unsafe where it comes closer than this to a peer (same global time).
     Two bodies of 0.2 m touch at 0.4 m; the check leaves 0.1 m for both vehicles' tracking and
@@ -642,6 +657,7 @@ class PlannerParams:
             "check_obstacle_m",
             "check_drone_m",
             "check_obstacle_horizon_s",
+            "check_drone_horizon_s",
             "check_known_s",
             "check_known_margin_m",
             "lead_slowdown_m",

@@ -944,7 +944,8 @@ class FormationPlanner:
         Safe means: (0) inside the altitude band ``z_limits_m`` (a start outside it may fly
         back in, never farther out); (1) clear of obstacles by ``check_obstacle_m`` (over its
         first ``check_obstacle_horizon_s`` when that is > 0) and of every peer by
-        ``check_drone_m`` to its end (held there to ``brake_reference_s`` at least: a stop or a
+        ``check_drone_m`` to its end (over its first ``check_drone_horizon_s`` when that is
+        > 0; held there to ``brake_reference_s`` at least: a stop or a
         hover is judged against the peers that come on meanwhile); a drone that is already
         closer than that
         at ``t_from_s`` (pushed in by a peer, a late-mapped trunk, an emergency stop), even
@@ -1028,6 +1029,7 @@ class FormationPlanner:
             pack.n,
             pack.t0,
             p.check_drone_m,
+            p.check_drone_horizon_s,
             COMFORT_LOOKAHEAD_S,
             view.known_mode,
             p.check_known_s,
