@@ -266,6 +266,7 @@ def _oracle_check(
     early = ts <= t_from + 1.0 + 1e-9
     brake = braking_trajectory(t_from, *traj.state(t_from), p.a_max_m_s2).sample(ts[early])
     last_resort = ""  # the first obstacle or peer met only as a last resort
+
     def through(horizon_s: float) -> int:  # the samples judged: those up to t_from + horizon
         return max(1, int(np.count_nonzero(ts <= t_from + horizon_s + 1e-9)))
 
