@@ -179,7 +179,11 @@ class PlannerParams:
     this horizon. Off by default. The fast-time twin of the demo (seeds 1-12, the change to
     rectangle-7) at 4 s: the same figures within the flights' spread (11 of 12 within 10 s
     either way, mean e_sim 0.0153 against 0.0146): the twin's peers fly their plans exactly
-    and replan in time, so it meets few such conflicts (BENCHMARKS.md section 10)."""
+    and replan in time, so it meets few such conflicts. The real stack, seeds 1-5 at 4 s: the
+    refusals for a peer 4 s ahead or more went (51 -> 1-3 a flight on seed 1) but the shape did
+    not come back (3 of 5 within 10 s, mean e_sim 0.048 against 0.041 in the run before): the
+    plans flown without the formation term are refused for obstacles (BENCHMARKS.md section
+    10, 2026-12-04)."""
     check_drone_m: float = 0.5
     """A trajectory is unsafe where it comes closer than this to a peer (same global time).
     Two bodies of 0.2 m touch at 0.4 m; the check leaves 0.1 m for both vehicles' tracking and
