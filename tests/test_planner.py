@@ -322,6 +322,15 @@ def _line_at(start: np.ndarray, v: np.ndarray, duration_s: float = 3.0) -> Traje
     return Trajectory(0.0, c, np.array([duration_s]))
 
 
+def _rest_to_rest(a: np.ndarray, b: np.ndarray, duration_s: float) -> Trajectory:
+    """One minimum-jerk piece from rest at ``a`` to rest at ``b``, from time 0."""
+    z3 = np.zeros(3)
+    m = Minco(1)
+    m.set_conditions(np.array([a, z3, z3]), np.array([b, z3, z3]))
+    m.set_parameters(np.zeros((0, 3)), np.array([duration_s]))
+    return Trajectory(0.0, m.coeffs, np.array([duration_s]))
+
+
 def test_no_plan_comes_close_to_unobserved_space_before_the_next_replan() -> None:
     """``check_known_margin_m``: a way that passes 0.1 m from a trunk the map never observed
     within its first second (its samples all in observed free space) is refused; without the
@@ -545,12 +554,7 @@ def test_the_check_rejects_a_trajectory_that_leaves_the_altitude_band() -> None:
     z3 = np.zeros(3)
 
     def line(z0: float, z1: float) -> Trajectory:
-        head = np.array([[0.0, 0.0, z0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-        tail = np.array([[4.0, 0.0, z1], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-        m = Minco(1)
-        m.set_conditions(head, tail)
-        m.set_parameters(np.zeros((0, 3)), np.array([8.0]))
-        return Trajectory(0.0, m.coeffs, np.array([8.0]))
+        return _rest_to_rest(np.array([0.0, 0.0, z0]), np.array([4.0, 0.0, z1]), 8.0)
 
     assert planner.check(line(1.0, 2.0), 0.0, field, [])[0]
     ok, why = planner.check(line(1.0, 0.2), 0.0, field, [])
@@ -570,17 +574,8 @@ def test_the_obstacle_horizon_judges_only_the_near_part() -> None:
     """``check_obstacle_horizon_s``: a trunk grazed 6 s ahead (0.2 m, inside the check's 0.3)
     refuses a plan judged to its end and not one judged over its first 4 s; grazed 2 s ahead,
     it refuses both. Peers are judged to the end either way."""
-    z3 = np.zeros(3)
-
-    def line() -> Trajectory:  # 0.5 m/s along x at 1 m for 10 s (minimum jerk: slower ends)
-        head = np.array([[0.0, 0.0, 1.0], z3, z3])
-        tail = np.array([[5.0, 0.0, 1.0], z3, z3])
-        m = Minco(1)
-        m.set_conditions(head, tail)
-        m.set_parameters(np.zeros((0, 3)), np.array([10.0]))
-        return Trajectory(0.0, m.coeffs, np.array([10.0]))
-
-    traj = line()
+    # 0.5 m/s along x at 1 m for 10 s (minimum jerk: slower ends)
+    traj = _rest_to_rest(np.array([0.0, 0.0, 1.0]), np.array([5.0, 0.0, 1.0]), 10.0)
 
     def trunk_at(t_s: float) -> AnalyticField:
         x = float(traj.sample(np.array([t_s]))[0, 0])
@@ -612,11 +607,8 @@ def test_the_peer_horizon_judges_only_the_near_part() -> None:
     to its end and not one judged over its first 4 s; 2 s ahead, it refuses both; a trunk far
     ahead still refuses both (obstacles have their own horizon); and a short stop is still
     judged over the stop's window however short the horizon."""
-    z3 = np.zeros(3)
-    m = Minco(1)
-    m.set_conditions(np.array([[0.0, 0.0, 1.0], z3, z3]), np.array([[5.0, 0.0, 1.0], z3, z3]))
-    m.set_parameters(np.zeros((0, 3)), np.array([10.0]))
-    traj = Trajectory(0.0, m.coeffs, np.array([10.0]))  # 0.5 m/s along x for 10 s
+    # 0.5 m/s along x for 10 s
+    traj = _rest_to_rest(np.array([0.0, 0.0, 1.0]), np.array([5.0, 0.0, 1.0]), 10.0)
 
     def hover_at(t_s: float) -> PeerTrajectory:
         return PeerTrajectory(5, 0, Trajectory.hover(traj.sample(np.array([t_s]))[0], 0.0, 20.0))
@@ -642,10 +634,9 @@ def test_the_peer_horizon_judges_only_the_near_part() -> None:
     # no better way than the stop exists, so it is a last resort, not refused)
     tiny = FormationPlanner(PlannerParams(check_drone_horizon_s=0.1), LINE3, slot=1)
     stop = Trajectory.hover(np.array([0.0, 0.0, 1.0]), 0.0, 0.2)
-    m2 = Minco(1)
-    m2.set_conditions(np.array([[3.0, 0.0, 1.0], z3, z3]), np.array([[0.0, 0.0, 1.0], z3, z3]))
-    m2.set_parameters(np.zeros((0, 3)), np.array([0.6]))
-    coming = PeerTrajectory(6, 0, Trajectory(0.0, m2.coeffs, np.array([0.6])))
+    coming = PeerTrajectory(
+        6, 0, _rest_to_rest(np.array([3.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.6)
+    )
     assert "drone 6 at 0.00 m at t=0.60 s" in tiny.check(stop, 0.0, empty, [coming])[1]
     with pytest.raises(ValueError, match="check_drone_horizon_s"):
         PlannerParams(check_drone_horizon_s=-1.0)
