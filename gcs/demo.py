@@ -1249,6 +1249,9 @@ class Demo:
             "monitor": summary.get("monitor"),
             # the services' holds for lost depth (a silent camera, a map lagging a live one)
             "depth_holds": summary.get("depth_holds"),
+            # numba kernels the services compiled or loaded after READY: each held a thread
+            # in flight (a warm-up that missed one; 0 is the rule)
+            "kernels_after_ready": summary.get("kernels_after_ready"),
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),
@@ -1481,6 +1484,12 @@ def result_text(r: dict[str, Any]) -> str:
             f"for a map over map_lag_s behind a live camera), {dh.get('map_lag_rides', 0)} "
             f"times the map lagged the camera past its timeout without a hold, "
             f"{dh.get('frames_missed', 0)} frames the mapping never saw"
+        )
+    kernels = r.get("kernels_after_ready")
+    if kernels:
+        lines.append(
+            f"warm-up: {kernels} numba kernels compiled or loaded in flight, after READY (the "
+            "services' logs name them; each held a thread meanwhile)"
         )
     cpu_line = _cpu_text(r)
     if cpu_line:

@@ -587,6 +587,9 @@ def summarise(a: Analysis) -> dict[str, Any]:
         ),
         "monitor": monitor_counts(a.flights),
         "depth_holds": depth_hold_counts(a.flights),
+        "kernels_after_ready": _service_counter_sums(a.flights, ("kernels_after_ready",), "")[
+            "kernels_after_ready"
+        ],
         "assignments": [
             {k: x.get(k) for k in ("name", "epoch", "effective_s")}
             for x in a.mission.get("assignments", [])

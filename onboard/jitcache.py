@@ -20,7 +20,8 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-from collections.abc import Iterable, Sequence
+import sys
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 STAMP = "swarm-jit-sources.sha256"
@@ -139,3 +140,32 @@ def _remove_cached(directory: Path, stems: set[str]) -> int:
         except OSError:  # gone meanwhile (another process), or not ours to delete
             continue
     return n
+
+
+def kernel_census(prefixes: Sequence[str] = ("onboard.",)) -> dict[str, int]:
+    """How many compiled versions (signatures) each numba kernel of the loaded modules named
+    ``prefixes`` holds now, by ``module.qualname``: compiled in this process or loaded from the
+    cache. Two censuses taken before and after some work tell the kernels it compiled or
+    loaded (``kernels_added``): the flight service takes one when it is READY, so that a kernel
+    its warm-up missed shows in flight (where compiling one holds a planning thread for tens
+    of seconds on a cold cache) rather than only as a late plan."""
+    from numba.core.dispatcher import Dispatcher
+
+    out: dict[str, int] = {}
+    seen: set[int] = set()
+    for name, module in list(sys.modules.items()):
+        if module is None or not name.startswith(tuple(prefixes)):
+            continue
+        for value in list(vars(module).values()):
+            if not isinstance(value, Dispatcher) or id(value) in seen:
+                continue
+            seen.add(id(value))
+            fn = value.py_func
+            out[f"{fn.__module__}.{fn.__qualname__}"] = len(value.overloads)
+    return out
+
+
+def kernels_added(before: Mapping[str, int], after: Mapping[str, int]) -> dict[str, int]:
+    """The kernels of ``after`` with more compiled versions than in ``before`` (a kernel new
+    to ``after`` counts all of its), and how many more."""
+    return {k: n - before.get(k, 0) for k, n in sorted(after.items()) if n > before.get(k, 0)}

@@ -121,3 +121,33 @@ def test_the_onboard_packages_are_covered() -> None:
     names = {f"{f.parent.name}/{f.name}" for f in jit_sources(jitcache.default_roots())}
     assert {"planner/objective.py", "planner/trajectory.py", "mapping/esdf.py"} <= names
     assert "sitl_mock/dynamics.py" in names
+
+
+def test_the_census_counts_each_kernels_compiled_versions(monkeypatch) -> None:
+    """``kernel_census`` counts the compiled versions of the kernels in the modules it is
+    asked for, once for a kernel a module imported from another; ``kernels_added`` names
+    those that gained one (the flight service's count of kernels made after READY)."""
+    import types
+
+    from onboard.jitcache import kernel_census, kernels_added
+
+    main = types.ModuleType("census_probe")
+    source = "from numba import njit\n@njit\ndef kernel(x):\n    return x + 1\n"
+    source += "@njit\ndef caller(x):\n    return kernel(x) * 2\n"
+    exec(compile(source, "census_probe.py", "exec"), main.__dict__)
+    other = types.ModuleType("census_probe_b")
+    other.kernel = main.kernel  # imported elsewhere too: counted once
+    monkeypatch.setitem(sys.modules, "census_probe", main)
+    monkeypatch.setitem(sys.modules, "census_probe_b", other)
+    name, caller = "census_probe.kernel", "census_probe.caller"
+    before = kernel_census(("census_probe",))
+    assert before == {name: 0, caller: 0}
+    assert main.kernel(1) == 2
+    assert kernels_added(before, kernel_census(("census_probe",))) == {name: 1}
+    assert main.kernel(1) == 2  # the same signature: nothing new
+    mid = kernel_census(("census_probe",))
+    assert kernels_added(before, mid) == {name: 1}
+    assert main.caller(1.5) == 5.0  # compiles the caller, and the kernel for a float
+    assert kernels_added(mid, kernel_census(("census_probe",))) == {name: 1, caller: 1}
+    assert kernels_added({}, mid) == {name: 1}  # new to the second census: all its versions
+    assert kernel_census(("no_such_module",)) == {}

@@ -147,6 +147,25 @@ def test_the_closed_form_stop_is_the_one_piece_minco() -> None:
         Trajectory.to_rest(0.0, p, v * np.nan, a, end, 1.0)
 
 
+def test_the_take_off_climb_rises_from_rest_to_rest_at_about_the_speed() -> None:
+    """The flight service's take-off climb (``climb_trajectory``, the closed-form piece): from
+    rest at the start to rest ``height_m`` above it, straight up, its peak speed the one asked
+    for (at least 1 s: a short hop does not jump)."""
+    from onboard.service.ports import climb_trajectory
+
+    start = np.array([1.0, -2.0, 0.05])
+    tr = climb_trajectory(4.0, start, 1.5, 0.5)
+    assert tr.t0_s == 4.0 and tr.n_pieces == 1
+    np.testing.assert_allclose(tr.state(4.0)[0], start, atol=1e-12)
+    p, v, a = tr.state(tr.t_end_s)
+    np.testing.assert_allclose(p, start + [0.0, 0.0, 1.5], atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([v, a]), 0.0, atol=1e-9)
+    ts = np.linspace(tr.t0_s, tr.t_end_s, 201)
+    np.testing.assert_allclose(tr.sample(ts)[:, :2] - start[:2], 0.0, atol=1e-12)
+    assert np.linalg.norm(tr.sample(ts, 1), axis=1).max() == pytest.approx(0.5, rel=1e-3)
+    assert climb_trajectory(0.0, start, 0.1, 0.5).duration_s == 1.0
+
+
 def test_a_trajectory_cut_short_is_the_same_up_to_the_cut() -> None:
     """``Trajectory.until`` (the planner's check of a way over its first seconds): the same
     states up to the cut, which becomes its end, on a cut inside a piece and on a boundary."""

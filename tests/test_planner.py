@@ -316,6 +316,19 @@ def _hidden_trunk_field(occupied_hidden: bool = False) -> EsdfField:
     return EsdfField(grid.values, grid.origin, grid.res, ~trunk, occupied, 0.1)
 
 
+def test_the_neighbourhood_mask_is_read_only_as_the_known_mask_is() -> None:
+    """The check's masks reach its compiled kernel read-only whatever the field: a mapped
+    field's observed-or-occupied mask (made per field) is another type to numba when
+    writable, so a flight service warmed on one kind compiled the whole check again in
+    flight on the other (seven services' first plans came back 65 s late on a cold cache)."""
+    planner = FormationPlanner(PlannerParams(check_known_margin_m=0.3), LINE3, slot=1)
+    for field in (_hidden_trunk_field(), _hidden_trunk_field(occupied_hidden=True)):
+        view = planner._field_view(field)
+        assert view.known is field.known and view.seen is not field.known
+        assert not view.known.flags.writeable and not view.seen.flags.writeable
+        assert np.array_equal(view.seen, field.known | field.occupied)
+
+
 def _line_at(start: np.ndarray, v: np.ndarray, duration_s: float = 3.0) -> Trajectory:
     c = np.zeros((1, 6, 3))
     c[0, 0], c[0, 1] = start, v

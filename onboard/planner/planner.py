@@ -993,6 +993,10 @@ class FormationPlanner:
             if self.params.check_known_margin_m > 0.0 and isinstance(occupied, np.ndarray):
                 if occupied.shape == seen.shape and occupied.dtype == np.bool_:
                     seen = seen | occupied
+                    # read-only like the mask alone: one compiled check for both (a writable
+                    # mask is another type to numba; on a cold cache each flight service
+                    # compiled the check again in flight, and the first plan took 65 s)
+                    seen.setflags(write=False)
             return _FieldView(fld, kn.KNOWN_MASK, field.known, False, seen)
         return _FieldView(fld, kn.KNOWN_SKIP, _NO_KNOWN, True)
 

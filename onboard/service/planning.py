@@ -141,13 +141,18 @@ def inside_box(
 def warm_up(params: PlannerParams) -> float:
     """Run every planning path once before READY, so that no kernel is loaded from numba's cache
     (or compiled) in flight, where loading holds the interpreter for a long time: one cycle of a
-    ``DroneAgent`` (the class the service flies) on a sampled grid field (the mapped ESDF's kind)
-    with a trunk on the straight line (A* guess) and an avoided-only peer (edge-masked template),
-    then one on the exact ground field. Seconds taken."""
-    from onboard.agent import DroneAgent, StaticMap
+    ``DroneAgent`` (the class the service flies) on the mapped ESDF's field type (with its
+    occupancy, which the check's neighbourhood test reads), a trunk on the straight line (A*
+    guess) and an avoided-only peer (edge-masked template), then one on the exact ground field;
+    then the safety monitor's conflict rule and the agent's shape test (the similarity metric).
+    The flight service counts a kernel made after READY (``kernels_after_ready``). Seconds
+    taken."""
+    from onboard.agent import DroneAgent, StaticMap, obstacle_conflict
     from onboard.comm.bus import InMemoryBus
     from onboard.comm.messages import TrajectoryMsg
-    from onboard.planner.field import AnalyticField, GridField
+    from onboard.mapping.esdf import EsdfField
+    from onboard.planner.field import AnalyticField
+    from onboard.planner.formation import similarity
     from onboard.world import World
 
     t0 = time.perf_counter()
@@ -158,7 +163,7 @@ def warm_up(params: PlannerParams) -> float:
     idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1)
     centres = origin + (idx.reshape(-1, 3) + 0.5) * res
     values = world.distance(centres)[0].reshape(shape)
-    grid = GridField(values, origin, res, np.ones(shape, dtype=bool))
+    grid = EsdfField(values, origin, res, np.ones(shape, dtype=bool), values <= 0.0, 0.2)
     formation = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
     start = np.array([0.0, 0.0, 1.0])
     for field in (grid, AnalyticField(World.empty(0.0))):
@@ -177,6 +182,13 @@ def warm_up(params: PlannerParams) -> float:
             goal=np.array([4.0, 0.0, 1.0]),
         )
         agent.replan(0.0)
+    # the monitor's rule on distances that come inside the limit; the shape test as the agent
+    # runs it (its points and the template's slots, fresh arrays)
+    ts = np.linspace(0.0, 1.0, 11)
+    obstacle_conflict(np.linspace(0.6, 0.1, 11), ts, 0.0, 0.3, np.linspace(0.6, 0.4, 11))
+    pts = np.empty((3, 3))
+    pts[:] = formation + start
+    similarity(pts, formation[[0, 1, 2]])
     return time.perf_counter() - t0
 
 

@@ -180,13 +180,10 @@ braking_trajectory = Trajectory.braking
 def climb_trajectory(
     t0_s: float, start: np.ndarray, height_m: float, speed_m_s: float
 ) -> Trajectory:
-    """A vertical climb of ``height_m`` from rest to rest at about ``speed_m_s``."""
-    from onboard.planner.minco import Minco
-
+    """A vertical climb of ``height_m`` from rest to rest at about ``speed_m_s``: the one
+    minimum-jerk piece, in closed form (``Trajectory.to_rest``; a ``Minco`` here ran a
+    kernel that the warm-up does not, made at take-off in the actions thread)."""
     s = np.asarray(start, dtype=np.float64).reshape(3)
     T = max(1.0, 1.875 * abs(height_m) / max(speed_m_s, 1e-3))  # peak speed of a rest-to-rest
-    m = Minco(1)
     z = np.zeros(3)
-    m.set_conditions(np.stack([s, z, z]), np.stack([s + [0.0, 0.0, height_m], z, z]))
-    m.set_parameters(np.zeros((0, 3)), np.array([T]))
-    return Trajectory(t0_s, m.coeffs, np.array([T]))
+    return Trajectory.to_rest(t0_s, s, z, z, s + np.array([0.0, 0.0, height_m]), T)

@@ -70,6 +70,7 @@ from onboard.agent import (
     same_peers,
 )
 from onboard.comm.hearing import not_hearing
+from onboard.jitcache import kernel_census, kernels_added
 from onboard.planner.planner import APPROACH, LAST_RESORT, PlanStatus
 from onboard.planner.trajectory import Trajectory
 from onboard.record import FlightRecorder, flight_file_name
@@ -335,6 +336,7 @@ class FlightService:
             "announcements": 0,
             "resent": 0,
             "map_occupied_cells": 0,
+            "kernels_after_ready": 0,  # numba kernels compiled or loaded in flight (_check_kernels)
             # CPU time of each worker thread, microseconds (time.thread_time)
             "cpu_us.depth_ingest": 0,
             "cpu_us.esdf": 0,
@@ -352,6 +354,10 @@ class FlightService:
         that PX4's OFFBOARD needs streamed first, which must not count as the take-off reached."""
         self._warm_s = 0.0
         self._warming = warming
+        self._kernels_at_ready: dict[str, int] | None = None
+        """The numba kernels' compiled versions when READY (``jitcache.kernel_census``): a
+        kernel compiled or loaded later is one the warm-up missed (``_check_kernels``)."""
+        self._kernels_added: dict[str, int] = {}
         self._slot_offset: tuple[Any, np.ndarray | None] | None = None
         """(assignment, this drone's slot point minus the template's centroid) (``_own_goal``)."""
         self._last_watchdog = -math.inf
@@ -1282,6 +1288,7 @@ class FlightService:
                 )
         if now - self._last_status_pub >= 1.0 / self.cfg.bus.status_rate_hz:
             self._last_status_pub = now
+            self._check_kernels()
             counters = self.all_counters()
             ms = self._plan_ms
             self.bus.publish_status(
@@ -1306,6 +1313,28 @@ class FlightService:
             self._plan_ms = ms[-1:]
             if self.recorder is not None:
                 self.recorder.counters(now, counters)
+
+    def _check_kernels(self) -> None:
+        """Counts (``kernels_after_ready``) and logs the numba kernels compiled or loaded
+        since READY: each one held a thread (the planner's, the mapping's) while numba made
+        it, tens of seconds when compiled (a cold cache: seven services' first plans took
+        65 s when the planner's check met a mask type the warm-up had not). 0 is the rule
+        after a warm-up; without one (``planning.warm_up`` false) the flight compiles them."""
+        if self._kernels_at_ready is None:
+            return
+        added = kernels_added(self._kernels_at_ready, kernel_census())
+        if added == self._kernels_added:
+            return
+        fresh = {k: n for k, n in added.items() if n > self._kernels_added.get(k, 0)}
+        self._kernels_added = added
+        self.counters["kernels_after_ready"] = sum(added.values())
+        event(
+            log,
+            "kernels_after_ready",
+            logging.WARNING if self._warm_s > 0.0 else logging.INFO,
+            kernels=",".join(sorted(fresh)),
+            total=self.counters["kernels_after_ready"],
+        )
 
     def all_counters(self) -> dict[str, int]:
         out = {f"service.{k}": int(v) for k, v in dict(self.counters).items()}
@@ -1468,6 +1497,7 @@ class FlightService:
         # thread (the setpoint stream too) for longer as the heap grows
         gc.collect()
         gc.freeze()
+        self._kernels_at_ready = kernel_census()
         self.ready = True
         ready_s = time.monotonic() - t0
         self.notifier.ready(f"drone {self.id} ready")
