@@ -262,8 +262,8 @@ def _oracle_check(
     later = ts >= t_from + 1.0
     ahead = float(np.min(d[later])) if np.any(later) else float("inf")
     # a way that comes inside a threshold is judged against the braking stop flown instead,
-    # over its first second
-    early = ts <= t_from + 1.0 + 1e-9
+    # over its window (``brake_reference_s``)
+    early = ts <= t_from + p.brake_reference_s + 1e-9
     brake = braking_trajectory(t_from, *traj.state(t_from), p.a_max_m_s2).sample(ts[early])
     last_resort = ""  # the first obstacle or peer met only as a last resort
 
@@ -594,6 +594,7 @@ def test_safety_check_is_the_numpy_one() -> None:
             check_known_margin_m=(0.0, 0.3, 0.5)[trial // 3 % 3],
             check_obstacle_horizon_s=(0.0, 0.0, 1.3)[trial // 9 % 3],
             check_drone_horizon_s=(0.0, 0.0, 0.5, 1.7)[trial // 27 % 4],
+            brake_reference_s=(1.0, 1.0, 1.0, 1.0, 3.0)[trial % 5],  # 3: a peer not hearing
         )
         planner = FormationPlanner(params, HEX, slot=0)
         for field in _fields(rng):
