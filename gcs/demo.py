@@ -1252,6 +1252,8 @@ class Demo:
             # numba kernels the services compiled or loaded after READY: each held a thread
             # in flight (a warm-up that missed one; 0 is the rule)
             "kernels_after_ready": summary.get("kernels_after_ready"),
+            # the planners' refused attempts, by why (gcs.report.plan_refusals)
+            "plan_refusals": summary.get("plan_refusals"),
             "depth": sitl.get("depth"),
             "exit_codes": self.exit_codes,
             "wall_s": getattr(self, "wall_s", None),
@@ -1485,6 +1487,11 @@ def result_text(r: dict[str, Any]) -> str:
             f"times the map lagged the camera past its timeout without a hold, "
             f"{dh.get('frames_missed', 0)} frames the mapping never saw"
         )
+    ref = r.get("plan_refusals")
+    if ref and ref.get("attempts"):
+        from gcs.report import refusals_text
+
+        lines.append(refusals_text(ref))
     kernels = r.get("kernels_after_ready")
     if kernels:
         lines.append(

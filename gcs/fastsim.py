@@ -470,6 +470,7 @@ class SimResult:
 REFUSAL_KEYS = (
     "attempts",
     "unobserved",
+    "unobserved_near",
     "obstacle",
     "drone",
     "altitude",
@@ -485,7 +486,8 @@ def count_refusals(message: str, counts: dict[str, int]) -> None:
     (``REFUSAL_KEYS``): the planner joins one "<attempt>: <reason>" per refused attempt
     (``FormationPlanner.plan``) with "; ". ``approach`` and ``last_resort`` count the plans
     flown although every attempt was refused (the message ends with ``APPROACH`` or
-    ``LAST_RESORT``)."""
+    ``LAST_RESORT``); ``unobserved_near``, of the ``unobserved``, those refused for coming near
+    unobserved space rather than entering it (``check_known_margin_m``)."""
     if message.endswith(APPROACH):
         counts["approach"] += 1
     elif message.endswith(LAST_RESORT):
@@ -497,6 +499,8 @@ def count_refusals(message: str, counts: dict[str, int]) -> None:
         counts["attempts"] += 1
         if why.startswith(("enters unobserved space", "unobserved space")):
             counts["unobserved"] += 1
+            if why.startswith("unobserved space"):  # its neighbourhood, check_known_margin_m
+                counts["unobserved_near"] += 1
         elif why.startswith("obstacle clearance"):
             counts["obstacle"] += 1
         elif why.startswith("drone "):

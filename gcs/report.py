@@ -85,6 +85,8 @@ class DroneFlight:
     plan_cpu_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """(len(plan_t),) the planning thread's CPU time of each plan (NaN: not recorded, e.g.
     a record of an older service); against ``plan_ms``, the time spent waiting."""
+    plan_reason: tuple[str, ...] = ()
+    """(len(plan_t),) each plan's message: its refused attempts and why (``plan_refusals``)."""
 
     @staticmethod
     def from_record(rec: FlightRecord) -> DroneFlight:
@@ -112,6 +114,7 @@ class DroneFlight:
             read_error=rec.metadata.get("read_error"),
             setpoint_pos=_vecs([m.get("position_enu_m") for m in rec.messages("/setpoint")]),
             plan_cpu_ms=np.array([_num(m.get("plan_cpu_ms")) for _, m in plans], dtype=np.float64),
+            plan_reason=tuple(str(m.get("reason", "")) for _, m in plans),
         )
 
     def airborne(self) -> np.ndarray:
@@ -328,6 +331,7 @@ def _concat(fs: list[DroneFlight]) -> DroneFlight:
         read_error="; ".join(errors) if errors else None,
         setpoint_pos=cat("setpoint_pos"),
         plan_cpu_ms=cat("plan_cpu_ms"),
+        plan_reason=tup("plan_reason"),
     )
 
 
@@ -548,6 +552,7 @@ def summarise(a: Analysis) -> dict[str, Any]:
                 "plan_ms": _stat(f.plan_ms),
                 "plan_cpu_ms": _stat(f.plan_cpu_ms),
                 "plan_statuses": statuses,
+                "plan_refusals": plan_refusals([f]),
                 "transitions": [list(x) for x in f.transitions],
                 "warnings": [m for _, lvl, m in f.events if lvl >= 3][:20],
                 "peer_latency_ms": _latency_ms(f.peer_latency()),
@@ -587,6 +592,7 @@ def summarise(a: Analysis) -> dict[str, Any]:
         ),
         "monitor": monitor_counts(a.flights),
         "depth_holds": depth_hold_counts(a.flights),
+        "plan_refusals": plan_refusals(a.flights),
         "kernels_after_ready": _service_counter_sums(a.flights, ("kernels_after_ready",), "")[
             "kernels_after_ready"
         ],
@@ -610,6 +616,21 @@ def monitor_counts(flights: Sequence[DroneFlight]) -> dict[str, int]:
     (``planning.monitor_obstacle_slack_m``). A record of an older service
     without a counter adds 0 for it."""
     return _service_counter_sums(flights, MONITOR_COUNTERS, "monitor_")
+
+
+def plan_refusals(flights: Sequence[DroneFlight]) -> dict[str, int]:
+    """The planners' refused attempts over the flights, by why the safety check refused them
+    (``gcs.fastsim.REFUSAL_KEYS``: an obstacle, a peer, unobserved space and of those its
+    neighbourhood, the altitude band), with the plans flown anyway toward a conflict
+    (``approach``) or as a last resort; read from each plan's message in the records, as the
+    fast-time simulator counts them."""
+    from gcs.fastsim import REFUSAL_KEYS, count_refusals
+
+    counts = dict.fromkeys(REFUSAL_KEYS, 0)
+    for f in flights:
+        for message in f.plan_reason:
+            count_refusals(message, counts)
+    return counts
 
 
 def _service_counter_sums(
@@ -680,6 +701,17 @@ def _record_collisions(a: Analysis) -> dict[str, int]:
     return {"obstacle": obst, "drone": pair}
 
 
+def refusals_text(r: Mapping[str, int]) -> str:
+    """``plan_refusals`` as one line."""
+    return (
+        f"refused plan attempts: {r.get('attempts', 0)} ({r.get('obstacle', 0)} for an obstacle, "
+        f"{r.get('drone', 0)} for a peer, {r.get('unobserved', 0)} for unobserved space, "
+        f"{r.get('unobserved_near', 0)} of them for its neighbourhood, {r.get('altitude', 0)} "
+        f"for the altitude band, {r.get('other', 0)} other); flown anyway: "
+        f"{r.get('approach', 0)} toward a conflict, {r.get('last_resort', 0)} as a last resort"
+    )
+
+
 def summary_text(s: Mapping[str, Any]) -> str:
     """The summary as lines for a terminal."""
 
@@ -730,6 +762,9 @@ def summary_text(s: Mapping[str, Any]) -> str:
             f"the position commanded then {f(c['setpoint_clearance_m'], '.3f')} m, "
             f"tracking error {f(c['tracking_error_m'], '.3f')} m"
         )
+    ref = s.get("plan_refusals")
+    if ref and ref.get("attempts"):
+        lines.append(refusals_text(ref))
     peer = s.get("peer_latency_ms") or {}
     if peer.get("count"):
         lines.append(

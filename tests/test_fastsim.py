@@ -171,7 +171,11 @@ def test_refused_attempts_are_counted_by_reason() -> None:
     assert res.status == PlanStatus.EMERGENCY
     counts = dict.fromkeys(REFUSAL_KEYS, 0)
     count_refusals(res.message, counts)
-    assert counts == {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 3, "unobserved": 3}
+    assert counts["attempts"] == counts["unobserved"] == 3
+    assert counts == {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 3, "unobserved": 3,
+                      "unobserved_near": counts["unobserved_near"]}  # fmt: skip
+    near = res.message.count(": unobserved space ")  # "unobserved space 0.2 m away ..."
+    assert counts["unobserved_near"] == near
     assert "a* retry at the rescue levels" in res.message
     counts = dict.fromkeys(REFUSAL_KEYS, 0)
     count_refusals("formation: obstacle clearance 0.18 m at t=1.70 s; roomier a* way: 0.2 -> "
@@ -190,9 +194,10 @@ def test_a_flight_reports_its_refusals(small_flight: tuple[SimResult, list[PlanC
     refused = sum(v for k, v in r.status_counts.items() if k != "ok")
     d = r.to_json()["refusals"]
     reasons = {"unobserved", "obstacle", "drone", "altitude", "other"}
-    assert set(d) == {"attempts", *reasons, "approach", "last_resort"}
+    assert set(d) == {"attempts", *reasons, "unobserved_near", "approach", "last_resort"}
     assert d["attempts"] >= refused  # every replan not "ok" refused at least one attempt
     assert d["attempts"] == sum(d[k] for k in reasons)
+    assert d["unobserved_near"] <= d["unobserved"]  # the neighbourhood's, of those
     # plans flown although every attempt was refused: counted once each, under their status
     flown = sum(v for k, v in r.status_counts.items() if k in ("ok", "ok-no-formation"))
     assert d["approach"] + d["last_resort"] <= flown

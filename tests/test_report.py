@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from gcs.fastsim import REFUSAL_KEYS
 from gcs.formations import load_template, place
 from gcs.report import (
     PLOTS,
@@ -22,6 +23,7 @@ from gcs.report import (
     report,
     write_report,
 )
+from onboard.planner.planner import APPROACH
 from onboard.record import FlightRecorder
 
 T0 = 1.75e9
@@ -108,8 +110,9 @@ def write_flight(d: Path) -> dict[str, object]:
             for j in range(30):
                 # drone 2's service records no CPU time (an older one): NaN, left out
                 cpu = {"plan_cpu_ms": 2.0 + i + 0.1 * j} if i < 2 else {}
-                rec.plan(T0 + 3.0 + j, status="ok", plan_ms=40.0 + i + j, traj_id=j,
-                         goal_enu_m=[12.0, 0.0, 1.0], **cpu)  # fmt: skip
+                status, reason = REFUSED.get((i, j), ("ok", ""))
+                rec.plan(T0 + 3.0 + j, status=status, plan_ms=40.0 + i + j, traj_id=j,
+                         goal_enu_m=[12.0, 0.0, 1.0], reason=reason, **cpu)  # fmt: skip
             rec.event(T0 + 20.0, "near miss", level="warning")
             # the safety monitors' counters: the last snapshot counts (drone 2's service is
             # older: no shallow replans)
@@ -122,6 +125,23 @@ def write_flight(d: Path) -> dict[str, object]:
                 mon["service.map_lag_rides"] = 4
             rec.counters(T0 + 30.0, mon)
     return mission
+
+
+REFUSED = {
+    (1, 5): (
+        "ok-no-formation",
+        "formation: obstacle clearance 0.20 m at t=1.00 s; "
+        "a* retry: unobserved space 0.25 m away at t=0.50 s (from 0.45 m)",
+    ),
+    (1, 6): (
+        "ok-no-formation",
+        "formation: drone 2 at 0.30 m at t=2.00 s; a* retry without formation: enters "
+        "unobserved space at t=0.40 s; previous: obstacle clearance 0.10 m at t=0.30 s; "
+        + APPROACH,
+    ),
+}
+"""Drone 1's plans (drone, plan) with refused attempts, as the planner writes their messages
+(the kept previous plan's own refusal is no attempt)."""
 
 
 @pytest.fixture(scope="module")
@@ -158,6 +178,16 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert s["drones"][2]["plan_cpu_ms"]["count"] == 0
     assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
+    # the refused attempts by why, from the plans' messages: drone 1's two plans
+    want = {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 4, "obstacle": 1, "drone": 1}
+    want.update(unobserved=2, unobserved_near=1, approach=1)
+    assert s["plan_refusals"] == s["drones"][1]["plan_refusals"] == want
+    assert s["drones"][0]["plan_refusals"] == dict.fromkeys(REFUSAL_KEYS, 0)
+    assert s["drones"][1]["plan_statuses"] == {"ok": 28, "ok-no-formation": 2}
+    assert (
+        "refused plan attempts: 4 (1 for an obstacle, 1 for a peer, 2 for unobserved space, "
+        "1 of them for its neighbourhood" in (out / "summary.txt").read_text()
+    )
     assert s["monitor"] == {"brakes": 0 + 1 + 2, "replans": 33, "shallow_replans": 6}
     assert s["depth_holds"] == {
         "holds": 0 + 2 + 4,
