@@ -390,6 +390,69 @@ def test_a_hold_stops_along_the_plan_not_across_its_turn(tmp_path: Path) -> None
     np.testing.assert_allclose(held(inside).sample(t + tb), straight_end, atol=1e-9)
 
 
+def test_a_silent_monitor_makes_the_setpoint_thread_stop_along_the_plan(tmp_path: Path) -> None:
+    """``planning.stream_guard_s``: the setpoint thread flies a plan only while the safety
+    monitor keeps looking at it. On an overloaded host every thread of the services but the
+    real-time stream stalled about 5 s, and three drones flew their old plans into trunks their
+    maps had not seen (2026-12-04). With the monitor silent past the limit, a stop along the
+    plan in control takes control, once; the next plan starts from it; a plan cycle that was
+    running does not replace it; a monitor looking again rearms the guard; 0 turns it off."""
+    h = Harness(tmp_path, depth=False)
+    h.airborne()
+    h.fly_to(6.0)
+    h.until(lambda: h.state is S.FORMATION_FLIGHT, 2.0, "formation flight")
+    svc = h.svc
+
+    def speed() -> float:
+        traj = svc.flying(h.clock.t)
+        return 0.0 if traj is None else float(np.linalg.norm(traj.state(h.clock.t)[1]))
+
+    h.until(lambda: speed() > 0.2, 15.0, "on its way")
+    t = h.clock.t
+    plan = svc.flying(t)
+    assert plan is not None
+    svc.health.beat("monitor")
+    assert svc.sample_setpoint(t) is not None and svc.flying(t) is plan  # the monitor looks
+    svc.health.beats["monitor"] = time.monotonic() - 1.5  # silent for 1.5 s: past the 1 s
+    gen = svc._gen
+    sp = svc.sample_setpoint(t)
+    stop = svc.flying(t)
+    assert stop is not None and stop is not plan and svc._gen == gen + 1
+    assert svc.counters["stream_guard_stops"] == 1
+    p, v, _ = plan.state(t)
+    assert sp is not None
+    np.testing.assert_allclose(sp.position_m, p, atol=1e-9)  # from where the plan is now
+    np.testing.assert_allclose(sp.velocity_m_s, v, atol=1e-9)
+    a_max = h.cfg.planner.a_max_m_s2
+    tb = Trajectory.braking(t, p, v, np.zeros(3), a_max).duration_s
+    np.testing.assert_allclose(stop.sample(t + tb), plan.sample(t + 0.5 * tb), atol=1e-9)
+    assert np.linalg.norm(stop.state(t + tb)[1]) < 1e-9  # at rest on the plan's path
+    # once: the stop stays in control while the monitor is silent
+    svc.sample_setpoint(t + 0.1)
+    assert svc.flying(t + 0.1) is stop and svc.counters["stream_guard_stops"] == 1
+    h.step(2, plan=False)  # the main loop says why
+    assert "the monitor silent 1.5 s" in svc._last_event, svc._last_event
+    # the monitor looks again: the guard is rearmed, and the next plan starts from the stop
+    svc.health.beat("monitor")
+    svc.sample_setpoint(h.clock.t)
+    assert svc._guard_stop is None
+    h.step(30)
+    assert svc.flying(h.clock.t) is not stop and h.state is S.FORMATION_FLIGHT
+    svc.health.beats["monitor"] = time.monotonic() - 1.5
+    svc.sample_setpoint(h.clock.t)
+    assert svc.counters["stream_guard_stops"] == 2
+    # off
+    h2 = Harness(tmp_path / "off", depth=False, planning={"stream_guard_s": 0.0})
+    h2.airborne()
+    h2.fly_to(6.0)
+    h2.until(lambda: h2.state is S.FORMATION_FLIGHT, 2.0, "formation flight")
+    h2.step(20)
+    plan2 = h2.svc.flying(h2.clock.t)
+    h2.svc.health.beats["monitor"] = time.monotonic() - 30.0
+    h2.svc.sample_setpoint(h2.clock.t)
+    assert h2.svc.flying(h2.clock.t) is plan2 and h2.svc.counters["stream_guard_stops"] == 0
+
+
 def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
     tmp_path: Path,
 ) -> None:

@@ -335,6 +335,17 @@ class PlanningSection:
     monitor_rate_hz: float = 100.0
     monitor_horizon_s: float = 2.0
     """The monitor checks the trajectory in flight this far ahead."""
+    stream_guard_s: float = 1.0
+    """The setpoint thread stops the drone along the trajectory in control (``stop_along``,
+    the service's brake) when the safety monitor has not looked for this long (its thread
+    starved or hung; 0: never). A plan is checked to its end only on the map of its time, and
+    only its first second (``planner.check_known_s``) must lie in observed space: the replans
+    and the monitor, which looks ``monitor_horizon_s`` ahead 100 times a second, are what keep
+    the rest safe. On the real stack with the host overloaded (2026-12-04, seed 4 of a run
+    beside the test suite) every service's threads but the real-time setpoint stream stalled
+    about 5 s; three drones flew their old plans on and touched trunks that their maps had
+    not seen when planning. A stop begun a second after the last look ends within the 2 s that
+    look checked."""
     monitor_obstacle_slack_m: float = 0.05
     """The monitor brakes for an obstacle only where the plan in flight comes closer than
     ``planner.check_obstacle_m`` less this; a plan that comes within the check's distance but
@@ -376,6 +387,7 @@ class PlanningSection:
         _in_range("monitor_rate_hz", self.monitor_rate_hz, 10.0, 500.0)
         _in_range("monitor_horizon_s", self.monitor_horizon_s, 0.1, 10.0)
         _in_range("monitor_obstacle_slack_m", self.monitor_obstacle_slack_m, 0.0, 1.0)
+        _in_range("stream_guard_s", self.stream_guard_s, 0.0, 10.0)
         for i, after in enumerate(self.resend_s):
             _in_range(f"resend_s[{i}]", after, 0.01, 2.0)
         _in_range("retry_after_s", self.retry_after_s, 0.05, 30.0)

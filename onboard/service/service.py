@@ -337,6 +337,7 @@ class FlightService:
             "resent": 0,
             "map_occupied_cells": 0,
             "kernels_after_ready": 0,  # numba kernels compiled or loaded in flight (_check_kernels)
+            "stream_guard_stops": 0,  # stops by the setpoint thread, the monitor silent
             # CPU time of each worker thread, microseconds (time.thread_time)
             "cpu_us.depth_ingest": 0,
             "cpu_us.esdf": 0,
@@ -358,6 +359,11 @@ class FlightService:
         """The numba kernels' compiled versions when READY (``jitcache.kernel_census``): a
         kernel compiled or loaded later is one the warm-up missed (``_check_kernels``)."""
         self._kernels_added: dict[str, int] = {}
+        self._guard_stop: Trajectory | None = None
+        """The stop the setpoint thread put in control while the monitor is silent
+        (``_stream_guard``); None once the monitor looks again."""
+        self._guard_note: tuple[float, float] | None = None
+        """(time, the monitor's silence in s) of the last such stop, for the main loop's log."""
         self._slot_offset: tuple[Any, np.ndarray | None] | None = None
         """(assignment, this drone's slot point minus the template's centroid) (``_own_goal``)."""
         self._last_watchdog = -math.inf
@@ -414,7 +420,7 @@ class FlightService:
         """Called by the setpoint thread at 50 Hz: the trajectory in control at ``t_s``."""
         if not self._in_control:
             return None
-        traj = self.agent.advance(t_s)
+        traj = self._stream_guard(t_s, self.agent.advance(t_s))
         p, v, a = traj.state(t_s)
         # the camera looks where the drone will be in a second (the vehicle's yaw lags its
         # setpoint in a turn), or, holding still short of its goal, around the goal's direction
@@ -426,6 +432,36 @@ class FlightService:
         if rec is not None:
             rec.setpoint(t_s, p, v, a, self._yaw)
         return Setpoint(p, v, a, self._yaw)
+
+    def _stream_guard(self, t_s: float, traj: Trajectory) -> Trajectory:
+        """The setpoint thread's guard (``planning.stream_guard_s``): in formation flight,
+        when the safety monitor's thread has not looked for that long, a stop along ``traj``
+        from ``t_s`` takes control (as the service's brakes: the planner's next plan starts
+        from it; a plan whose cycle is running will not replace it), once until the monitor
+        looks again. Returns the trajectory to sample."""
+        limit = self.cfg.planning.stream_guard_s
+        last = self.health.beats.get("monitor")
+        if limit <= 0.0 or last is None:
+            return traj
+        silent_s = time.monotonic() - last
+        if silent_s <= limit:
+            self._guard_stop = None
+            return traj
+        if self._guard_stop is not None or self._intent.state is not S.FORMATION_FLIGHT:
+            return traj
+        p, v, a = traj.state(t_s)
+        straight = braking_trajectory(t_s, p, v, a, self.cfg.planner.a_max_m_s2)
+        stop = traj.stop_along(t_s, straight.duration_s) or straight
+        with self._ctl_lock:
+            self._gen += 1
+            self._override = stop
+            self.agent.reset(stop)
+        self._guard_stop = stop
+        self._guard_note = (t_s, silent_s)
+        self.counters["stream_guard_stops"] += 1
+        self._announce = True  # by the planner thread when it runs again
+        self._wake.set()
+        return stop
 
     # ---- transitions -------------------------------------------------------------------------
     def _on_transition(self, tr: Transition) -> None:
@@ -1243,6 +1279,16 @@ class FlightService:
             self.bus.ack(inc.cmd_id, res.accepted, res.reason)
             self._apply_transitions(veh)
         self._drain_results()
+        note, self._guard_note = self._guard_note, None
+        if note is not None:
+            event(
+                log,
+                "stream_guard_stop",
+                logging.WARNING,
+                at_s=note[0],
+                monitor_silent_s=round(note[1], 2),
+            )
+            self._last_event = f"stopped along the plan: the monitor silent {note[1]:.1f} s"
         self._apply_transitions(veh)
         self._react(now, veh)
         self._apply_transitions(veh)
