@@ -207,6 +207,7 @@ def _demo_row(d: dict[str, Any]) -> dict[str, Any]:
         "depth_holds": (d.get("depth_holds") or {}).get("holds"),
         "map_lag_rides": (d.get("depth_holds") or {}).get("map_lag_rides"),
         "kernels_after_ready": d.get("kernels_after_ready"),
+        "stream_guard_stops": d.get("stream_guard_stops"),
         "plan_refusals": d.get("plan_refusals"),
         "depth_frames": depth.get("frames"),
         "depth_frames_skipped": depth.get("skipped"),

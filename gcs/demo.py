@@ -1252,6 +1252,8 @@ class Demo:
             # numba kernels the services compiled or loaded after READY: each held a thread
             # in flight (a warm-up that missed one; 0 is the rule)
             "kernels_after_ready": summary.get("kernels_after_ready"),
+            # stops by the services' setpoint threads, their safety monitors silent
+            "stream_guard_stops": summary.get("stream_guard_stops"),
             # the planners' refused attempts, by why (gcs.report.plan_refusals)
             "plan_refusals": summary.get("plan_refusals"),
             "depth": sitl.get("depth"),
@@ -1492,6 +1494,12 @@ def result_text(r: dict[str, Any]) -> str:
         from gcs.report import refusals_text
 
         lines.append(refusals_text(ref))
+    guard = r.get("stream_guard_stops")
+    if guard:
+        lines.append(
+            f"setpoint guard: {guard} stops along the plan while a safety monitor was silent "
+            "(planning.stream_guard_s; a starved or hung service thread)"
+        )
     kernels = r.get("kernels_after_ready")
     if kernels:
         lines.append(

@@ -117,7 +117,8 @@ def write_flight(d: Path) -> dict[str, object]:
             # the safety monitors' counters: the last snapshot counts (drone 2's service is
             # older: no shallow replans)
             mon = {"service.monitor_brakes": i, "service.monitor_replans": 10 + i,
-                   "service.depth_holds": 2 * i, "service.frames_missed": 5}  # fmt: skip
+                   "service.depth_holds": 2 * i, "service.frames_missed": 5,
+                   "service.stream_guard_stops": int(i == 2)}  # fmt: skip
             rec.counters(T0 + 10.0, {k: 0 for k in mon})
             if i < 2:
                 mon["service.monitor_shallow_replans"] = 3
@@ -178,6 +179,7 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert s["drones"][2]["plan_cpu_ms"]["count"] == 0
     assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
+    assert s["stream_guard_stops"] == 1 and s["kernels_after_ready"] == 0
     # the refused attempts by why, from the plans' messages: drone 1's two plans
     want = {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 4, "obstacle": 1, "drone": 1}
     want.update(unobserved=2, unobserved_near=1, approach=1)
