@@ -1494,11 +1494,12 @@ def result_text(r: dict[str, Any]) -> str:
         from gcs.report import refusals_text
 
         lines.append(refusals_text(ref))
-    guard = r.get("stream_guard_stops")
-    if guard:
+    guard = r.get("stream_guard_stops") or {}
+    if any(guard.values()):
         lines.append(
-            f"setpoint guard: {guard} stops along the plan while a safety monitor was silent "
-            "(planning.stream_guard_s; a starved or hung service thread)"
+            f"setpoint guards: {guard.get('stream_guard_stops', 0)} stops along the plan while "
+            f"a safety monitor was silent, {guard.get('stream_gap_stops', 0)} stops from the "
+            "last setpoint after a pause of the stream (a starved or hung flight service)"
         )
     kernels = r.get("kernels_after_ready")
     if kernels:

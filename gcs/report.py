@@ -596,10 +596,10 @@ def summarise(a: Analysis) -> dict[str, Any]:
         "kernels_after_ready": _service_counter_sums(a.flights, ("kernels_after_ready",), "")[
             "kernels_after_ready"
         ],
-        # stops the setpoint threads made while their safety monitors were silent
-        "stream_guard_stops": _service_counter_sums(a.flights, ("stream_guard_stops",), "")[
-            "stream_guard_stops"
-        ],
+        # stops the setpoint threads made: a safety monitor silent, a pause of the stream
+        "stream_guard_stops": _service_counter_sums(
+            a.flights, ("stream_guard_stops", "stream_gap_stops"), ""
+        ),
         "assignments": [
             {k: x.get(k) for k in ("name", "epoch", "effective_s")}
             for x in a.mission.get("assignments", [])

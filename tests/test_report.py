@@ -179,7 +179,8 @@ def test_report_figures(tmp_path: Path, recorded: tuple[Path, dict[str, object]]
     assert s["drones"][2]["plan_cpu_ms"]["count"] == 0
     assert "the planning thread's CPU: median" in (out / "summary.txt").read_text()
     assert s["drones"][2]["plan_statuses"] == {"ok": 30}
-    assert s["stream_guard_stops"] == 1 and s["kernels_after_ready"] == 0
+    assert s["stream_guard_stops"] == {"stream_guard_stops": 1, "stream_gap_stops": 0}
+    assert s["kernels_after_ready"] == 0
     # the refused attempts by why, from the plans' messages: drone 1's two plans
     want = {**dict.fromkeys(REFUSAL_KEYS, 0), "attempts": 4, "obstacle": 1, "drone": 1}
     want.update(unobserved=2, unobserved_near=1, approach=1)

@@ -390,7 +390,7 @@ def test_a_hold_stops_along_the_plan_not_across_its_turn(tmp_path: Path) -> None
     np.testing.assert_allclose(held(inside).sample(t + tb), straight_end, atol=1e-9)
 
 
-def test_a_silent_monitor_makes_the_setpoint_thread_stop_along_the_plan(tmp_path: Path) -> None:
+def test_a_silent_monitor_or_a_paused_stream_makes_the_setpoint_thread_stop(tmp_path: Path) -> None:
     """``planning.stream_guard_s``: the setpoint thread flies a plan only while the safety
     monitor keeps looking at it. On an overloaded host every thread of the services but the
     real-time stream stalled about 5 s, and three drones flew their old plans into trunks their
@@ -441,16 +441,42 @@ def test_a_silent_monitor_makes_the_setpoint_thread_stop_along_the_plan(tmp_path
     svc.health.beats["monitor"] = time.monotonic() - 1.5
     svc.sample_setpoint(h.clock.t)
     assert svc.counters["stream_guard_stops"] == 2
+    # a pause of the stream itself (the whole process stalled, 2026-12-04: 5.9 s, the next
+    # setpoint 1.8 m ahead of the vehicle): a stop from the last setpoint, no jump ahead
+    svc.health.beat("monitor")
+
+    def planned() -> bool:  # a plan in control again, not a stop, on its way
+        traj = svc.flying(h.clock.t)
+        return traj is not None and traj.duration_s > 2.0 and speed() > 0.2
+
+    h.until(planned, 15.0, "on its way again")
+    t = h.clock.t
+    plan = svc.flying(t)
+    assert plan is not None and svc._last_sample is not None
+    t_last, p_last, v_last = svc._last_sample
+    assert t_last == t and np.linalg.norm(plan.sample(t + 2.0) - p_last) > 0.3
+    sp = svc.sample_setpoint(t + 2.0)
+    assert sp is not None and svc.counters["stream_gap_stops"] == 1
+    np.testing.assert_allclose(sp.position_m, p_last, atol=1e-9)
+    np.testing.assert_allclose(sp.velocity_m_s, v_last, atol=1e-9)
+    gap_stop = svc.flying(t + 2.0)
+    assert gap_stop is not plan and np.linalg.norm(gap_stop.state(t + 4.0)[1]) < 1e-9
+    svc.sample_setpoint(t + 2.3)  # within the limit: nothing more
+    assert svc.counters["stream_gap_stops"] == 1 and svc.flying(t + 2.3) is gap_stop
+    h.clock.t = t + 2.3
+    h.step(2, plan=False)
+    assert "the setpoint stream paused 2.0 s" in svc._last_event, svc._last_event
     # off
-    h2 = Harness(tmp_path / "off", depth=False, planning={"stream_guard_s": 0.0})
+    h2 = Harness(tmp_path / "off", depth=False, planning={"stream_guard_s": 0.0, "stream_gap_s": 0})
     h2.airborne()
     h2.fly_to(6.0)
     h2.until(lambda: h2.state is S.FORMATION_FLIGHT, 2.0, "formation flight")
     h2.step(20)
     plan2 = h2.svc.flying(h2.clock.t)
     h2.svc.health.beats["monitor"] = time.monotonic() - 30.0
-    h2.svc.sample_setpoint(h2.clock.t)
-    assert h2.svc.flying(h2.clock.t) is plan2 and h2.svc.counters["stream_guard_stops"] == 0
+    h2.svc.sample_setpoint(h2.clock.t + 2.0)
+    assert h2.svc.flying(h2.clock.t + 2.0) is plan2
+    assert h2.svc.counters["stream_guard_stops"] == h2.svc.counters["stream_gap_stops"] == 0
 
 
 def test_a_stuttering_camera_holds_the_drone_instead_of_flipping_its_state(
@@ -687,7 +713,9 @@ def test_a_plan_back_long_after_its_start_is_not_flown_and_the_flight_goes_on(
     next, prompt replan is flown. (This harness cruises slowly and steadily, so a late plan
     differs from the flown one by a fraction of a millimetre: the threshold is cut to see the
     service's handling; the rule itself is ``test_agent``'s.)"""
-    h = Harness(tmp_path, depth=False)
+    # the harness samples the setpoint stream only at its steps: its clock's jump would be a
+    # pause of the stream (planning.stream_gap_s), which a starved planner thread is not
+    h = Harness(tmp_path, depth=False, planning={"stream_gap_s": 0.0})
     h.airborne()
     h.fly_to(8.0)
     h.step(100)

@@ -338,6 +338,7 @@ class FlightService:
             "map_occupied_cells": 0,
             "kernels_after_ready": 0,  # numba kernels compiled or loaded in flight (_check_kernels)
             "stream_guard_stops": 0,  # stops by the setpoint thread, the monitor silent
+            "stream_gap_stops": 0,  # stops by the setpoint thread after a pause of its own
             # CPU time of each worker thread, microseconds (time.thread_time)
             "cpu_us.depth_ingest": 0,
             "cpu_us.esdf": 0,
@@ -362,8 +363,11 @@ class FlightService:
         self._guard_stop: Trajectory | None = None
         """The stop the setpoint thread put in control while the monitor is silent
         (``_stream_guard``); None once the monitor looks again."""
-        self._guard_note: tuple[float, float] | None = None
-        """(time, the monitor's silence in s) of the last such stop, for the main loop's log."""
+        self._guard_note: tuple[str, float] | None = None
+        """(what, the gap or the monitor's silence in s) of the setpoint thread's last stop,
+        for the main loop's log."""
+        self._last_sample: tuple[float, np.ndarray, np.ndarray] | None = None
+        """(time, position, velocity) of the last setpoint sampled (``_stream_guard``)."""
         self._slot_offset: tuple[Any, np.ndarray | None] | None = None
         """(assignment, this drone's slot point minus the template's centroid) (``_own_goal``)."""
         self._last_watchdog = -math.inf
@@ -422,6 +426,7 @@ class FlightService:
             return None
         traj = self._stream_guard(t_s, self.agent.advance(t_s))
         p, v, a = traj.state(t_s)
+        self._last_sample = (t_s, p, v)
         # the camera looks where the drone will be in a second (the vehicle's yaw lags its
         # setpoint in a turn), or, holding still short of its goal, around the goal's direction
         # (the same policy as the simulated drones: what the planner needs observed is ahead)
@@ -434,31 +439,46 @@ class FlightService:
         return Setpoint(p, v, a, self._yaw)
 
     def _stream_guard(self, t_s: float, traj: Trajectory) -> Trajectory:
-        """The setpoint thread's guard (``planning.stream_guard_s``): in formation flight,
-        when the safety monitor's thread has not looked for that long, a stop along ``traj``
-        from ``t_s`` takes control (as the service's brakes: the planner's next plan starts
-        from it; a plan whose cycle is running will not replace it), once until the monitor
-        looks again. Returns the trajectory to sample."""
-        limit = self.cfg.planning.stream_guard_s
-        last = self.health.beats.get("monitor")
-        if limit <= 0.0 or last is None:
-            return traj
-        silent_s = time.monotonic() - last
-        if silent_s <= limit:
+        """The setpoint thread's guards, in formation flight. (1) A sample more than
+        ``planning.stream_gap_s`` after the one before (the whole process stalled): a braking
+        stop from the last setpoint sent, not the plan's point of now, which may lie metres
+        ahead of the vehicle. (2) The safety monitor's thread silent for over
+        ``planning.stream_guard_s``: a stop along ``traj`` from ``t_s``, once until the monitor
+        looks again. Either takes control as the service's brakes do (the next plan starts
+        from it; a plan cycle running meanwhile does not replace it). Returns the trajectory
+        to sample."""
+        cfg = self.cfg.planning
+        last, self._last_sample = self._last_sample, None
+        last_beat = self.health.beats.get("monitor")
+        silent_s = math.inf if last_beat is None else time.monotonic() - last_beat
+        if silent_s <= cfg.stream_guard_s:
             self._guard_stop = None
+        if self._intent.state is not S.FORMATION_FLIGHT:
             return traj
-        if self._guard_stop is not None or self._intent.state is not S.FORMATION_FLIGHT:
+        a_max = self.cfg.planner.a_max_m_s2
+        gap_s = math.inf if last is None else t_s - last[0]
+        if cfg.stream_gap_s > 0.0 and last is not None and gap_s > cfg.stream_gap_s:
+            stop = braking_trajectory(t_s, last[1], last[2], np.zeros(3), a_max)
+            note = ("stream_gap_stop", gap_s)
+        elif (
+            cfg.stream_guard_s > 0.0
+            and last_beat is not None
+            and silent_s > cfg.stream_guard_s
+            and self._guard_stop is None
+        ):
+            p, v, a = traj.state(t_s)
+            straight = braking_trajectory(t_s, p, v, a, a_max)
+            stop = traj.stop_along(t_s, straight.duration_s) or straight
+            note = ("stream_guard_stop", silent_s)
+        else:
             return traj
-        p, v, a = traj.state(t_s)
-        straight = braking_trajectory(t_s, p, v, a, self.cfg.planner.a_max_m_s2)
-        stop = traj.stop_along(t_s, straight.duration_s) or straight
         with self._ctl_lock:
             self._gen += 1
             self._override = stop
             self.agent.reset(stop)
         self._guard_stop = stop
-        self._guard_note = (t_s, silent_s)
-        self.counters["stream_guard_stops"] += 1
+        self._guard_note = note
+        self.counters[f"{note[0]}s"] += 1
         self._announce = True  # by the planner thread when it runs again
         self._wake.set()
         return stop
@@ -1281,14 +1301,13 @@ class FlightService:
         self._drain_results()
         note, self._guard_note = self._guard_note, None
         if note is not None:
-            event(
-                log,
-                "stream_guard_stop",
-                logging.WARNING,
-                at_s=note[0],
-                monitor_silent_s=round(note[1], 2),
+            what, seconds = note
+            event(log, what, logging.WARNING, seconds=round(seconds, 2))
+            self._last_event = (
+                f"stopped: the setpoint stream paused {seconds:.1f} s"
+                if what == "stream_gap_stop"
+                else f"stopped along the plan: the monitor silent {seconds:.1f} s"
             )
-            self._last_event = f"stopped along the plan: the monitor silent {note[1]:.1f} s"
         self._apply_transitions(veh)
         self._react(now, veh)
         self._apply_transitions(veh)
