@@ -341,11 +341,10 @@ class PlanningSection:
     starved or hung; 0: never). A plan is checked to its end only on the map of its time, and
     only its first second (``planner.check_known_s``) must lie in observed space: the replans
     and the monitor, which looks ``monitor_horizon_s`` ahead 100 times a second, are what keep
-    the rest safe. On the real stack with the host overloaded (2026-12-04, seed 4 of a run
-    beside the test suite) every service's threads but the real-time setpoint stream stalled
-    about 5 s; three drones flew their old plans on and touched trunks that their maps had
-    not seen when planning. A stop begun a second after the last look ends within the 2 s that
-    look checked."""
+    the rest safe; the stream (a real-time thread) may go on flying while they stand still. A
+    stop begun a second after the last look ends within the 2 s that look checked. (On an
+    overloaded host, 2026-12-04, whole services stood still 5-6 s and three drones touched
+    trunks: ``stream_gap_s`` is the guard for that case.)"""
     stream_gap_s: float = 0.5
     """A setpoint this long after the one before (the whole process stalled, the stream's
     real-time thread too; 0: never) does not jump ahead along the plan to where it is now, far
