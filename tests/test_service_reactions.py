@@ -435,7 +435,7 @@ def test_a_silent_monitor_or_a_paused_stream_makes_the_setpoint_thread_stop(tmp_
     # the monitor looks again: the guard is rearmed, and the next plan starts from the stop
     svc.health.beat("monitor")
     svc.sample_setpoint(h.clock.t)
-    assert svc._guard_stop is None
+    assert not svc._guard_fired
     h.step(30)
     assert svc.flying(h.clock.t) is not stop and h.state is S.FORMATION_FLIGHT
     svc.health.beats["monitor"] = time.monotonic() - 1.5

@@ -186,9 +186,7 @@ def warm_up(params: PlannerParams) -> float:
     # runs it (its points and the template's slots, fresh arrays)
     ts = np.linspace(0.0, 1.0, 11)
     obstacle_conflict(np.linspace(0.6, 0.1, 11), ts, 0.0, 0.3, np.linspace(0.6, 0.4, 11))
-    pts = np.empty((3, 3))
-    pts[:] = formation + start
-    similarity(pts, formation[[0, 1, 2]])
+    similarity(formation + start, formation[[0, 1, 2]])
     return time.perf_counter() - t0
 
 

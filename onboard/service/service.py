@@ -360,9 +360,9 @@ class FlightService:
         """The numba kernels' compiled versions when READY (``jitcache.kernel_census``): a
         kernel compiled or loaded later is one the warm-up missed (``_check_kernels``)."""
         self._kernels_added: dict[str, int] = {}
-        self._guard_stop: Trajectory | None = None
-        """The stop the setpoint thread put in control while the monitor is silent
-        (``_stream_guard``); None once the monitor looks again."""
+        self._guard_fired = False
+        """The setpoint thread has put a stop in control while the monitor is silent
+        (``_stream_guard``); False again once the monitor looks."""
         self._guard_note: tuple[str, float] | None = None
         """(what, the gap or the monitor's silence in s) of the setpoint thread's last stop,
         for the main loop's log."""
@@ -399,11 +399,7 @@ class FlightService:
     def _control(self, traj: Trajectory) -> None:
         """``traj`` takes control now (take-off, braking stop, hover): the agent's queue is
         dropped, a plan whose cycle is running will not replace it, and peers hear of it."""
-        with self._ctl_lock:
-            self._gen += 1
-            self._override = traj
-            self.agent.reset(traj)
-            self._in_control = True
+        self._take_control(traj)
         if self._intent.state in AIRBORNE_CONTROLLED:
             # now, from this thread, not by the planner thread once its running cycle is done
             # (seconds on a starved CPU, in which the peers would plan around a trajectory this
@@ -413,6 +409,16 @@ class FlightService:
         else:
             self._announce = True  # by the planner thread once airborne
         self._wake.set()
+
+    def _take_control(self, traj: Trajectory) -> None:
+        """``traj`` in control now, as an override: the agent's queue is dropped and a plan
+        whose cycle is running will not replace it (``_on_plan``). No I/O: the setpoint
+        thread's guards call it too."""
+        with self._ctl_lock:
+            self._gen += 1
+            self._override = traj
+            self.agent.reset(traj)
+            self._in_control = True
 
     def flying(self, t_s: float) -> Trajectory | None:
         """The trajectory in control at ``t_s`` (>= now); None before the first take-off."""
@@ -452,7 +458,7 @@ class FlightService:
         last_beat = self.health.beats.get("monitor")
         silent_s = math.inf if last_beat is None else time.monotonic() - last_beat
         if silent_s <= cfg.stream_guard_s:
-            self._guard_stop = None
+            self._guard_fired = False
         if self._intent.state is not S.FORMATION_FLIGHT:
             return traj
         a_max = self.cfg.planner.a_max_m_s2
@@ -464,7 +470,7 @@ class FlightService:
             cfg.stream_guard_s > 0.0
             and last_beat is not None
             and silent_s > cfg.stream_guard_s
-            and self._guard_stop is None
+            and not self._guard_fired
         ):
             p, v, a = traj.state(t_s)
             straight = braking_trajectory(t_s, p, v, a, a_max)
@@ -472,11 +478,8 @@ class FlightService:
             note = ("stream_guard_stop", silent_s)
         else:
             return traj
-        with self._ctl_lock:
-            self._gen += 1
-            self._override = stop
-            self.agent.reset(stop)
-        self._guard_stop = stop
+        self._take_control(stop)
+        self._guard_fired = True
         self._guard_note = note
         self.counters[f"{note[0]}s"] += 1
         self._announce = True  # by the planner thread when it runs again
