@@ -275,6 +275,10 @@ def bench_planner(
     (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
     count, and one objective evaluation at x0 (``eval_us``). Breakdown per problem:
     cost = evaluations x eval_us, solver and set-up overhead = replan - cost (medians reported).
+    Where ``plan`` also solves the fresh start (``fresh_alternative``, a previous trajectory),
+    its set-up and solve alone are timed the same way (``prepare(..., fresh=True)``): with the
+    side thread that solve runs beside the warm one, and the longer of the two sets the replan's
+    time (``fresh_ms`` over the problems that have one, ``fresh_share``: how many do).
 
     ``cfg.perception`` 'mapped': the replans are replayed on the ESDF each drone planned on
     (at most ``max_problems``, or ``MAPPED_MAX_PROBLEMS`` when it is 0), only replans from
@@ -312,6 +316,9 @@ def bench_planner(
     overhead_ms: list[float] = []
     term_us: list[dict[str, float]] = []  # --term-costs: one evaluation's time by term
     pieces: list[float] = []
+    fresh_prep_ms: list[float] = []  # the fresh start's prepare(..., fresh=True)
+    fresh_solve_ms: list[float] = []  # and its solve (the side thread's job)
+    fresh_evals: list[float] = []
     statuses: dict[str, int] = {}
     solver_statuses: dict[str, int] = {}
     rejected = 0  # first-attempt solutions the safety check refused
@@ -333,6 +340,11 @@ def bench_planner(
             t_prep: list[float] = []
             t_solve: list[float] = []
             t_plan: list[float] = []
+            t_fprep: list[float] = []
+            t_fsolve: list[float] = []
+            # the fresh start's second solve (plan() makes it for every accepted attempt with
+            # the formation term from a previous trajectory)
+            with_fresh = args[7] is not None and params.fresh_alternative != "never"
             problem = None
             res = None
             x_end = np.zeros(0)
@@ -344,10 +356,23 @@ def bench_planner(
                 t2 = time.perf_counter()
                 res = planner.plan(*args)
                 t3 = time.perf_counter()
+                if with_fresh:
+                    t_s, p, v, a, goal, peers, field, previous = args
+                    fresh = planner.prepare(t_s, p, v, a, goal, peers, field, previous, fresh=True)
+                    t4 = time.perf_counter()
+                    fresh.solve()
+                    t5 = time.perf_counter()
                 if k > 0:
                     t_prep.append((t1 - t0) * 1e3)
                     t_solve.append((t2 - t1) * 1e3)
                     t_plan.append((t3 - t2) * 1e3)
+                    if with_fresh:
+                        t_fprep.append((t4 - t3) * 1e3)
+                        t_fsolve.append((t5 - t4) * 1e3)
+            if with_fresh:
+                fresh_prep_ms.append(float(np.median(t_fprep)))
+                fresh_solve_ms.append(float(np.median(t_fsolve)))
+                fresh_evals.append(fresh.evaluations)
             assert problem is not None and res is not None
             statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
             sname = res.solver_status.name if res.solver_status is not None else "none"
@@ -404,6 +429,13 @@ def bench_planner(
                 [r - s - p for r, s, p in zip(replan_ms, solve_ms, setup_ms, strict=True)]
             )["median"],
         },
+        # the fresh start's set-up and solve alone, over the problems where plan() makes one
+        "fresh_ms": {
+            "setup_median": summary(fresh_prep_ms)["median"] if fresh_prep_ms else None,
+            "solve": _pick(fresh_solve_ms, ("median", "p90", "max")) if fresh_solve_ms else None,
+            "evaluations_median": summary(fresh_evals)["median"] if fresh_evals else None,
+        },
+        "fresh_share": len(fresh_solve_ms) / len(chosen) if chosen else 0.0,
         "solver_status_counts": solver_statuses,
         "pieces": {"median": summary(pieces)["median"]},
         "plan_status_counts": statuses,

@@ -868,10 +868,23 @@ def bench_planner(
         f"median replan = set-up {_fmt(b['setup_ms_median'], '.2f')} ms + solve "
         f"{_fmt(b['solve_ms_median'], '.2f')} ms (cost evaluations "
         f"{_fmt(b['cost_eval_ms_median'], '.2f')} ms at {_fmt(report['eval_us'], '.1f')} us "
-        f"each, solver {_fmt(b['solver_overhead_ms_median'], '.2f')} ms) + check and result "
-        f"{_fmt(b['check_and_rest_ms_median'], '.2f')} ms; pieces median "
-        f"{_fmt(report['pieces']['median'], '.0f')}"
+        f"each, solver {_fmt(b['solver_overhead_ms_median'], '.2f')} ms) + the rest "
+        f"{_fmt(b['check_and_rest_ms_median'], '.2f')} ms (checks, the fresh start, result); "
+        f"pieces median {_fmt(report['pieces']['median'], '.0f')}"
     )
+    fr = report["fresh_ms"]
+    if fr["solve"] is not None:
+        console.print(
+            f"the fresh start, in {report['fresh_share']:.0%} of the replans: set-up "
+            f"{_fmt(fr['setup_median'], '.2f')} ms + solve {_fmt(fr['solve']['median'], '.2f')} "
+            f"ms median (p90 {_fmt(fr['solve']['p90'], '.2f')}; "
+            f"{_fmt(fr['evaluations_median'], '.0f')} evaluations), "
+            + (
+                "beside the warm solve (side thread): the longer of the two sets the replan"
+                if side_thread
+                else "after the warm solve"
+            )
+        )
     if "eval_us_by_term" in report:
         by = report["eval_us_by_term"]
         console.print(

@@ -134,6 +134,18 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     assert data["pieces"]["median"] >= 1
     assert data["startup_s"] > 0 and data["startup"]["first_plan_status"]
     assert {"platform", "cpu", "python", "numpy", "numba"} <= set(data["machine"])
+    # the fresh start's solve, timed alone where plan() makes one (a previous trajectory)
+    assert 0.0 < data["fresh_share"] <= 1.0
+    fresh = data["fresh_ms"]
+    assert fresh["setup_median"] > 0 and fresh["solve"]["median"] > 0
+    assert fresh["evaluations_median"] >= 1
+    assert "the fresh start, in" in out.output and "side thread" in out.output
+    sets = ["--no-startup", "--set", "fresh_alternative=never", "--json", str(js)]
+    out = CliRunner().invoke(main, [*args[:-3], *sets])
+    assert out.exit_code == 0, out.output
+    data = json.loads(js.read_text())
+    assert data["fresh_share"] == 0.0 and data["fresh_ms"]["solve"] is None
+    assert "the fresh start, in" not in out.output
 
 
 def test_bench_planner_replays_on_the_drones_maps(tmp_path: Path) -> None:

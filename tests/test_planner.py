@@ -900,6 +900,36 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
             assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
 
 
+@pytest.mark.parametrize("mode", ["line", "astar"])
+def test_prepare_fresh_is_the_problem_plan_solves_beside_the_warm_one(mode: str) -> None:
+    """``prepare(fresh=True)`` (what ``bench planner`` times as the side thread's job) builds
+    the problem of the fresh start's second solve as ``plan`` does: where the fresh start wins
+    and is flown as solved, its solution is the flown trajectory to the bit; ``previous`` is not
+    read; a fresh flag that is not a bool is refused."""
+    start, goal, base, far_way, field = _far_way_round_a_trunk()
+    params = dataclasses.replace(base, fresh_alternative=mode)
+    short_way = FormationPlanner(params, LINE3, slot=1).plan(
+        0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
+    )
+    assert "fresh start: cost" in short_way.message and "speed capped" not in short_way.message
+    assert "roomier" not in short_way.message
+    planner = FormationPlanner(params, LINE3, slot=1)
+    problems = [
+        planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, previous, fresh=True)
+        for previous in (far_way.trajectory, None)
+    ]
+    for problem in problems:
+        x, _ = problem.solve()
+        flown = problem.trajectory(x)
+        np.testing.assert_array_equal(flown.coeffs, short_way.trajectory.coeffs)
+        np.testing.assert_array_equal(flown.durations_s, short_way.trajectory.durations_s)
+    warm = planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory)
+    x_warm, _ = warm.solve()
+    assert _y_where_x(warm.trajectory(x_warm), 3.0) > 0.3  # the warm start's way: not this one
+    with pytest.raises(ValueError, match="fresh must be a bool"):
+        planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, fresh=1)  # type: ignore[arg-type]
+
+
 def test_a_fresh_plan_is_checked_only_when_it_costs_less(monkeypatch: pytest.MonkeyPatch) -> None:
     """The fresh start's solution is checked only when it costs less than the warm one (else it
     is not flown whatever the check says): two checks where the fresh start wins, one where a

@@ -784,15 +784,23 @@ class FormationPlanner:
         force_astar: bool = False,
         astar_margin_m: float = 3.0,
         astar_ladder_m: Sequence[float] | None = None,
+        fresh: bool = False,
     ) -> Problem:
         """Build the optimisation problem of one replan (validated inputs, initial guess).
         An A* initial path tries the clearances ``astar_ladder_m`` (default
-        ``params.astar_ladder_m``; the rescue attempt's are ``params.astar_rescue_ladder_m``)."""
+        ``params.astar_ladder_m``; the rescue attempt's are ``params.astar_rescue_ladder_m``).
+        ``fresh``: the problem of ``fresh_alternative``'s second solve instead, as ``plan``
+        builds it (``previous`` not read; from the straight line when ``fresh_alternative`` is
+        'line', else from an A* path on the ladder), for benchmarks that time that solve."""
         self._check_time_and_peers(t_start_s, peers)
         ladder = self.params.astar_ladder_m if astar_ladder_m is None else astar_ladder_m
         levels = tuple(float(c) for c in ladder)
         if not levels or not all(math.isfinite(c) and c > 0.0 for c in levels):
             raise ValueError(f"astar_ladder_m must hold positive numbers, got {ladder!r}")
+        if not isinstance(fresh, bool):
+            raise ValueError(f"fresh must be a bool, got {fresh!r}")
+        if fresh and self.params.fresh_alternative == "line":
+            levels = ()
         return self._prepare(
             t_start_s,
             *self._vectors_in_band(start_p, start_v, start_a, goal),
@@ -800,11 +808,12 @@ class FormationPlanner:
             _pack_peers(peers),
             field,
             obj.field_args(field.kernel_data()),
-            previous,
+            None if fresh else previous,
             use_formation,
             force_astar,
             astar_margin_m,
             levels,
+            fresh=fresh,
         )
 
     def _prepare(
