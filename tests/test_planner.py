@@ -930,6 +930,35 @@ def test_prepare_fresh_is_the_problem_plan_solves_beside_the_warm_one(mode: str)
         planner.prepare(0.0, start, ZERO, ZERO, goal, [], field, fresh=1)  # type: ignore[arg-type]
 
 
+def test_fresh_period_gates_the_fresh_start_on_the_replans_own_times() -> None:
+    """``fresh_period_s``: a replan solves the fresh start only when a multiple of the period
+    lies after the previous trajectory's start and at or before its own. Not due: the plan is
+    the warm start's alone, as with 'never', to the bit; due: as with no period. Re-forming
+    keeps the fresh start at every replan, the shape's recovery takes the period."""
+    start, goal, base, far_way, field = _far_way_round_a_trunk()
+    same_cell = far_way.trajectory  # starts at 0.0, as the replan
+    earlier = Trajectory(-0.2, same_cell.coeffs, same_cell.durations_s)  # a cell before (0.3 s)
+    gated = FormationPlanner(dataclasses.replace(base, fresh_period_s=0.3), LINE3, slot=1)
+    assert not gated.fresh_due(0.0, same_cell) and not gated.fresh_due(0.29, same_cell)
+    assert gated.fresh_due(0.0, earlier) and gated.fresh_due(0.3, same_cell)
+    assert gated.fresh_due(0.0, None)
+    assert FormationPlanner(base, LINE3, slot=1).fresh_due(0.0, same_cell)  # no period
+    for previous, like in ((same_cell, "never"), (earlier, "line")):
+        other = FormationPlanner(dataclasses.replace(base, fresh_alternative=like), LINE3, 1)
+        got = gated.plan(0.0, start, ZERO, ZERO, goal, [], field, previous)
+        want = other.plan(0.0, start, ZERO, ZERO, goal, [], field, previous)
+        assert got.status == want.status == PlanStatus.OK
+        assert got.message == want.message
+        assert ("fresh start: cost" in got.message) == (like == "line")
+        np.testing.assert_array_equal(got.trajectory.coeffs, want.trajectory.coeffs)
+        assert (got.iterations, got.evaluations) == (want.iterations, want.evaluations)
+    on = dataclasses.replace(base, fresh_period_s=0.5)
+    assert reform_params(on).fresh_period_s == 0.0 and recover_params(on).fresh_period_s == 0.5
+    for bad in (-0.1, float("nan"), float("inf"), 61.0):
+        with pytest.raises(ValueError, match="fresh_period_s"):
+            PlannerParams(fresh_period_s=bad)
+
+
 def test_a_fresh_plan_is_checked_only_when_it_costs_less(monkeypatch: pytest.MonkeyPatch) -> None:
     """The fresh start's solution is checked only when it costs less than the warm one (else it
     is not flown whatever the check says): two checks where the fresh start wins, one where a

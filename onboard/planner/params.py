@@ -312,6 +312,15 @@ class PlannerParams:
     limit margin and the lead slow-down applied; 0: at ``v_max_m_s``, as before). Timed at
     the limit itself, a minimum-jerk path overshoots it between its waypoints, and the first
     iterations spend themselves on the feasibility penalty (~10 fewer evaluations at 0.8)."""
+    fresh_period_s: float = 0.0
+    """The fresh start (``fresh_alternative``) at most once per this many seconds of global
+    time: a replan solves it only when a multiple of the period lies between the previous
+    trajectory's start and its own (0: at every replan). A gate on the replan's inputs alone,
+    so that a replayed replan (``bench planner``) makes the same choice as in flight. Replans
+    on the regular grid (1 s) are never gated by a period up to 1 s; the shape's recovery
+    replans every ``reform_replan_period_s`` (0.1 s), and its fresh starts there, a tenth of a
+    second apart, solve nearly the same problem again. ``reform_params`` keeps every replan's
+    fresh start while re-forming."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals
@@ -712,6 +721,8 @@ class PlannerParams:
             raise ValueError(
                 f"fresh_guess_speed_frac must be in [0, 1], got {self.fresh_guess_speed_frac!r}"
             )
+        if not (np.isfinite(self.fresh_period_s) and 0.0 <= self.fresh_period_s <= 60.0):
+            raise ValueError(f"fresh_period_s must be in [0, 60] s, got {self.fresh_period_s!r}")
         if not (np.isfinite(self.formation_front_s) and self.formation_front_s > 0):
             raise ValueError(
                 f"formation_front_s must be a positive number, got {self.formation_front_s!r}"
@@ -821,13 +832,14 @@ def reform_params(params: PlannerParams) -> PlannerParams:
     the formation weight scaled by ``reform_formation_scale``; the lead slow-down measured from
     the centroid reference alone (``reform_lead_from_centroid``; ``lead_slowest_beyond_m`` off),
     else off; a fresh start beside the warm one (``reform_fresh_start``); the speed cap
-    ``reform_speed_cap_frac``."""
+    ``reform_speed_cap_frac``; the fresh start at every replan (``fresh_period_s`` 0)."""
     p = dataclasses.replace(
         params,
         w_formation=params.w_formation * params.reform_formation_scale,
         formation_front_gain=params.reform_formation_front_gain,
         w_obstacle=params.w_obstacle * params.reform_obstacle_scale,
         fresh_alternative="astar" if params.reform_fresh_start else params.fresh_alternative,
+        fresh_period_s=0.0,
         speed_cap_frac=params.reform_speed_cap_frac,
     )
     if params.reform_lead_from_centroid:
@@ -840,7 +852,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
     of re-forming (``reform_params``), with the formation weight and the altitude hold scaled by
     ``recover_formation_scale``, the limit penalties by ``recover_limit_scale``, a member far
     behind waited for (``lead_slowest_beyond_m``), and the fresh start of ``fresh_alternative``
-    and the speed cap ``speed_cap_frac`` (not re-forming's)."""
+    and ``fresh_period_s`` and the speed cap ``speed_cap_frac`` (not re-forming's)."""
     k = params.recover_formation_scale
     return dataclasses.replace(
         reform_params(params),
@@ -852,6 +864,7 @@ def recover_params(params: PlannerParams) -> PlannerParams:
         w_limit_hard=params.w_limit_hard * params.recover_limit_scale,
         lead_slowest_beyond_m=params.lead_slowest_beyond_m,
         fresh_alternative=params.fresh_alternative,
+        fresh_period_s=params.fresh_period_s,
         speed_cap_frac=params.speed_cap_frac,
     )
 

@@ -1236,6 +1236,16 @@ class FormationPlanner:
                     T *= EVADE_GROWTH
         return out
 
+    def fresh_due(self, t_start_s: float, previous: Trajectory | None) -> bool:
+        """Whether a replan starting at ``t_start_s`` from ``previous`` may solve the fresh
+        start (``fresh_alternative``) by ``fresh_period_s``: a multiple of the period lies
+        after the previous trajectory's start and at or before the replan's (always with no
+        period or no previous trajectory)."""
+        period = self.params.fresh_period_s
+        if period <= 0.0 or previous is None:
+            return True
+        return math.floor(t_start_s / period) != math.floor(previous.t0_s / period)
+
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest (a gentle stop, as the service's)."""
         return Trajectory.braking(t_start, sp, sv, sa, self.params.a_max_m_s2)
@@ -1295,6 +1305,8 @@ class FormationPlanner:
         refused: list[tuple[PlanStatus, Trajectory, LbfgsStatus | None, Problem, np.ndarray]] = []
         # the swarm set-up of this start and these peers, shared by the attempts
         setups: dict[bool, tuple[np.ndarray, float, float]] = {}
+
+        fresh_due = self.fresh_due(t_start_s, previous)
 
         def late() -> bool:
             """Whether the caller's time budget (``give_up``) says stop trying."""
@@ -1378,6 +1390,7 @@ class FormationPlanner:
                 and not force_astar
                 and previous is not None
                 and self.params.fresh_alternative != "never"
+                and fresh_due
             )
 
         def collect(side: _SideSolve, stop: bool) -> tuple[Problem, np.ndarray, LbfgsStatus]:
