@@ -320,7 +320,12 @@ class PlannerParams:
     on the regular grid (1 s) are never gated by a period up to 1 s; the shape's recovery
     replans every ``reform_replan_period_s`` (0.1 s), and its fresh starts there, a tenth of a
     second apart, solve nearly the same problem again. ``reform_params`` keeps every replan's
-    fresh start while re-forming."""
+    fresh start while re-forming. Measured at 1 s (BENCHMARKS.md section 8, 2026-12-04, third
+    session): ``bench planner`` median 0.84 ms against 1.53 ms (the fresh start in 24 % of the
+    replans), the seeded table the same (0.0024 / 0.0039 / 0.0073), but on the unseen sets one
+    medium trial at 0.0284 (``--seed 100``) and one dense at 0.0246 (``--seed 200``) against
+    none over 0.02, and flights 1-2 s longer: the recovery's fresh starts hold the tails.
+    0.3 s and 0.5 s gave 1.13 and 1.03 ms: no period meets both targets on this host."""
     soft_formation_scale: float = 0.0
     """When the plan with the formation term (and its A* retry) is refused, one more attempt
     with the formation weight times this, before the plan without it (0: off). The refusals
