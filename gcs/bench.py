@@ -344,11 +344,7 @@ def bench_planner(
             t_fsolve: list[float] = []
             # the fresh start's second solve (plan() makes it for every accepted attempt with
             # the formation term from a previous trajectory)
-            with_fresh = (
-                args[7] is not None
-                and params.fresh_alternative != "never"
-                and planner.fresh_due(args[0], args[7])
-            )
+            with_fresh = planner.fresh_wanted(args[0], args[7])
             problem = None
             res = None
             x_end = np.zeros(0)

@@ -799,8 +799,6 @@ class FormationPlanner:
             raise ValueError(f"astar_ladder_m must hold positive numbers, got {ladder!r}")
         if not isinstance(fresh, bool):
             raise ValueError(f"fresh must be a bool, got {fresh!r}")
-        if fresh and self.params.fresh_alternative == "line":
-            levels = ()
         return self._prepare(
             t_start_s,
             *self._vectors_in_band(start_p, start_v, start_a, goal),
@@ -841,9 +839,12 @@ class FormationPlanner:
         ``setups``: the swarm set-up (``_swarm_setup``) of the same start and peers, by its
         ``lead`` flag, kept from one attempt of a replan to the next (filled here); ``fresh``:
         the problem is ``fresh_alternative``'s second solve (``previous`` None): its guess is
-        timed at ``fresh_guess_speed_frac`` of the speed limit and it gets the coarse pass of
+        timed at ``fresh_guess_speed_frac`` of the speed limit, it searches no A* path where
+        ``fresh_alternative`` is 'line' (``ladder`` not read) and it gets the coarse pass of
         ``fresh_coarse_kappa``."""
         p = self.params
+        if fresh and p.fresh_alternative == "line":
+            ladder = ()
         formation_on = use_formation and p.w_formation > 0 and len(peers) > 0
         want_lead = formation_on and p.lead_slowdown_m > 0.0
         if len(peers) > 0:
@@ -1246,6 +1247,17 @@ class FormationPlanner:
             return True
         return math.floor(t_start_s / period) != math.floor(previous.t0_s / period)
 
+    def fresh_wanted(self, t_start_s: float, previous: Trajectory | None) -> bool:
+        """Whether a replan starting at ``t_start_s`` from ``previous`` solves the fresh start
+        beside the warm one where an attempt with the formation term is accepted (``plan``):
+        there is a previous trajectory, ``fresh_alternative`` is not 'never' and the period is
+        due (``fresh_due``); the time budget aside."""
+        return (
+            previous is not None
+            and self.params.fresh_alternative != "never"
+            and self.fresh_due(t_start_s, previous)
+        )
+
     def _stop(self, t_start: float, sp: np.ndarray, sv: np.ndarray, sa: np.ndarray) -> Trajectory:
         """A one-piece braking trajectory to rest (a gentle stop, as the service's)."""
         return Trajectory.braking(t_start, sp, sv, sa, self.params.a_max_m_s2)
@@ -1306,7 +1318,7 @@ class FormationPlanner:
         # the swarm set-up of this start and these peers, shared by the attempts
         setups: dict[bool, tuple[np.ndarray, float, float]] = {}
 
-        fresh_due = self.fresh_due(t_start_s, previous)
+        fresh_wanted = self.fresh_wanted(t_start_s, previous)
 
         def late() -> bool:
             """Whether the caller's time budget (``give_up``) says stop trying."""
@@ -1373,25 +1385,12 @@ class FormationPlanner:
 
         def prepare_fresh(use_formation: bool, formation_scale: float) -> Problem:
             """The problem of ``fresh_alternative``'s second solve of an attempt."""
-            line = self.params.fresh_alternative == "line"
-            return prepare(
-                use_formation,
-                False,
-                ladder=() if line else self.params.astar_ladder_m,
-                fresh=True,
-                formation_scale=formation_scale,
-            )
+            return prepare(use_formation, False, fresh=True, formation_scale=formation_scale)
 
         def wants_fresh(use_formation: bool, force_astar: bool) -> bool:
             """Whether an attempt accepted from the warm start is solved again from a fresh
             start (``fresh_alternative``), but for the time budget."""
-            return (
-                use_formation
-                and not force_astar
-                and previous is not None
-                and self.params.fresh_alternative != "never"
-                and fresh_due
-            )
+            return use_formation and not force_astar and fresh_wanted
 
         def collect(side: _SideSolve, stop: bool) -> tuple[Problem, np.ndarray, LbfgsStatus]:
             """What the side executor made of its problem; ``stop``: cancel it first, as not
