@@ -592,7 +592,8 @@ def summarise(a: Analysis) -> dict[str, Any]:
         ),
         "monitor": monitor_counts(a.flights),
         "depth_holds": depth_hold_counts(a.flights),
-        "plan_refusals": plan_refusals(a.flights),
+        # the drones' counts added up (each plan's message parsed once, above)
+        "plan_refusals": {k: sum(d["plan_refusals"][k] for d in drones) for k in plan_refusals([])},
         "kernels_after_ready": _service_counter_sums(a.flights, ("kernels_after_ready",), "")[
             "kernels_after_ready"
         ],
