@@ -180,6 +180,19 @@ def _pick(values: Sequence[float], keys: Sequence[str] = ("median", "p90", "max"
     return {k: s[k] for k in keys}
 
 
+def _fresh_cheaper(gains: Sequence[float]) -> dict[str, Any]:
+    """``bench_planner``'s ``fresh_cheaper`` from the fresh start's relative gains over the warm
+    start (``(f_warm - f_fresh) / f_warm`` per problem): the share with a gain, the gain's
+    median / p90 / max among them in percent, and how many gain more than 5 %."""
+    g = np.asarray(gains, dtype=np.float64)
+    won = g[g > 0.0] * 100.0
+    return {
+        "share": float(won.size / g.size) if g.size else None,
+        "gain_pct": _pick(won.tolist()) if won.size else None,
+        "over_5pct": int(np.sum(g > 0.05)),
+    }
+
+
 def _objective_us(x: np.ndarray, prob: tuple, problem: Any, calls: int) -> float:
     """Time [us] of one evaluation of the objective ``prob`` (on ``problem``'s field and work
     arrays) at x inside compiled code: one untimed call, then the median of 5 batches of
@@ -319,6 +332,9 @@ def bench_planner(
     fresh_prep_ms: list[float] = []  # the fresh start's prepare(..., fresh=True)
     fresh_solve_ms: list[float] = []  # and its solve (the side thread's job)
     fresh_evals: list[float] = []
+    # where plan() also solves the fresh start: how much cheaper than the warm start's solution
+    # its solution is, relative to the warm one (negative: dearer; the solvers' own values)
+    fresh_gain: list[float] = []
     statuses: dict[str, int] = {}
     solver_statuses: dict[str, int] = {}
     rejected = 0  # first-attempt solutions the safety check refused
@@ -360,7 +376,7 @@ def bench_planner(
                     t_s, p, v, a, goal, peers, field, previous = args
                     fresh = planner.prepare(t_s, p, v, a, goal, peers, field, previous, fresh=True)
                     t4 = time.perf_counter()
-                    fresh.solve()
+                    x_fresh, _ = fresh.solve()
                     t5 = time.perf_counter()
                 if k > 0:
                     t_prep.append((t1 - t0) * 1e3)
@@ -374,6 +390,9 @@ def bench_planner(
                 fresh_solve_ms.append(float(np.median(t_fsolve)))
                 fresh_evals.append(fresh.evaluations)
             assert problem is not None and res is not None
+            if with_fresh:
+                f_warm = problem.cost(x_end)
+                fresh_gain.append((f_warm - fresh.cost(x_fresh)) / f_warm)
             statuses[str(res.status.value)] = statuses.get(str(res.status.value), 0) + 1
             sname = res.solver_status.name if res.solver_status is not None else "none"
             solver_statuses[sname] = solver_statuses.get(sname, 0) + 1
@@ -436,6 +455,9 @@ def bench_planner(
             "evaluations_median": summary(fresh_evals)["median"] if fresh_evals else None,
         },
         "fresh_share": len(fresh_solve_ms) / len(chosen) if chosen else 0.0,
+        # what the fresh start buys: the share of those problems where its solution costs less
+        # than the warm start's, and by how much there (percent of the warm one's cost)
+        "fresh_cheaper": _fresh_cheaper(fresh_gain),
         "solver_status_counts": solver_statuses,
         "pieces": {"median": summary(pieces)["median"]},
         "plan_status_counts": statuses,

@@ -885,6 +885,14 @@ def bench_planner(
                 else "after the warm solve"
             )
         )
+        fc = report["fresh_cheaper"]
+        if fc["gain_pct"] is not None:
+            g = fc["gain_pct"]
+            console.print(
+                f"its solution costs less than the warm start's in {fc['share']:.0%} of them, by "
+                f"{_fmt(g['median'], '.2f')} % median (p90 {_fmt(g['p90'], '.1f')} %, max "
+                f"{_fmt(g['max'], '.1f')} %); more than 5 % in {fc['over_5pct']}"
+            )
     if "eval_us_by_term" in report:
         by = report["eval_us_by_term"]
         console.print(

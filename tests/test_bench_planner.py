@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcs.bench import FieldKeeper
+from gcs.bench import FieldKeeper, _fresh_cheaper
 from gcs.fastsim import PlanCall, replay_inputs
 from onboard.planner.field import AnalyticField, GridField
 from onboard.world import World
@@ -43,3 +43,15 @@ def test_replay_uses_the_recorded_map_when_there_is_one() -> None:
     g = _grid()
     assert replay_inputs(_call(1.0, 2, g))[6] is g
     assert isinstance(replay_inputs(_call(1.0, 2, None))[6], AnalyticField)
+
+
+def test_fresh_cheaper_counts_only_the_problems_where_the_fresh_start_wins() -> None:
+    """``fresh_cheaper``: the share of the fresh start's problems where it costs less, and the
+    gain there in percent; a tie or a dearer fresh start is no gain."""
+    got = _fresh_cheaper([0.10, -0.20, 0.01, 0.0, 0.06])
+    assert got["share"] == pytest.approx(0.6)
+    assert got["gain_pct"]["median"] == pytest.approx(6.0)
+    assert got["gain_pct"]["max"] == pytest.approx(10.0)
+    assert got["over_5pct"] == 2
+    assert _fresh_cheaper([-0.1, 0.0]) == {"share": 0.0, "gain_pct": None, "over_5pct": 0}
+    assert _fresh_cheaper([]) == {"share": None, "gain_pct": None, "over_5pct": 0}

@@ -140,11 +140,21 @@ def test_bench_planner_small(tmp_path: Path) -> None:
     assert fresh["setup_median"] > 0 and fresh["solve"]["median"] > 0
     assert fresh["evaluations_median"] >= 1
     assert "the fresh start, in" in out.output and "side thread" in out.output
+    # what it buys: where its solution costs less than the warm one's, and by how much
+    cheaper = data["fresh_cheaper"]
+    assert 0.0 <= cheaper["share"] <= 1.0
+    if cheaper["share"] > 0.0:
+        gain = cheaper["gain_pct"]
+        assert 0.0 < gain["median"] <= gain["p90"] <= gain["max"] < 100.0
+        assert "costs less than the warm start's in" in out.output
+    n_fresh = round(data["fresh_share"] * data["problems"])
+    assert 0 <= cheaper["over_5pct"] <= round(cheaper["share"] * n_fresh)
     sets = ["--no-startup", "--set", "fresh_alternative=never", "--json", str(js)]
     out = CliRunner().invoke(main, [*args[:-3], *sets])
     assert out.exit_code == 0, out.output
     data = json.loads(js.read_text())
     assert data["fresh_share"] == 0.0 and data["fresh_ms"]["solve"] is None
+    assert data["fresh_cheaper"] == {"share": None, "gain_pct": None, "over_5pct": 0}
     assert "the fresh start, in" not in out.output
 
 
