@@ -59,6 +59,11 @@ class DemoError(RuntimeError):
     """The demo cannot go on (a process died, a step timed out, a command was refused)."""
 
 
+DEMO_LEAD_S = 0.5
+"""The demo's ``DemoConfig.lead_s``: the station's resend period (``StationConfig.resend_every_s``),
+so that a drone that missed a command hears it again by the switch."""
+
+
 @dataclass(frozen=True)
 class DemoConfig:
     """What to fly and how.
@@ -77,7 +82,12 @@ class DemoConfig:
     is up (the first run compiles the planner's kernels); flight_timeout_s: for the crossing
     (None: from the route length and the speed limit); out_dir: the flight directory;
     secure: MAVLink signing and Zenoh mutual TLS + access control (see the module docstring);
-    mapping_nice: the services' ``mapping.thread_nice`` (None: ``default_mapping_nice``).
+    mapping_nice: the services' ``mapping.thread_nice`` (None: ``default_mapping_nice``);
+    lead_s: how long after its command a swarm-wide change (formation, goal) takes effect, at
+    once on every drone (the station's ``StationConfig.lead_s``): on loopback a command reaches
+    every service within milliseconds, and at ``DEMO_LEAD_S`` the station's first resend to a
+    drone that has not answered still comes before the switch; radio links want the station's
+    longer default (``StationConfig.lead_s``, 1.5 s: two resends before the switch).
     """
 
     drones: int = 7
@@ -105,6 +115,7 @@ class DemoConfig:
     view_port: int | None = None
     report: bool = True
     secure: bool = False
+    lead_s: float = DEMO_LEAD_S
 
 
 # --- processes -------------------------------------------------------------------------------
@@ -574,6 +585,8 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
+        if not (math.isfinite(cfg.lead_s) and 0.0 <= cfg.lead_s <= 10.0):
+            raise DemoError(f"lead_s must lie in [0, 10] s, got {cfg.lead_s}")
         self.mapping_nice = default_mapping_nice(cfg)
         if not 0 <= self.mapping_nice <= 19:
             raise DemoError(f"mapping_nice must lie in [0, 19], got {self.mapping_nice}")
@@ -700,7 +713,9 @@ class Demo:
         self.drone_endpoints = mesh[1:]
         self.gs_session = open_session(gs_eps)
         self.gs = GroundStation(
-            self.swarm, session=self.gs_session, config=StationConfig(ack_timeout_s=5.0)
+            self.swarm,
+            session=self.gs_session,
+            config=StationConfig(ack_timeout_s=5.0, lead_s=cfg.lead_s),
         )
         gs = self.gs
         gs.node.on_trajectory(self._on_trajectory)
@@ -1167,6 +1182,7 @@ class Demo:
             "seed": self.cfg.seed,
             "count": self.cfg.drones,
             "spacing_m": self.cfg.spacing_m,
+            "lead_s": self.cfg.lead_s,
             "cluttered_x": list(self.spec.cluttered_x),
             "formation": self.cfg.formation,
             "formation_change": None
@@ -1364,6 +1380,10 @@ def demo_command() -> Any:
                   "swarm bus over Zenoh mutual TLS with access control (a demo CA). The mock's "
                   "truth/depth session is the simulator, not the swarm bus: it stays plain "
                   "TCP.")  # fmt: skip
+    @click.option("--lead", "lead_s", type=click.FloatRange(0.0, 10.0), default=DEMO_LEAD_S,
+                  show_default=True,
+                  help="Seconds from a formation or goal command to the common time every "
+                  "drone switches at (loopback: the station's resend period).")  # fmt: skip
     @click.option("--startup-timeout", type=float, default=180.0, show_default=True)
     @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
     @click.option("--quiet", "-q", is_flag=True, help="No progress display.")
@@ -1372,7 +1392,7 @@ def demo_command() -> Any:
         depth_rate: float | None, v_max: float | None, altitude_band: tuple[float, float] | None,
         out_dir: Path | None, view_port: int | None,
         onboard_sets: tuple[str, ...], sitl_sets: tuple[str, ...], secure: bool,
-        startup_timeout: float, as_json: bool, quiet: bool,
+        lead_s: float, startup_timeout: float, as_json: bool, quiet: bool,
     ) -> None:  # fmt: skip
         """Fly the real stack on this machine: the mock fleet, one flight service per drone
         and this ground station, through a forest; print the result and write the report.
@@ -1387,7 +1407,7 @@ def demo_command() -> Any:
             depth_rate_hz=depth_rate, v_max_m_s=v_max, view_port=view_port,
             altitude_band_m=altitude_band,
             onboard_sets=onboard_sets, sitl_sets=sitl_sets, startup_timeout_s=startup_timeout,
-            secure=secure,
+            secure=secure, lead_s=lead_s,
         )  # fmt: skip
         console = Console(quiet=quiet or as_json, highlight=False, stderr=True)
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from gcs.bench_demo import host_cpu_share, run_demo_seed, summarise
+from gcs.demo import DEMO_LEAD_S
 
 
 def _row(
@@ -144,6 +145,14 @@ def test_onboard_settings_reach_every_demo_and_the_fast_time_twin(
     assert seen["replan_s"] == 0.5 and seen["planner"].w_formation == 2e5
     assert seen["occupancy"] == (("occluded_fill_m", 0.2),)  # the twins' maps too
     assert json.loads(js.read_text())["config"]["replan_period_s"] == 0.5
+    # the demo's command-to-switch lead unless --lead says otherwise, recorded
+    assert argv[argv.index("--lead") + 1] == str(DEMO_LEAD_S)
+    assert json.loads(js.read_text())["config"]["lead_s"] == DEMO_LEAD_S
+    lead = ["--lead", "1.5", "--no-fastsim", "--json", str(js)]
+    res = CliRunner().invoke(main, [*base, *lead, "--out", str(tmp_path / "h")])
+    assert res.exit_code == 0, res.output
+    assert seen["argv"][seen["argv"].index("--lead") + 1] == "1.5"
+    assert json.loads(js.read_text())["config"]["lead_s"] == 1.5
     too_fast = ["--set-onboard", "planning.replan_period_s=0.01"]
     bad = CliRunner().invoke(main, [*base, *too_fast, "--out", str(tmp_path / "g")])
     assert bad.exit_code == 1 and "replan_period_s" in bad.output

@@ -4,6 +4,7 @@ station) through a small forest, headless; and no process left behind after Ctrl
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -15,7 +16,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs.demo import Demo, DemoConfig, DemoError, parse_change, result_text, run_demo
+from gcs.demo import (
+    DEMO_LEAD_S,
+    Demo,
+    DemoConfig,
+    DemoError,
+    parse_change,
+    result_text,
+    run_demo,
+)
 from gcs.report import DroneFlight
 from gcs.station import StationConfig
 from onboard.comm.latency import LatencyFigures, LatencyRecorder
@@ -99,6 +108,9 @@ def test_parse_change_and_config_errors(tmp_path: Path) -> None:
         Demo(DemoConfig(drones=3, formation="triangle-3", formation_change=("rectangle-7", 8.0),
                         out_dir=tmp_path / "c"))  # fmt: skip
     assert not (tmp_path / "c").exists()
+    for lead in (-0.1, math.nan, 11.0):  # the command-to-switch lead
+        with pytest.raises(DemoError, match="lead_s must lie in"):
+            Demo(DemoConfig(drones=3, formation="triangle-3", lead_s=lead, out_dir=tmp_path / "d"))
 
 
 def test_depth_rate_by_fleet_size_and_the_services_depth_timeout(tmp_path: Path) -> None:
@@ -374,9 +386,10 @@ def test_demo_flies_three_drones_through_a_small_forest(tmp_path: Path) -> None:
     reached = result["formation_change_reached_s"]
     after = result["formation_change_reached_after_switch_s"]
     assert (reached is None) == (after is None)
-    if reached is not None:  # the switch: the station's lead after the command was sent
-        lead = StationConfig().lead_s
-        assert lead <= reached - after < lead + 1.0
+    # the switch: the demo's lead after the command was sent (the station's for loopback)
+    assert mission["lead_s"] == cfg.lead_s == DEMO_LEAD_S < StationConfig().lead_s
+    if reached is not None:
+        assert cfg.lead_s <= reached - after < cfg.lead_s + 1.0
     records = sorted(out.glob("drone*.mcap"))
     assert len(records) == 3
     for rec_path in records:
