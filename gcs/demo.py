@@ -59,9 +59,9 @@ class DemoError(RuntimeError):
     """The demo cannot go on (a process died, a step timed out, a command was refused)."""
 
 
-DEMO_LEAD_S = 0.5
-"""The demo's ``DemoConfig.lead_s``: the station's resend period (``StationConfig.resend_every_s``),
-so that a drone that missed a command hears it again by the switch."""
+DEMO_LEAD_S: float = StationConfig.resend_every_s
+"""The demo's ``DemoConfig.lead_s``: the station's resend period (0.5 s), so that a drone that
+missed a command hears it again by the switch."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ class DemoConfig:
     lead_s: how long after its command a swarm-wide change (formation, goal) takes effect, at
     once on every drone (the station's ``StationConfig.lead_s``): on loopback a command reaches
     every service within milliseconds, and at ``DEMO_LEAD_S`` the station's first resend to a
-    drone that has not answered still comes before the switch; radio links want the station's
+    drone that has not answered still comes by the switch; radio links want the station's
     longer default (``StationConfig.lead_s``, 1.5 s: two resends before the switch).
     """
 
