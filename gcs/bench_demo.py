@@ -34,6 +34,7 @@ import click
 import numpy as np
 import psutil
 
+from gcs.demo import DEMO_LEAD_MAX_S, DEMO_LEAD_S
 from gcs.fastsim import FORMATION_REACHED_E_SIM
 from gcs.pools import sigterm_interrupts
 from onboard.agent import REPLAN_PERIOD_S
@@ -296,9 +297,10 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
               help="Override a flight-service setting of every drone, as the demo's option of "
               "that name (repeatable); the fast-time flight takes its planner and replan "
               "period too.")  # fmt: skip
-@click.option("--lead", "lead_s", type=click.FloatRange(0.0, 10.0), default=None,
-              help="Seconds from a command to the drones' common switch, as the demo's option "
-              "[default: the demo's].")  # fmt: skip
+@click.option("--lead", "lead_s", type=click.FloatRange(0.0, DEMO_LEAD_MAX_S),
+              default=DEMO_LEAD_S, show_default=True,
+              help="Seconds from a command to the drones' common switch, as the demo's "
+              "option.")  # fmt: skip
 @click.option("--no-fastsim", is_flag=True, help="Fly only the real stack.")
 @click.option("--fastsim-only", is_flag=True,
               help="Fly only the fast-time twins (minutes instead of hours; not issue #10's "
@@ -317,7 +319,7 @@ def _fmt(x: Any, spec: str = ".2f") -> str:
 def bench_demo(
     seeds: int, first_seed: int, drones: int, formation: str, world: str, change: str | None,
     depth_rate: float | None, altitude_band: tuple[float, float] | None,
-    onboard_sets: tuple[str, ...], lead_s: float | None, no_fastsim: bool, fastsim_only: bool,
+    onboard_sets: tuple[str, ...], lead_s: float, no_fastsim: bool, fastsim_only: bool,
     jobs: int,
     out_dir: Path | None, timeout_s: float, json_path: Path | None, quiet: bool,
 ) -> None:  # fmt: skip
@@ -383,8 +385,7 @@ def bench_demo(
         argv += ["--formation-change", change]
     for s_ in onboard_sets:
         argv += ["--set-onboard", s_]
-    lead = demo_cfg.lead_s if lead_s is None else lead_s
-    argv += ["--lead", str(lead)]
+    argv += ["--lead", str(lead_s)]
     replan_s = float(service.planning.replan_period_s)
     load0 = os.getloadavg()
     seed_list = list(range(first_seed, first_seed + seeds))
@@ -431,7 +432,7 @@ def bench_demo(
             "replan_period_s": replan_s,
             "onboard_sets": list(onboard_sets),
             # the real stack's command-to-switch lead (the twins switch at the change itself)
-            "lead_s": None if fastsim_only else lead,
+            "lead_s": None if fastsim_only else lead_s,
             "fastsim_perception": None if no_fastsim else "mapped",
         },
         "rows": rows,

@@ -63,6 +63,9 @@ DEMO_LEAD_S: float = StationConfig.resend_every_s
 """The demo's ``DemoConfig.lead_s``: the station's resend period (0.5 s), so that a drone that
 missed a command hears it again by the switch."""
 
+DEMO_LEAD_MAX_S = 10.0
+"""The longest ``DemoConfig.lead_s`` the demo (and ``bench demo``) accepts."""
+
 
 @dataclass(frozen=True)
 class DemoConfig:
@@ -585,8 +588,8 @@ class Demo:
             raise DemoError(f"depth_rate_hz must lie in [1, 30], got {self.depth_rate_hz}")
         if cfg.drones < 2:
             raise DemoError("a formation needs at least 2 drones")
-        if not (math.isfinite(cfg.lead_s) and 0.0 <= cfg.lead_s <= 10.0):
-            raise DemoError(f"lead_s must lie in [0, 10] s, got {cfg.lead_s}")
+        if not (math.isfinite(cfg.lead_s) and 0.0 <= cfg.lead_s <= DEMO_LEAD_MAX_S):
+            raise DemoError(f"lead_s must lie in [0, {DEMO_LEAD_MAX_S:g}] s, got {cfg.lead_s}")
         self.mapping_nice = default_mapping_nice(cfg)
         if not 0 <= self.mapping_nice <= 19:
             raise DemoError(f"mapping_nice must lie in [0, 19], got {self.mapping_nice}")
@@ -1380,8 +1383,8 @@ def demo_command() -> Any:
                   "swarm bus over Zenoh mutual TLS with access control (a demo CA). The mock's "
                   "truth/depth session is the simulator, not the swarm bus: it stays plain "
                   "TCP.")  # fmt: skip
-    @click.option("--lead", "lead_s", type=click.FloatRange(0.0, 10.0), default=DEMO_LEAD_S,
-                  show_default=True,
+    @click.option("--lead", "lead_s", type=click.FloatRange(0.0, DEMO_LEAD_MAX_S),
+                  default=DEMO_LEAD_S, show_default=True,
                   help="Seconds from a formation or goal command to the common time every "
                   "drone switches at (loopback: the station's resend period).")  # fmt: skip
     @click.option("--startup-timeout", type=float, default=180.0, show_default=True)
