@@ -259,60 +259,89 @@ def metric_own_rate(
 
     The same f and gradient as ``metric_kernel`` (Eq. 4-9), but it returns only what one
     drone's cost term needs: the gradient row of its own point (index 0) and the rate of change
-    of f as the peers (rows 1..n-1) move with velocities V (the tau term of Eq. 28).
-    P, V: (n, 3); Sdes, mask: (n, n); scratch W: (n, n), r, h: (n,), all overwritten.
+    of f as the peers (rows 1..n-1) move with velocities V (the tau term of Eq. 28; V[0] is not
+    read). P, V: (n, 3); Sdes, mask: (n, n); scratch W: (n, n), r, h: (n,), all overwritten.
     Returns (f, gx, gy, gz, rate).
+
+    Two passes over the pairs instead of three. With K_ab = df/dw_ab = 2 (2 g_ab r_a r_b - h_a -
+    h_b) (Eq. 5-8; g_ab = e_ab + e_ba, h_a = r_a^2 sum_b g_ab s_ab) and u_ab = m_ab (p_a - p_b) .
+    (v_a - v_b), the rate sum_{a<b} K_ab u_ab splits into 4 sum_{a<b} g_ab r_a r_b u_ab, summed
+    in the pass that makes g, less 2 sum_a h_a U_a with U_a = sum_b u_ab, summed in the first
+    pass; only the own row's n - 1 pairs are visited again for df/dP[0]. W holds w_ab above the
+    diagonal (then g_0b r_0 r_b in row 0), u_ab below it and U_a on it.
     """
     n = P.shape[0]
     for i in range(n):
         r[i] = 0.0
         h[i] = 0.0
+        W[i, i] = 0.0
+    # pass 1: w_ij (Eq. 1), the degrees (Eq. 2) and u_ij, U_i (the own row's velocity is 0)
     for i in range(n):
+        xi = P[i, 0]
+        yi = P[i, 1]
+        zi = P[i, 2]
+        vxi = 0.0
+        vyi = 0.0
+        vzi = 0.0
+        if i > 0:
+            vxi = V[i, 0]
+            vyi = V[i, 1]
+            vzi = V[i, 2]
+        di = 0.0
+        ui = 0.0
         for j in range(i + 1, n):
-            dx = P[i, 0] - P[j, 0]
-            dy = P[i, 1] - P[j, 1]
-            dz = P[i, 2] - P[j, 2]
-            w = mask[i, j] * (dx * dx + dy * dy + dz * dz)
+            m = mask[i, j]
+            dx = xi - P[j, 0]
+            dy = yi - P[j, 1]
+            dz = zi - P[j, 2]
+            w = m * (dx * dx + dy * dy + dz * dz)
+            u = m * (dx * (vxi - V[j, 0]) + dy * (vyi - V[j, 1]) + dz * (vzi - V[j, 2]))
             W[i, j] = w
-            r[i] += w
+            W[j, i] = u
+            di += w
             r[j] += w
+            ui += u
+            W[j, j] += u
+        r[i] += di
+        W[i, i] += ui
     for i in range(n):
         r[i] = 1.0 / np.sqrt(r[i] + EPS_DEG)
+    # pass 2: S_ij (Eq. 3), f (Eq. 4), h_i and the rate's pair sum
     f = 0.0
+    acc = 0.0
     for i in range(n):
+        ri = r[i]
+        hi = 0.0
         for j in range(i + 1, n):
-            s = W[i, j] * r[i] * r[j]
-            W[i, j] = s
+            rr = ri * r[j]
+            s = W[i, j] * rr
             e_ij = s - Sdes[i, j]
             e_ji = s - Sdes[j, i]
             f += e_ij * e_ij + e_ji * e_ji
-            gs = (e_ij + e_ji) * s
-            h[i] += gs
+            g = e_ij + e_ji
+            gs = g * s
+            hi += gs
             h[j] += gs
+            grr = g * rr
+            acc += grr * W[j, i]
+            if i == 0:
+                W[0, j] = grr  # w_0j is not read again
+        h[i] += hi
+    rate = 4.0 * acc
     for i in range(n):
         h[i] *= r[i] * r[i]
+        rate -= 2.0 * h[i] * W[i, i]
+    # df/dP[0] = sum_j K_0j mask_0j 2 (p_0 - p_j) (Eq. 9)
     gx = 0.0
     gy = 0.0
     gz = 0.0
-    rate = 0.0
-    for i in range(n):
-        for j in range(i + 1, n):
-            m = mask[i, j]
-            if m == 0.0:
-                continue
-            s = W[i, j]
-            g = 2.0 * s - Sdes[i, j] - Sdes[j, i]
-            c = 2.0 * m * (2.0 * g * r[i] * r[j] - h[i] - h[j])
-            dx = P[i, 0] - P[j, 0]
-            dy = P[i, 1] - P[j, 1]
-            dz = P[i, 2] - P[j, 2]
-            if i == 0:
-                gx += c * dx
-                gy += c * dy
-                gz += c * dz
-                rate -= c * (dx * V[j, 0] + dy * V[j, 1] + dz * V[j, 2])
-            else:
-                rate += c * (
-                    dx * (V[i, 0] - V[j, 0]) + dy * (V[i, 1] - V[j, 1]) + dz * (V[i, 2] - V[j, 2])
-                )
+    h0 = h[0]
+    for j in range(1, n):
+        m = mask[0, j]
+        if m == 0.0:
+            continue
+        c = 2.0 * m * (2.0 * W[0, j] - h0 - h[j])
+        gx += c * (P[0, 0] - P[j, 0])
+        gy += c * (P[0, 1] - P[j, 1])
+        gz += c * (P[0, 2] - P[j, 2])
     return f, gx, gy, gz, rate
