@@ -200,17 +200,19 @@ def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
     # after ~35 s); re-forming measures the lead from the centroid for reform_s
     _fly(agents, 6.05, 7.0)
     assert all(ag.last is not None and ag.last.reforming for ag in agents)
-    track2, closest2 = _fly(agents, 7.05, 30.0)
+    track2, closest2 = _fly(agents, 7.05, 45.0)
     assert all(ag.last is not None and not ag.last.reforming for ag in agents)
     # the triangle's shape (any yaw, any size: the metric's) within 9 s of the change (6.7 s
     # measured with replans every reform_replan_period_s = 0.25 s while re-forming)
     shaped = np.array([similarity(p, tri)[0] for p in track2]) < 0.01
     assert shaped.any() and 1.0 + 0.05 * int(np.argmax(shaped)) < 9.0
     # ... and its slots. The triangle is entered at the yaw nearest the line's and turned to
-    # the goals' on the way: the arrival measured 25.9 s (22.2 s with replans at 1 s only,
-    # whose triangle took 6.3 s), the drones 0.55 m apart at the closest
+    # the goals' on the way. When it arrives is chaotic: the starts moved by 1e-7 m (25 draws,
+    # 2026-12-04) gave 24.3-40.3 s, median 29.6 s, both before and after the formation
+    # metric's two-pass form (41fdc73); the unmoved flight's 26.6 s passed a 28 s bound only by
+    # luck, and 41fdc73's 28.7 s failed it. The bound is over the spread measured
     reached = np.all(np.linalg.norm(track2 - (goal_origin + tri), axis=2) < 0.3, axis=1)
-    assert reached.any() and 7.05 + 0.05 * int(np.argmax(reached)) < 28.0
+    assert reached.any() and 7.05 + 0.05 * int(np.argmax(reached)) < 43.0
     end = track2[-1]
     np.testing.assert_allclose(end, goal_origin + tri, atol=0.3)
     assert min(closest, closest2) >= params.check_drone_m
@@ -219,7 +221,7 @@ def test_agents_change_formation_mid_flight_and_lose_a_drone() -> None:
     for ag in agents[:2]:
         ag.set_peer_roles(ignore=[2])
         ag.set_goal(np.array([14.0, 10.0, 1.0]) + tri[ag.slot])
-    track3, _ = _fly(agents[:2], 30.05, 60.0)
+    track3, _ = _fly(agents[:2], 45.05, 75.0)
     np.testing.assert_allclose(track3[-1], np.array([14.0, 10.0, 1.0]) + tri[:2], atol=0.3)
     for ag in agents[:2]:
         last = ag.last
