@@ -366,10 +366,11 @@ def _udp_socket() -> socket.socket:
 
 
 def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 the kernel just reported free."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A UDP port on 127.0.0.1, free when drawn, outside the kernel's ephemeral range
+    (``onboard.comm.loopback``)."""
+    from onboard.comm.loopback import free_port
+
+    return free_port(socket.SOCK_DGRAM)
 
 
 class FaultyStar:

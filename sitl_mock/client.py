@@ -250,26 +250,15 @@ class MavClient:
 
 
 def bind_consecutive_udp(
-    n: int, host: str = "127.0.0.1", lo: int = 20000, hi: int = 60000, attempts: int = 200
+    n: int, host: str = "127.0.0.1", attempts: int = 200
 ) -> list[socket.socket]:
-    """``n`` UDP sockets bound to consecutive free ports on ``host`` (base chosen at random).
+    """``n`` UDP sockets bound to consecutive free ports on ``host``, the base drawn at random
+    outside the kernel's ephemeral range (``onboard.comm.loopback``: no socket bound to port 0
+    and no outgoing connection can take them in between).
 
     The sockets stay bound, so nothing else can take the ports before the caller uses them
     (wrap them in ``MavClient(sock=...)``, or close them just before another program binds).
     """
-    import random
+    from onboard.comm.loopback import bind_consecutive
 
-    rng = random.Random()
-    for _ in range(attempts):
-        base = rng.randrange(lo, hi - n)
-        socks: list[socket.socket] = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind((host, base + i))
-            return socks
-        except OSError:
-            for s in socks:
-                s.close()
-    raise OSError(f"no {n} consecutive free UDP ports on {host}")
+    return bind_consecutive(n, socket.SOCK_DGRAM, host, attempts)

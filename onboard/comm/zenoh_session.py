@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from onboard.comm.loopback import free_port
 from onboard.comm.security import SwarmAccessControl, TlsConfig, security_items
 
 MODES = ("peer", "client", "router")
@@ -115,12 +116,11 @@ def open_session(endpoints: ZenohEndpoints | None = None, **kw: Any) -> Any:
 
 
 def free_loopback_endpoint() -> str:
-    """A TCP endpoint on 127.0.0.1 whose port the kernel just reported free (for tests and the
-    local demo, so that two runs on one machine do not collide)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    return f"tcp/127.0.0.1:{port}"
+    """A TCP endpoint on 127.0.0.1 on a port free when drawn, outside the kernel's ephemeral
+    range (``onboard.comm.loopback``; for tests and the local demo, so that two runs on one
+    machine do not collide, and no outgoing connection's source port takes it before the
+    listener binds it)."""
+    return f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
 
 
 def loopback_endpoints(n: int) -> list[str]:
