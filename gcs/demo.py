@@ -21,7 +21,9 @@ frames, the simulator standing in for each drone's camera) is not the swarm bus 
 plain TCP. The run checks that the security is real (signed traffic only, TLS links only,
 intruders refused) and reports it with the bus latency.
 
-Every port is picked free on 127.0.0.1, so two demos on one machine do not collide. All child
+Every port is picked free on 127.0.0.1 and outside the kernel's ephemeral range
+(``onboard.comm.loopback``), so two demos on one machine do not collide and no socket bound to
+port 0 takes one between its pick and its bind. All child
 processes run in one process group of their own; it is stopped (SIGTERM, then SIGKILL) on
 success, on failure, on Ctrl-C and on SIGTERM. The exit status is 0 only on success.
 """
