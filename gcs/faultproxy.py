@@ -365,14 +365,6 @@ def _udp_socket() -> socket.socket:
     return sock
 
 
-def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1, free when drawn, outside the kernel's ephemeral range
-    (``onboard.comm.loopback``)."""
-    from onboard.comm.loopback import free_port
-
-    return free_port(socket.SOCK_DGRAM)
-
-
 class FaultyStar:
     """A Zenoh router on loopback and one :class:`UdpFaultProxy` per faulty client.
 
@@ -385,12 +377,13 @@ class FaultyStar:
     """
 
     def __init__(self, clients: int, faults: LinkFaults = CLEAN, seed: int = 0) -> None:
+        from onboard.comm.loopback import free_port
         from onboard.comm.zenoh_session import ZenohEndpoints, free_loopback_endpoint, open_session
 
         if clients < 1:
             raise ValueError(f"clients must be >= 1, got {clients}")
         self.tcp_endpoint = free_loopback_endpoint()
-        self.udp_port = free_udp_port()
+        self.udp_port = free_port(socket.SOCK_DGRAM)  # outside the ephemeral range
         self.router_endpoints = ZenohEndpoints(
             mode="router",
             listen=(self.tcp_endpoint, f"udp/127.0.0.1:{self.udp_port}"),

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 
-from gcs.faultproxy import free_udp_port
 from onboard.comm.loopback import (
     EPHEMERAL_DEFAULT,
     bind_consecutive,
@@ -85,7 +84,7 @@ def test_the_helpers_draw_outside_the_range() -> None:
     for ep in eps:
         assert ep.startswith("tcp/127.0.0.1:") and _outside(int(ep.rsplit(":", 1)[1]))
     assert _outside(int(free_loopback_endpoint().rsplit(":", 1)[1]))
-    assert _outside(free_udp_port())
-    port = free_port(socket.SOCK_DGRAM)
+    port = free_port(socket.SOCK_DGRAM)  # the fault proxy's UDP port
+    assert _outside(port)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", port))  # free when drawn, and released
