@@ -557,7 +557,12 @@ class PlannerParams:
     but every variant lowered the closest passes to trunks (the least of 12 flights 0.293 ->
     0.243-0.278 m): a refined plan stays in the tight spot at the check's distance on the map,
     where the A* retry it replaces went the roomier way, and the map is wrong by up to 0.15 m
-    (p99). Not the default until the margins hold."""
+    (p99). Not the default until the margins hold. Measured again on 2026-12-04 (sixth
+    session, BENCHMARKS.md section 8): on exact fields it removes a fold of the hexagon (a
+    drone in a pocket of trunks whose every attempt was refused by 1-4 cm for 11 s) and the
+    three table sets have no trial over 0.02, but an unheard drone overtaken in a corridor of
+    trunks then passes its peer at 0.46 m instead of 0.55 m (``tests/test_hearing.py``): the
+    stiffer obstacle term holds it in the corridor's middle, where the peer flies."""
     refine_kappa_factor: int = 1
     """That second solve evaluates the costs on this many times ``kappa`` constraint points per
     piece (1: the same, the default). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
