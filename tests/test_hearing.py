@@ -123,7 +123,10 @@ def test_the_planner_keeps_a_wider_berth_from_peers_while_one_does_not_hear_us()
     assert gaps[True] >= wide.check_drone_m
 
 
-def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through() -> None:
+@pytest.mark.parametrize("refine", [(1, 1.0), (2, 100.0)])
+def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through(
+    refine: tuple[int, float],
+) -> None:
     """CI's bus-faults flight (2026-12-01): a drone its peers did not hear refused every way
     (the closest 0.53 m from a peer, inside its widened 0.7 m check) and stopped, and the peer,
     which planned around its last heard trajectory, flew through the stop 1.6 s later (0.315 m
@@ -131,7 +134,10 @@ def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through() -> None:
     While the peer does not hear us the stop is judged over ``unheard_brake_reference_s``: it
     holds us where the peer passes, so a way that keeps more distance is flown (the one that
     keeps farthest of those the check accepts only as a last resort), not the stop. With the
-    window of a heard peer (1 s) it stopped, and the peer flew through."""
+    window of a heard peer (1 s) it stopped, and the peer flew through. ``refine``: the
+    refused plans' second solve plain (the defaults) and stiffer (``refine_kappa_factor``,
+    ``refine_penalty_scale``), whose stiffer obstacle term alone held the drone in the
+    corridor's middle, 0.46 m from the peer, until the plain solve was compared with it."""
     xs = np.arange(-4.0, 8.0, 0.35)
     trunks = [[x, s * 1.0, 0.15, 0.0, 3.0] for x in xs for s in (-1.0, 1.0)]
     field = AnalyticField(World(np.array(trunks), np.zeros((0, 7)), np.zeros((0, 6)), 0.0))
@@ -153,7 +159,10 @@ def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through() -> None:
     stopped = FormationPlanner(old, line, slot=1).plan(*start, goal, [peer], field)
     assert stopped.status == PlanStatus.EMERGENCY, stopped.message
     assert closest(stopped) < 0.1
-    wide = unheard_params(PlannerParams())
+    kappa_factor, scale = refine
+    wide = unheard_params(
+        PlannerParams(refine_kappa_factor=kappa_factor, refine_penalty_scale=scale)
+    )
     res = FormationPlanner(wide, line, slot=1).plan(*start, goal, [peer], field)
     assert res.status != PlanStatus.EMERGENCY, res.message
     assert res.message.endswith(LAST_RESORT), res.message

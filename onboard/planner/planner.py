@@ -1491,11 +1491,35 @@ class FormationPlanner:
                 # replaced by a trajectory the check accepts outright, or by a last resort
                 # that keeps farther beyond the check's distances
                 close = clearance < self.params.check_obstacle_m
-                x2, st2 = again(
-                    problem, x, self._lb_prm_refine, problem.refine_prob() if close else None
-                )
+                stiffer = problem.refine_prob() if close else None
+                x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
+                    if (
+                        stiffer is not None
+                        and stiffer is not problem.prob
+                        and not (refined[1] and not refined[2])
+                        and not late()
+                    ):
+                        # the stiffer solve (``refine_penalty_scale``, ``refine_kappa_factor``)
+                        # not accepted outright: the plain tight one too, and of the two the
+                        # one the check accepts outright, else the last resort that keeps
+                        # farther beyond the check's distances. The stiffer obstacle term alone
+                        # can hold a drone in the middle of a corridor of trunks, where a peer
+                        # overtaking it flies (0.37 m from it against 0.55 m)
+                        x3, st3 = again(problem, x, self._lb_prm_refine, None)
+                        if st3 != LbfgsStatus.CANCELED:
+                            plain = self._finish(problem, x3, field, view, peers, pack, brake)
+                            if plain[0] is not None and (
+                                refined[0] is None
+                                or (plain[1] and not plain[2])
+                                or (
+                                    plain[1]
+                                    and self._margin(plain[0], t_start_s, peers, plain[3])
+                                    > self._margin(refined[0], t_start_s, peers, refined[3])
+                                )
+                            ):
+                                x2, st2, refined = x3, st3, plain
                     take = refined[0] is not None and (not safe or (refined[1] and not refined[2]))
                     if not take and refined[0] is not None and refined[1]:
                         # both last resorts: the one that keeps farther
