@@ -459,6 +459,15 @@ class _WithPoints:
         return self.field.is_known(points)
 
 
+def _standing(finished: tuple[Trajectory | None, bool, str, float, float]) -> int:
+    """How a ``FormationPlanner._finish`` result stands: 2 accepted outright, 1 a last resort
+    (safe with a reason), 0 refused, -1 no trajectory."""
+    traj, safe, why = finished[0], finished[1], finished[2]
+    if traj is None:
+        return -1
+    return (1 if why else 2) if safe else 0
+
+
 def _vec3(name: str, v: np.ndarray | Sequence[float]) -> np.ndarray:
     try:
         a = np.array(v, dtype=np.float64)
@@ -1492,6 +1501,7 @@ class FormationPlanner:
                 # that keeps farther beyond the check's distances
                 close = clearance < self.params.check_obstacle_m
                 stiffer = problem.refine_prob() if close else None
+                refined_margin: float | None = None  # the kept refinement's ``_margin``
                 x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
@@ -1503,28 +1513,37 @@ class FormationPlanner:
                     ):
                         # the stiffer solve (``refine_penalty_scale``, ``refine_kappa_factor``)
                         # not accepted outright: the plain tight one too, and of the two the
-                        # one the check accepts outright, else the last resort that keeps
-                        # farther beyond the check's distances. The stiffer obstacle term alone
-                        # can hold a drone in the middle of a corridor of trunks, where a peer
-                        # overtaking it flies (0.37 m from it against 0.55 m)
+                        # one standing higher (``_standing``: accepted outright, a last resort,
+                        # refused; the stiffer one on a tie), of two last resorts the one that
+                        # keeps farther beyond the check's distances. The stiffer obstacle
+                        # term alone can hold a drone in the middle of a corridor of trunks,
+                        # where a peer overtaking it flies (0.37 m from it against 0.55 m)
                         x3, st3 = again(problem, x, self._lb_prm_refine, None)
                         if st3 != LbfgsStatus.CANCELED:
                             plain = self._finish(problem, x3, field, view, peers, pack, brake)
-                            if plain[0] is not None and (
-                                refined[0] is None
-                                or (plain[1] and not plain[2])
-                                or (
-                                    plain[1]
-                                    and self._margin(plain[0], t_start_s, peers, plain[3])
-                                    > self._margin(refined[0], t_start_s, peers, refined[3])
-                                )
-                            ):
-                                x2, st2, refined = x3, st3, plain
+                            if plain[0] is not None:
+                                better = _standing(plain) > _standing(refined)
+                                if _standing(plain) == _standing(refined) == 1:
+                                    # both last resorts: the one that keeps farther
+                                    m_plain = self._margin(plain[0], t_start_s, peers, plain[3])
+                                    assert refined[0] is not None
+                                    refined_margin = self._margin(
+                                        refined[0], t_start_s, peers, refined[3]
+                                    )
+                                    better = m_plain > refined_margin
+                                    if better:
+                                        refined_margin = m_plain
+                                if better:
+                                    x2, st2, refined = x3, st3, plain
                     take = refined[0] is not None and (not safe or (refined[1] and not refined[2]))
                     if not take and refined[0] is not None and refined[1]:
                         # both last resorts: the one that keeps farther
                         margin = self._margin(traj, t_start_s, peers, clearance)
-                        margin_2 = self._margin(refined[0], t_start_s, peers, refined[3])
+                        margin_2 = (
+                            refined_margin
+                            if refined_margin is not None
+                            else self._margin(refined[0], t_start_s, peers, refined[3])
+                        )
                         take = margin_2 > margin
                         if take:
                             margin = margin_2
