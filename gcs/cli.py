@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -457,7 +459,21 @@ def bench() -> None:
 @bench.command("flights")
 @_formation_opt
 @_world_opt
-@click.option("--seeds", default=10, show_default=True, help="Seeds 1..N (one world each).")
+@click.option("--seeds", default=10, show_default=True, help="Flights (one world each).")
+@click.option(
+    "--first-seed",
+    default=1,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Seed of the first flight (seeds S..S+N-1).",
+)
+@click.option(
+    "--jobs",
+    default=1,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="Flights run in parallel processes (fast time: the figures do not depend on it).",
+)
 @_vmax_opt
 @_planner_opt
 @_set_opt
@@ -470,6 +486,8 @@ def bench_flights(
     formation: str,
     world: str,
     seeds: int,
+    first_seed: int,
+    jobs: int,
     v_max: float | None,
     planner_file: Path | None,
     sets: tuple[str, ...],
@@ -479,8 +497,8 @@ def bench_flights(
     camera_skip_pixel: int,
     quiet: bool,
 ) -> None:
-    """Fly one scenario over seeds 1..N and report success, collisions and clearances."""
-    from gcs.fastsim import run_sim
+    """Fly one scenario over seeds 1..N (or S..S+N-1) and report success, collisions and
+    clearances."""
     from gcs.metrics import summary
 
     console = _console(quiet)
@@ -491,23 +509,31 @@ def bench_flights(
         extra = perception_overrides(perception, camera_rate_hz, camera_skip_pixel)
         cfgs = [
             dataclasses.replace(_sim_config(formation, world, s, params), **extra)
-            for s in range(1, seeds + 1)
+            for s in range(first_seed, first_seed + seeds)
         ]
     except ConfigError as e:
         raise click.ClickException(str(e)) from e
     rows: list[dict[str, Any]] = []
     with _flight_counter(console) as bar:
         task = bar.add_task("flights", total=len(cfgs))
-        for cfg in cfgs:
-            try:
-                r = run_sim(cfg)
-            except ConfigError as e:
-                raise click.ClickException(str(e)) from e
-            d = r.to_json()
-            rows.append({"seed": cfg.seed, **{k: d[k] for k in _FLIGHT_KEYS if k in d}})
-            bar.advance(task)
+        try:
+            if jobs == 1:
+                for cfg in cfgs:
+                    rows.append(_flight_row(cfg))
+                    bar.advance(task)
+            else:
+                ctx = multiprocessing.get_context("spawn")
+                with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+                    for row in pool.map(_flight_row, cfgs):  # in the seeds' order
+                        rows.append(row)
+                        bar.advance(task)
+        except ConfigError as e:
+            raise click.ClickException(str(e)) from e
     v_max_m_s = params.v_max_m_s
-    t = Table(title=f"{formation} through {world}, v_max {v_max_m_s} m/s, seeds 1..{seeds}")
+    last = first_seed + seeds - 1
+    t = Table(
+        title=f"{formation} through {world}, v_max {v_max_m_s} m/s, seeds {first_seed}..{last}"
+    )
     for col in ("seed", "success", "collisions", "min obst. m", "min drone m", "e_sim", "time s"):
         t.add_column(col, justify="right")
     for row in rows:
@@ -528,6 +554,8 @@ def bench_flights(
         "world": world,
         "v_max_m_s": v_max_m_s,
         "seeds": seeds,
+        "first_seed": first_seed,
+        "jobs": jobs,
         "success_count": n_ok,
         "collision_free_count": n_clean,
         "min_obstacle_clearance_m": min(row["min_obstacle_clearance_m"] for row in rows),
@@ -546,6 +574,15 @@ def bench_flights(
     if json_path is not None:
         _write_json(json_path, report)
         console.print(f"wrote {json_path}")
+
+
+def _flight_row(cfg: Any) -> dict[str, Any]:
+    """One fast-time flight of ``bench flights`` (a module-level function: run in a worker
+    process with ``--jobs``): its seed and the figures of ``_FLIGHT_KEYS``."""
+    from gcs.fastsim import run_sim
+
+    d = run_sim(cfg).to_json()
+    return {"seed": cfg.seed, **{k: d[k] for k in _FLIGHT_KEYS if k in d}}
 
 
 _FLIGHT_KEYS = (

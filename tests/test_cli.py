@@ -188,6 +188,18 @@ def test_bench_flights_over_seeds(tmp_path: Path) -> None:
     for f in data["flights"]:
         assert f["refusals"]["attempts"] >= 0
         assert set(f["refusals"]) >= {"unobserved", "obstacle", "drone", "altitude"}
+    # the second of them again, alone and in a worker process: the same flight
+    js2 = tmp_path / "flights2.json"
+    more = ["--seeds", "1", "--first-seed", "2", "--jobs", "2", "--json", str(js2)]
+    out = CliRunner().invoke(main, [*args, "--v-max", "1.0", *more])
+    assert out.exit_code == 0, out.output
+    again = json.loads(js2.read_text())
+    assert again["first_seed"] == 2 and again["jobs"] == 2
+
+    def flown(f: dict[str, object]) -> dict[str, object]:  # without the planner's timing
+        return {k: v for k, v in f.items() if k != "replan_ms"}
+
+    assert [flown(f) for f in again["flights"]] == [flown(data["flights"][1])]
 
 
 def test_onboard_warmup_and_sitl(tmp_path: Path) -> None:
