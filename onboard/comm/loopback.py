@@ -48,10 +48,11 @@ def candidate_bases(
         raise ValueError(f"n must be >= 1, got {n}")
     e_lo, e_hi = ephemeral_range() if ephemeral is None else ephemeral
     out = []
-    if min(hi, e_lo - 1) - lo + 1 >= n:
-        out.append((lo, min(hi, e_lo - 1) - n + 1))
-    if hi - max(lo, e_hi + 1) + 1 >= n:
-        out.append((max(lo, e_hi + 1), hi - n + 1))
+    below, above = min(hi, e_lo - 1), max(lo, e_hi + 1)  # the last port below, first above
+    if below - lo + 1 >= n:
+        out.append((lo, below - n + 1))
+    if hi - above + 1 >= n:
+        out.append((above, hi - n + 1))
     if not out:
         if hi - lo + 1 < n:
             raise ValueError(f"no {n} consecutive ports in [{lo}, {hi}]")
