@@ -717,20 +717,20 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     """The middle drone of a line flies past a thin trunk beside its slot's path, its peers on
     theirs. The first solution keeps the optimiser's 0.34 m at every constraint point, but a
     piece several seconds long passes the trunk between two of them, inside the check's 0.3 m:
-    refused. Without the denser, stiffer second solve (the defaults) the A* retries are refused
-    the same way and the drone flies without the formation term ('ok-no-formation'); with it
-    the plan keeps the formation and the check's distance, sampled densely on the true
-    distances."""
+    refused. Without the denser, stiffer second solve (1 and 1, as on the drone's map) the A*
+    retries are refused the same way and the drone flies without the formation term
+    ('ok-no-formation'); with it (the defaults) the plan keeps the formation and the check's
+    distance, sampled densely on the true distances."""
     world = _world([[3.0, trunk_y, 0.15, 0.0, 3.0]])
     field = AnalyticField(world)
     args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)
     goal, peers = np.array([12.0, 0.0, 1.0]), _peers_flying_along_x(0.4)
-    plain = PlannerParams(w_formation=w_formation)
-    assert (plain.refine_kappa_factor, plain.refine_penalty_scale) == (1, 1.0)  # the defaults
+    plain = PlannerParams(w_formation=w_formation, refine_kappa_factor=1, refine_penalty_scale=1.0)
     before = FormationPlanner(plain, LINE3, slot=1).plan(*args, goal, peers, field)
     assert before.status == PlanStatus.OK_NO_FORMATION, before.message
     assert before.message.startswith("formation: obstacle clearance")
-    params = PlannerParams(w_formation=w_formation, refine_kappa_factor=2, refine_penalty_scale=100)
+    params = PlannerParams(w_formation=w_formation)
+    assert (params.refine_kappa_factor, params.refine_penalty_scale) == (2, 100.0)  # the defaults
     res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
     assert res.status == PlanStatus.OK, res.message
     # the plan flown is the refinement: the first solution's refusal is on record, and is not
@@ -753,15 +753,18 @@ def test_a_refused_formation_plan_is_tried_softened_before_none() -> None:
     """``soft_formation_scale``: where the formation's pull takes the middle drone of a line
     past the check's distance to a thin trunk (refused, and so is the A* retry), one more
     attempt with the formation weight times the scale keeps the formation term and the check's
-    distance, where the defaults fly without the term ('ok-no-formation')."""
+    distance, where the defaults fly without the term ('ok-no-formation'). With the refused
+    plan's second solve as plain as the first (1 and 1, as on the drone's map), since the
+    default stiffer one keeps the formation here by itself."""
     field = AnalyticField(_world([[3.0, 0.44, 0.15, 0.0, 3.0]]))
     args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)
     goal, peers = np.array([12.0, 0.0, 1.0]), _peers_flying_along_x(0.4)
     assert PlannerParams().soft_formation_scale == 0.0
-    before = FormationPlanner(PlannerParams(), LINE3, slot=1).plan(*args, goal, peers, field)
+    plain = PlannerParams(refine_kappa_factor=1, refine_penalty_scale=1.0)
+    before = FormationPlanner(plain, LINE3, slot=1).plan(*args, goal, peers, field)
     assert before.status == PlanStatus.OK_NO_FORMATION, before.message
     assert "formation x" not in before.message
-    params = PlannerParams(soft_formation_scale=0.3)
+    params = dataclasses.replace(plain, soft_formation_scale=0.3)
     res = FormationPlanner(params, LINE3, slot=1).plan(*args, goal, peers, field)
     assert res.status == PlanStatus.OK, res.message
     assert res.message.startswith("formation: obstacle clearance"), res.message

@@ -541,34 +541,34 @@ class PlannerParams:
     with the same terms, and keeps whichever passes the safety check with the larger clearance:
     the warm start keeps the gap it chose when the gap was far, so a narrow one is otherwise
     flown at whatever the check allows. 0 disables."""
-    refine_penalty_scale: float = 1.0
+    refine_penalty_scale: float = 100.0
     """An attempt's solution that the safety check refuses is solved again from where it is,
     with tight tolerances; when it passes closer than ``check_obstacle_m`` to an obstacle, on
     ``refine_kappa_factor`` times the constraint points and with the obstacle and limit
     penalties (``w_obstacle``, ``w_feasibility``, ``w_limit_hard``) this many times stiffer
-    (1: the same weights, the default). Most refusals are a trunk 1-2 cm inside the check's
-    distance seconds ahead: the formation pull (six times stronger while re-forming) wins over
-    the short steep obstacle term there, or the trajectory passes the trunk between two
-    constraint points; the A* retries that follow often drop the formation term
-    ('ok-no-formation'). Measured with 100 and ``refine_kappa_factor`` 2 (fast time,
-    hexagon-7 -> rectangle-7 20 s after the start, forest-medium; BENCHMARKS.md sections 8 and
-    10, 2026-11-29): on the drone's own map (3 frames/s, step 3, band 0.4-1.8 m), seeds 1-12,
-    plans without the formation term 284 -> 40 and the new shape within 10 s in 3 -> 6 of 12,
-    but every variant lowered the closest passes to trunks (the least of 12 flights 0.293 ->
-    0.243-0.278 m): a refined plan stays in the tight spot at the check's distance on the map,
-    where the A* retry it replaces went the roomier way, and the map is wrong by up to 0.15 m
-    (p99). Not the default until the margins hold. Measured again on 2026-12-04 (sixth
-    session, BENCHMARKS.md section 8): on exact fields it removes a fold of the hexagon (a
-    drone in a pocket of trunks whose every attempt was refused by 1-4 cm for 11 s) and the
-    three table sets have no trial over 0.02, but an unheard drone overtaken in a corridor of
-    trunks then passed its peer at 0.46 m instead of 0.55 m (``tests/test_hearing.py``): the
-    stiffer obstacle term held it in the corridor's middle, where the peer flies. Since then a
-    stiffer refinement the check does not accept outright is compared with the plain tight
-    one (0.55 m again); the tables, fault trials and mapped flights are still to be flown
-    with that before it can be the default."""
-    refine_kappa_factor: int = 1
+    (1: the same weights). Most refusals are a trunk 1-4 cm inside the check's distance seconds
+    ahead: the formation pull wins over the short steep obstacle term there, or the trajectory
+    passes the trunk between two constraint points. Without the stiffer solve, a drone in a
+    pocket of trunks can have every attempt refused by such a margin, replan after replan: in
+    the unseen dense forest of seed 202 one drone kept its previous plan for 11 s, backed out
+    and went round, and the hexagon folded (e_sim 0.0676, BENCHMARKS.md section 8, 2026-12-04
+    sixth session). When the stiffer refinement is not accepted outright, the plain tight
+    solve runs too and the one standing higher is flown (accepted outright, a last resort,
+    refused): alone, the stiffer obstacle term held an unheard drone overtaken in a corridor of
+    trunks in the corridor's middle, 0.46 m from the peer passing it instead of 0.55 m
+    (``tests/test_hearing.py``). Default 100 with ``refine_kappa_factor`` 2 since 2026-12-04
+    (seventh session): the three table sets (180 flights) have no trial over 0.02 (0.0676
+    before) and lower or equal means, the reference forests 0.00201 (0.00218), the fault
+    trials no collision, the mapped fast-time flights (seeds 1-10) 10 of 10 with no collision,
+    closest trunk 0.328 m. Off (1 and 1) for the flight service (``config/onboard.yaml``: not
+    yet flown on the real stack); on its map, measured on 2026-11-29
+    (BENCHMARKS.md sections 8 and 10; seeds 1-12 of the mapped twin, 3 frames/s, step 3) it
+    halved the refusals but lowered the closest passes to trunks (the least of 12 flights 0.293
+    -> 0.243-0.278 m): a refined plan stays in the tight spot at the check's distance, and the
+    map is wrong by up to 0.15 m (p99)."""
+    refine_kappa_factor: int = 2
     """That second solve evaluates the costs on this many times ``kappa`` constraint points per
-    piece (1: the same, the default). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
+    piece (1: the same). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
     to 0.4 m apart, and a plan that keeps 0.34 m at every point can pass a trunk at 0.29 m
     between two: the check, sampling every ``check_step_s``, refuses it."""
     astar_keeps_formation: bool = True
