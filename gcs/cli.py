@@ -6,7 +6,6 @@ import dataclasses
 import json
 import multiprocessing
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -522,9 +521,13 @@ def bench_flights(
                     rows.append(_flight_row(cfg))
                     bar.advance(task)
             else:
+                from gcs.pools import sigterm_interrupts
+
+                # a Pool, not an executor: leaving it on Ctrl-C or SIGTERM terminates the
+                # workers (an executor waits for their flights, minutes each when mapped)
                 ctx = multiprocessing.get_context("spawn")
-                with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-                    for row in pool.map(_flight_row, cfgs):  # in the seeds' order
+                with sigterm_interrupts(), ctx.Pool(jobs) as pool:
+                    for row in pool.imap(_flight_row, cfgs):  # in the seeds' order
                         rows.append(row)
                         bar.advance(task)
         except ConfigError as e:
