@@ -135,9 +135,10 @@ def test_an_unheard_drone_does_not_stop_where_a_peer_flies_through(
     holds us where the peer passes, so a way that keeps more distance is flown (the one that
     keeps farthest of those the check accepts only as a last resort), not the stop. With the
     window of a heard peer (1 s) it stopped, and the peer flew through. ``refine``: the
-    refused plans' second solve plain (the defaults) and stiffer (``refine_kappa_factor``,
-    ``refine_penalty_scale``), whose stiffer obstacle term alone held the drone in the
-    corridor's middle, 0.46 m from the peer, until the plain solve was compared with it."""
+    refused plans' second solve plain (as in the flight service) and stiffer (the defaults of
+    ``refine_kappa_factor``, ``refine_penalty_scale``), whose stiffer obstacle term alone held
+    the drone in the corridor's middle, 0.46 m from the peer, until the plain solve was
+    compared with it."""
     xs = np.arange(-4.0, 8.0, 0.35)
     trunks = [[x, s * 1.0, 0.15, 0.0, 3.0] for x in xs for s in (-1.0, 1.0)]
     field = AnalyticField(World(np.array(trunks), np.zeros((0, 7)), np.zeros((0, 6)), 0.0))
