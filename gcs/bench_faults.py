@@ -27,11 +27,12 @@ expired peer is still avoided for 10 s (``avoid_for_s``).
 
 Per trial and in total: collisions (every drone, the hovering faulty ones included: they are
 still in the air), arrivals of the healthy drones, e_sim of the remaining (healthy) formation,
-the minimum obstacle clearance and drone distance, and the audit of peer trajectories used by
-the planner: a message past its validity used in the formation term is a failure
-(``stale_formation_uses``, must be 0); past its validity but only avoided is the designed
-``peer_lost`` reaction (``expired_avoided_uses``, counted). The reaction to the faulty drones
-(``ReactionLog``): how long after the fault each healthy drone first planned against the
+the minimum obstacle clearance (of every drone, and of the healthy ones alone: a killed drone's
+failsafe stop is the autopilot's, not the planner's) and drone distance, and the audit of peer
+trajectories used by the planner: a message past its validity used in the formation term is a
+failure (``stale_formation_uses``, must be 0); past its validity but only avoided is the
+designed ``peer_lost`` reaction (``expired_avoided_uses``, counted). The reaction to the faulty
+drones (``ReactionLog``): how long after the fault each healthy drone first planned against the
 faulty one as a hover where it stopped, and first left it out of the formation term; and the
 false alarms: replans with a silent peer in trials without a kill, plans that avoided a healthy
 drone at hovers the agent added (quiet or deviating) or left it out of the formation term.
@@ -241,6 +242,11 @@ def judge(trial: FaultTrial, cfg: Any, result: Any) -> dict[str, Any]:
         "e_sim_remaining_mean": float(np.mean(e)) if e.size else math.nan,
         "e_sim_remaining_max": float(np.max(e)) if e.size else math.nan,
         "min_obstacle_clearance_m": float(result.min_obstacle_clearance_m),
+        "healthy_min_obstacle_clearance_m": float(
+            min(result.min_obstacle_clearance_by_drone_m[i] for i in healthy)
+        )
+        if healthy
+        else math.nan,
         "min_drone_distance_m": float(result.min_drone_distance_m),
         "stale_formation_uses": int(f["stale_formation_uses"]),
         "expired_avoided_uses": int(f["expired_avoided_uses"]),
@@ -458,6 +464,9 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "e_sim_remaining_mean": summary([r["e_sim_remaining_mean"] for r in rows]),
         "e_sim_remaining_max": summary([r["e_sim_remaining_max"] for r in rows]),
         "min_obstacle_clearance_m": min(r["min_obstacle_clearance_m"] for r in rows),
+        "healthy_min_obstacle_clearance_m": min(
+            r["healthy_min_obstacle_clearance_m"] for r in rows
+        ),
         "min_drone_distance_m": min(r["min_drone_distance_m"] for r in rows),
         "stale_formation_uses": int(sum(r["stale_formation_uses"] for r in rows)),
         "expired_avoided_uses": int(sum(r["expired_avoided_uses"] for r in rows)),
@@ -626,7 +635,8 @@ def bench_faults(
         click.echo(
             f"trial {r['index']:3d} {r['world']:13s} {'+'.join(r['kinds']):28s} "
             f"coll {r['collisions']} arrived {r['healthy_arrived']}/{r['healthy_total']} "
-            f"e_sim {r['e_sim_remaining_mean']:.4f} clear {r['min_obstacle_clearance_m']:.2f} "
+            f"e_sim {r['e_sim_remaining_mean']:.4f} clear {r['min_obstacle_clearance_m']:.3f} "
+            f"(healthy {r['healthy_min_obstacle_clearance_m']:.3f}) "
             f"pair {r['min_drone_distance_m']:.2f} stale {r['stale_formation_uses']} "
             f"t {r['flight_time_s']:.0f}s wall {r['sim_wall_s']:.0f}s",
             err=False,
@@ -658,7 +668,8 @@ def bench_faults(
         f"{rep['healthy_arrived']}/{rep['healthy_total']} (all healthy arrived in "
         f"{rep['healthy_success_trials']} trials), e_sim of the remaining formation mean "
         f"{es['mean']:.4f} (median {es['median']:.4f}, max {es['max']:.4f}), min obstacle "
-        f"clearance {rep['min_obstacle_clearance_m']:.3f} m, min drone distance "
+        f"clearance {rep['min_obstacle_clearance_m']:.3f} m (healthy drones "
+        f"{rep['healthy_min_obstacle_clearance_m']:.3f} m), min drone distance "
         f"{rep['min_drone_distance_m']:.3f} m, stale formation uses "
         f"{rep['stale_formation_uses']}, expired peers avoided {rep['expired_avoided_uses']}, "
         f"replans with a silent peer {rep['silent_replans']} (ghost hovers avoided "

@@ -363,6 +363,8 @@ class SimResult:
     events: tuple[CollisionEvent, ...]
     min_obstacle_clearance_m: float
     """Minimum over time and drones of the drone-centre-to-obstacle-surface distance."""
+    min_obstacle_clearance_by_drone_m: np.ndarray
+    """(N,) each drone's own minimum of ``min_obstacle_clearance_m``."""
     min_drone_distance_m: float
     max_speed_m_s: float
     """Highest drone speed at the 10 Hz sample instants."""
@@ -425,6 +427,9 @@ class SimResult:
             "drone_collisions": int(self.drone_collisions),
             "events": [dataclasses.asdict(e) for e in self.events],
             "min_obstacle_clearance_m": _num(self.min_obstacle_clearance_m),
+            "min_obstacle_clearance_by_drone_m": [
+                _num(c) for c in self.min_obstacle_clearance_by_drone_m
+            ],
             "min_drone_distance_m": _num(self.min_drone_distance_m),
             "max_speed_m_s": _num(self.max_speed_m_s),
             "e_sim_mean": _num(self.e_sim_mean),
@@ -1302,6 +1307,7 @@ def result_from_monitor(
         drone_collisions=mon.drone_events,
         events=tuple(mon.events),
         min_obstacle_clearance_m=mon.min_clearance_m,
+        min_obstacle_clearance_by_drone_m=mon.min_clearance_by_drone_m.copy(),
         min_drone_distance_m=mon.min_pair_m,
         max_speed_m_s=mon.max_speed_m_s,
         e_sim_mean=float(np.mean(e)) if e.size else math.nan,

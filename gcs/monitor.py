@@ -72,6 +72,8 @@ class FlightMonitor:
         self.obstacle_events = 0
         self.drone_events = 0
         self.min_clearance_m = math.inf
+        self.min_clearance_by_drone_m = np.full(n, math.inf)
+        """(N,) each drone's own minimum of ``min_clearance_m``."""
         self.min_pair_m = math.inf
         self.max_speed_m_s = 0.0
         """Highest drone speed seen at the sample instants."""
@@ -88,6 +90,7 @@ class FlightMonitor:
         cfg = self.cfg
         dist, _ = self.world.distance(pos)
         self.min_clearance_m = min(self.min_clearance_m, float(np.min(dist)))
+        np.minimum(self.min_clearance_by_drone_m, dist, out=self.min_clearance_by_drone_m)
         hit = dist < cfg.collision_obstacle_m
         for i in np.flatnonzero(hit & ~self._in_obstacle):
             self.obstacle_events += 1

@@ -50,6 +50,8 @@ def _assert_safe(cfg: SimConfig, r: SimResult) -> None:
     monitor's collision thresholds."""
     assert r.collisions == 0, r.events
     assert r.min_obstacle_clearance_m >= cfg.collision_obstacle_m
+    assert r.min_obstacle_clearance_by_drone_m.shape == (cfg.formation.n,)
+    assert r.min_obstacle_clearance_m == float(np.min(r.min_obstacle_clearance_by_drone_m))
     assert r.min_drone_distance_m >= cfg.collision_drone_m
 
 
@@ -262,6 +264,9 @@ def test_bench_faults_command_writes_the_report(tmp_path: Path) -> None:
     assert row["kinds"] and row["collisions"] == 0 and row["stale_formation_uses"] == 0
     assert row["peer_uses_audited"] > 0 and row["replans"] > 0
     assert rep["collisions"] == 0
+    # the healthy drones' own minimum: never below every drone's, and the run's is the trials'
+    assert row["healthy_min_obstacle_clearance_m"] >= row["min_obstacle_clearance_m"]
+    assert rep["healthy_min_obstacle_clearance_m"] == row["healthy_min_obstacle_clearance_m"]
     for key in ("silent_replans_no_kill", "healthy_hover_plans", "healthy_dropped_plans"):
         assert isinstance(rep[key], int)
     assert set(rep["reaction_killed"]) == {
