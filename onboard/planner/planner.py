@@ -459,7 +459,11 @@ class _WithPoints:
         return self.field.is_known(points)
 
 
-def _standing(finished: tuple[Trajectory | None, bool, str, float, float]) -> int:
+_Finished = tuple[Trajectory | None, bool, str, float, float]
+"""A ``FormationPlanner._finish`` result: (trajectory, safe, why, clearance, ahead)."""
+
+
+def _standing(finished: _Finished) -> int:
     """How a ``FormationPlanner._finish`` result stands: 2 accepted outright, 1 a last resort
     (safe with a reason), 0 refused, -1 no trajectory."""
     traj, safe, why = finished[0], finished[1], finished[2]
@@ -1493,72 +1497,67 @@ class FormationPlanner:
             if traj is None:
                 messages.append(why)
                 return None, problem, False
-            margin: float | None = None  # the last resort's ``_margin``, once computed
+            first: _Finished = (traj, safe, why, clearance, ahead)
+            chosen: _Finished = first  # what is flown: the first solution or a refinement
+            # each candidate's ``_margin``, computed once (the candidate held, so that its id
+            # is not reused)
+            margins: dict[int, tuple[_Finished, float]] = {}
+
+            def margin_of(c: _Finished) -> float:
+                if id(c) not in margins:
+                    assert c[0] is not None
+                    margins[id(c)] = (c, self._margin(c[0], t_start_s, peers, c[3]))
+                return margins[id(c)][1]
+
+            def beats(new: _Finished, old: _Finished, on_refused_tie: bool) -> bool:
+                """Whether ``new`` stands higher than ``old`` (``_standing``: accepted
+                outright, a last resort, refused, none); of two last resorts the one that
+                keeps farther beyond the check's distances; of two refused ones
+                ``on_refused_tie``."""
+                s_new, s_old = _standing(new), _standing(old)
+                if s_new != s_old:
+                    return s_new > s_old
+                if s_new == 1:
+                    return margin_of(new) > margin_of(old)
+                return s_new == 0 and on_refused_tie
+
             if not safe or why:
                 # tighter; where it passes too close to an obstacle also on denser points
                 # and stiffer (NaN: the test stopped before the distances); a last resort is
                 # replaced by a trajectory the check accepts outright, or by a last resort
-                # that keeps farther beyond the check's distances
+                # that keeps farther beyond the check's distances, a refused one by any
                 close = clearance < self.params.check_obstacle_m
                 stiffer = problem.refine_prob() if close else None
-                refined_margin: float | None = None  # the kept refinement's ``_margin``
                 x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
                 if st2 != LbfgsStatus.CANCELED:
                     refined = self._finish(problem, x2, field, view, peers, pack, brake)
                     if (
                         stiffer is not None
                         and stiffer is not problem.prob
-                        and not (refined[1] and not refined[2])
+                        and _standing(refined) != 2
                         and not late()
                     ):
                         # the stiffer solve (``refine_penalty_scale``, ``refine_kappa_factor``)
                         # not accepted outright: the plain tight one too, and of the two the
-                        # one standing higher (``_standing``: accepted outright, a last resort,
-                        # refused; the stiffer one on a tie), of two last resorts the one that
-                        # keeps farther beyond the check's distances. The stiffer obstacle
+                        # one standing higher (the stiffer one on a tie). The stiffer obstacle
                         # term alone can hold a drone in the middle of a corridor of trunks,
                         # where a peer overtaking it flies (0.37 m from it against 0.55 m)
                         x3, st3 = again(problem, x, self._lb_prm_refine, None)
                         if st3 != LbfgsStatus.CANCELED:
                             plain = self._finish(problem, x3, field, view, peers, pack, brake)
-                            if plain[0] is not None:
-                                better = _standing(plain) > _standing(refined)
-                                if _standing(plain) == _standing(refined) == 1:
-                                    # both last resorts: the one that keeps farther
-                                    m_plain = self._margin(plain[0], t_start_s, peers, plain[3])
-                                    assert refined[0] is not None
-                                    refined_margin = self._margin(
-                                        refined[0], t_start_s, peers, refined[3]
-                                    )
-                                    better = m_plain > refined_margin
-                                    if better:
-                                        refined_margin = m_plain
-                                if better:
-                                    x2, st2, refined = x3, st3, plain
-                    take = refined[0] is not None and (not safe or (refined[1] and not refined[2]))
-                    if not take and refined[0] is not None and refined[1]:
-                        # both last resorts: the one that keeps farther
-                        margin = self._margin(traj, t_start_s, peers, clearance)
-                        margin_2 = (
-                            refined_margin
-                            if refined_margin is not None
-                            else self._margin(refined[0], t_start_s, peers, refined[3])
-                        )
-                        take = margin_2 > margin
-                        if take:
-                            margin = margin_2
-                    if take:
-                        if refined[1] and not refined[2]:
+                            if beats(plain, refined, on_refused_tie=False):
+                                x2, st2, refined = x3, st3, plain
+                    if beats(refined, first, on_refused_tie=True):
+                        if _standing(refined) == 2:
                             # flown as refined: the first solution's refusal stays on record
                             # (not counted as a refused attempt: it names no attempt first)
                             messages.append(f"refined {label}: {why}")
                         x, last_status = x2, st2
                         traj, safe, why, clearance, ahead = refined
+                        chosen = refined
             if safe and why:  # a last resort
                 assert traj is not None
-                if margin is None:
-                    margin = self._margin(traj, t_start_s, peers, clearance)
-                last_resorts.append((margin, (ok_status, traj, last_status, problem, x)))
+                last_resorts.append((margin_of(chosen), (ok_status, traj, last_status, problem, x)))
                 messages.append(f"{label}: {why}")
                 return None, problem, False
             if safe and wants_fresh(use_formation, force_astar) and not late():
