@@ -40,14 +40,16 @@ def test_a_level_formation_stays_level_at_its_goal_altitude() -> None:
     # near the goals' 1 m all flight long: the start jitter plus 0.1 m (the hold is a soft term:
     # a hard sideways manoeuvre dips a drone by up to ~0.1 m, how far depending on the CPU's
     # floating point in this chaotic flight: 0.103 m on one host, under 0.08 m on another),
-    # against a tilt of more than 1 m without it
+    # against a tilt of more than 0.5 m without it
     assert np.all(np.abs(z - 1.0) <= JITTER_M + 0.1)
 
 
 def test_without_the_hold_the_same_flight_tilts() -> None:
     """The control: the same starts without the hold; the metric does not see the tilt."""
     res = _fly(w_altitude_hold=0.0)
-    assert res.tracks.z_spread_max() > 1.0
+    # 1.26 m at w_formation 1e5, 0.65 m at 1.5e5 (the default since 2026-12-04): a chaotic
+    # flight's tilt, more than three times the hold's bound either way
+    assert res.tracks.z_spread_max() > 0.5
 
 
 def test_start_jitter_moves_only_the_start_altitudes() -> None:

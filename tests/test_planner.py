@@ -709,7 +709,7 @@ def _peers_flying_along_x(speed: float) -> list[PeerTrajectory]:
 
 @pytest.mark.parametrize(
     ("trunk_y", "w_formation"),
-    [(0.44, 1e5), (0.2, 6e5), (0.4, 6e5)],  # the default weight, and six times it (re-forming)
+    [(0.44, 1e5), (0.2, 6e5), (0.4, 6e5)],  # the service's weight, and six times it (re-forming)
 )
 def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     trunk_y: float, w_formation: float

@@ -43,7 +43,7 @@ def test_planner_section_overrides_planner_yaml_key_by_key(tmp_path: Path) -> No
     base = load_planner_params()
     cfg = load_onboard_config(_write(tmp_path, "planner:\n  v_max_m_s: 1.5\n"))
     assert cfg.planner.v_max_m_s == 1.5
-    assert cfg.planner.w_formation == base.w_formation  # the rest comes from planner.yaml
+    assert cfg.planner.w_uniform == base.w_uniform  # the rest comes from planner.yaml
 
 
 @pytest.mark.parametrize(

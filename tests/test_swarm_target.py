@@ -449,8 +449,9 @@ def test_near_the_goal_a_drone_does_not_crawl_after_peers_that_crawl(pace: float
     if pace == 0.0:
         assert res.trajectory.duration_s > 35.0  # the crawl this guards against (39.4 s)
     else:
-        # a soft floor: the formation term still holds it a little past the cap (27.4 s)
-        assert res.trajectory.duration_s < cap + 3.0
+        # a soft floor: the formation term still holds it a little past the cap (27.4 s at
+        # w_formation 1e5, 28.6 s at 1.5e5, the default since 2026-12-04), far from the crawl
+        assert res.trajectory.duration_s < cap + 4.5
         np.testing.assert_allclose(res.trajectory.sample(res.trajectory.t_end_s), GOAL_ORIGIN,
                                    atol=1e-6)  # fmt: skip
 

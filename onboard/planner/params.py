@@ -114,10 +114,14 @@ class PlannerParams:
     """The pace floor's weight [per s^2]."""
     w_uniform: float = 1.0e3
     """J_u: weight of the variance of squared distances between consecutive constraint points."""
-    w_formation: float = 1.0e5
+    w_formation: float = 1.5e5
     """J_f: weight of the formation penalty (about 1e7 suits 'cubic'). 1e5 (was 3e4) is part of
     the default set of 2026-11-24 (see ``lead_slowdown_m``); alone it breaks the speed limit
-    (0.539 m/s), with ``limit_margin`` 0.97 it keeps it within 2-3 %."""
+    (0.539 m/s), with ``limit_margin`` 0.97 it keeps it within 2-3 %. 1.5e5 since 2026-12-04,
+    with the stiffer refinement (``refine_kappa_factor``): the reference forests' e_sim 0.00201
+    -> 0.00164 (four draws), the three table sets and the mapped flights held, the fault trials
+    alike (two runs of 100); the flight service keeps 1e5 until the real stack flies it
+    (``config/onboard.yaml``; BENCHMARKS.md section 8)."""
     formation_stride: int = 2
     """J_f is evaluated on every formation_stride-th constraint point (kappa must divide)."""
     target_speed_frac: float = 0.5
