@@ -788,6 +788,7 @@ fns = {n: getattr(kn, n) for n in
        ("initial_guess", "path_guess", "pad_peers", "swarm_setup", "trajectory_from_x",
         "check_trajectory", "peak_speed")}
 fns["solve_counted"] = obj.solve_counted
+fns["objective"] = obj.objective
 before = {k: len(f.signatures) for k, f in fns.items()}
 # a replan as in a mapped flight: a masked grid, peers of unequal piece counts, a previous plan
 world = World(np.array([[3.0, 0.4, 0.3, 0.0, 3.0]]), np.zeros((0, 7)), np.zeros((0, 6)), 0.0)
@@ -808,6 +809,12 @@ r2 = planner.plan(1.0, r1.trajectory.sample(1.0), *r1.trajectory.state(1.0)[1:],
 plain = dataclasses.replace(params, w_altitude_hold=0.0, lead_slowdown_m=0.0)
 r3 = FormationPlanner(plain, hexagon, 0).plan(
     0.0, start, z, z, np.array([7.0, 0.0, 1.0]), peers, field)
+# a refined solution's cost, evaluated outside the solver (the stiffer problem's solution
+# against the fresh start's, with the refinement on)
+problem = planner.prepare(0.0, start, z, z, np.array([7.0, 0.0, 1.0]), peers, field)
+x, _ = problem.solve(None, None, problem.refine_prob())
+assert problem.refine_prob() is not problem.prob
+problem.cost(x)
 after = {k: len(f.signatures) for k, f in fns.items()}
 print(json.dumps({"before": before, "after": after, "status": [r1.status, r2.status, r3.status]}))
 """

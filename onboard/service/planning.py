@@ -144,7 +144,8 @@ def warm_up(params: PlannerParams) -> float:
     ``DroneAgent`` (the class the service flies) on the mapped ESDF's field type (with its
     occupancy, which the check's neighbourhood test reads), a trunk on the straight line (A*
     guess) and an avoided-only peer (edge-masked template), then one on the exact ground field;
-    then the safety monitor's conflict rule and the agent's shape test (the similarity metric).
+    then the objective alone on each field (a refined solution's cost), the safety monitor's
+    conflict rule and the agent's shape test (the similarity metric).
     The flight service counts a kernel made after READY (``kernels_after_ready``). Seconds
     taken."""
     from onboard.agent import DroneAgent, StaticMap, obstacle_conflict
@@ -153,6 +154,7 @@ def warm_up(params: PlannerParams) -> float:
     from onboard.mapping.esdf import EsdfField
     from onboard.planner.field import AnalyticField
     from onboard.planner.formation import similarity
+    from onboard.planner.planner import FormationPlanner, PeerTrajectory
     from onboard.world import World
 
     t0 = time.perf_counter()
@@ -182,6 +184,14 @@ def warm_up(params: PlannerParams) -> float:
             goal=np.array([4.0, 0.0, 1.0]),
         )
         agent.replan(0.0)
+        # the objective outside the solver: a refined solution's cost (``Problem.cost`` of a
+        # solve on ``refine_prob``'s stiffer problem, compared with the fresh start's)
+        peer = PeerTrajectory(0, 0, Trajectory.hover(start + formation[0], 0.0, 5.0))
+        zero = np.zeros(3)
+        problem = FormationPlanner(params, formation, 1).prepare(
+            0.0, start, zero, zero, np.array([4.0, 0.0, 1.0]), [peer], field
+        )
+        problem.objective(problem.x0)
     # the monitor's rule on distances that come inside the limit; the shape test as the agent
     # runs it (its points and the template's slots, fresh arrays)
     ts = np.linspace(0.0, 1.0, 11)
