@@ -717,7 +717,7 @@ def test_a_refused_plan_is_refined_on_denser_points_and_keeps_the_formation(
     """The middle drone of a line flies past a thin trunk beside its slot's path, its peers on
     theirs. The first solution keeps the optimiser's 0.34 m at every constraint point, but a
     piece several seconds long passes the trunk between two of them, inside the check's 0.3 m:
-    refused. Without the denser, stiffer second solve (1 and 1) the A*
+    refused. Without the denser, stiffer second solve (1 and 1, as on the drone's map) the A*
     retries are refused the same way and the drone flies without the formation term
     ('ok-no-formation'); with it (the defaults) the plan keeps the formation and the check's
     distance, sampled densely on the true distances."""
@@ -754,7 +754,7 @@ def test_a_refused_formation_plan_is_tried_softened_before_none() -> None:
     past the check's distance to a thin trunk (refused, and so is the A* retry), one more
     attempt with the formation weight times the scale keeps the formation term and the check's
     distance, where the defaults fly without the term ('ok-no-formation'). With the refused
-    plan's second solve as plain as the first (1 and 1), since the
+    plan's second solve as plain as the first (1 and 1, as on the drone's map), since the
     default stiffer one keeps the formation here by itself."""
     field = AnalyticField(_world([[3.0, 0.44, 0.15, 0.0, 3.0]]))
     args = (0.0, np.array([0.0, 0.0, 1.0]), np.array([0.4, 0.0, 0.0]), ZERO)

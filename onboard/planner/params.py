@@ -564,14 +564,13 @@ class PlannerParams:
     (seventh session): the three table sets (180 flights) have no trial over 0.02 (0.0676
     before) and lower or equal means, the reference forests 0.00201 (0.00218), the fault
     trials no collision, the mapped fast-time flights (seeds 1-10) 10 of 10 with no collision,
-    closest trunk 0.328 m. On the drone's map, measured on 2026-11-29 (BENCHMARKS.md sections
-    8 and 10; seeds 1-12 of the mapped twin, 3 frames/s, step 3) it halved the refusals but
-    lowered the closest passes to trunks (the least of 12 flights 0.293 -> 0.243-0.278 m): a
-    refined plan stays in the tight spot at the check's distance, and the map is wrong by up
-    to 0.15 m (p99). On in the flight service too since 2026-12-04 (eighth session): on the
-    real stack (seeds 1-5 and 16-20, a formation change at 20 s) the obstacle refusals fell
-    from 29-306 to 4-18 a flight, the new shape came within 10 s in 9 of 10 (seed 18, a miss
-    in three runs before, in 7.9 s), every pass at least 0.312 m from a trunk's centre."""
+    closest trunk 0.328 m. Off (1 and 1) for the flight service (``config/onboard.yaml``: on the
+    real stack on 2026-12-04 it cut the obstacle refusals tenfold, but re-formed within 10 s in
+    15 of 20 flights against 19 of 20 without); on its map, measured on 2026-11-29
+    (BENCHMARKS.md sections 8 and 10; seeds 1-12 of the mapped twin, 3 frames/s, step 3) it
+    halved the refusals but lowered the closest passes to trunks (the least of 12 flights 0.293
+    -> 0.243-0.278 m): a refined plan stays in the tight spot at the check's distance, and the
+    map is wrong by up to 0.15 m (p99)."""
     refine_kappa_factor: int = 2
     """That second solve evaluates the costs on this many times ``kappa`` constraint points per
     piece (1: the same). A piece is 1-8 s long; at ``kappa`` 8 its points lie up
