@@ -168,11 +168,13 @@ def warm_up(params: PlannerParams) -> float:
     grid = EsdfField(values, origin, res, np.ones(shape, dtype=bool), values <= 0.0, 0.2)
     formation = np.array([[0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 1.5, 0.0]])
     start = np.array([0.0, 0.0, 1.0])
+    goal = np.array([4.0, 0.0, 1.0])
+    zero = np.zeros(3)
+    hovers = {k: Trajectory.hover(start + formation[k], 0.0, 5.0) for k in (0, 2)}
     for field in (grid, AnalyticField(World.empty(0.0))):
         bus = InMemoryBus()
         for k, epoch in ((0, 0), (2, 1)):  # drone 2 flies another epoch: avoided only
-            hover = Trajectory.hover(start + formation[k], 0.0, 5.0)
-            bus.publish(TrajectoryMsg(k, 0, k, hover, epoch), 0.0)
+            bus.publish(TrajectoryMsg(k, 0, k, hovers[k], epoch), 0.0)
         agent = DroneAgent(
             1,
             params,
@@ -181,15 +183,14 @@ def warm_up(params: PlannerParams) -> float:
             Trajectory.hover(start, 0.0, 1.0),
             bus,
             StaticMap(field),
-            goal=np.array([4.0, 0.0, 1.0]),
+            goal=goal,
         )
         agent.replan(0.0)
         # the objective outside the solver: a refined solution's cost (``Problem.cost`` of a
         # solve on ``refine_prob``'s stiffer problem, compared with the fresh start's)
-        peer = PeerTrajectory(0, 0, Trajectory.hover(start + formation[0], 0.0, 5.0))
-        zero = np.zeros(3)
+        peers = [PeerTrajectory(0, 0, hovers[0])]
         problem = FormationPlanner(params, formation, 1).prepare(
-            0.0, start, zero, zero, np.array([4.0, 0.0, 1.0]), [peer], field
+            0.0, start, zero, zero, goal, peers, field
         )
         problem.objective(problem.x0)
     # the monitor's rule on distances that come inside the limit; the shape test as the agent
