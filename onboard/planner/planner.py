@@ -1316,9 +1316,17 @@ class FormationPlanner:
         self._check_time_and_peers(t_start_s, peers)
         pack = _pack_peers(peers)
         view = self._field_view(field)
-        # the stop flown if every attempt is refused: what a start inside the check's distance
-        # compares its ways out with
-        brake = self._stop(t_start_s, sp, sv, sa)
+        braked: list[Trajectory] = []
+
+        def brake() -> Trajectory:
+            """The stop flown if every attempt is refused: what a start inside the check's
+            distance compares its ways out with. Made on first use, after the fresh start's
+            solve is handed to the side executor (``attempt``): not on the way to that solve,
+            which sets the replan's time."""
+            if not braked:
+                braked.append(self._stop(t_start_s, sp, sv, sa))
+            return braked[0]
+
         iters = evals = 0
         messages: list[str] = []
         last_status: LbfgsStatus | None = None
@@ -1429,7 +1437,7 @@ class FormationPlanner:
             if st_alt == LbfgsStatus.CANCELED:
                 return None
             traj_alt, ok_alt, why_alt, clr_alt, ahead_alt = self._finish(
-                alt, x_alt, field, view, peers, pack, brake
+                alt, x_alt, field, view, peers, pack, brake()
             )
             if traj_alt is None or not ok_alt or why_alt:
                 return None
@@ -1492,7 +1500,7 @@ class FormationPlanner:
                 messages.append("canceled")
                 return None, problem, True
             traj, safe, why, clearance, ahead = self._finish(
-                problem, x, field, view, peers, pack, brake
+                problem, x, field, view, peers, pack, brake()
             )
             if traj is None:
                 messages.append(why)
@@ -1530,7 +1538,7 @@ class FormationPlanner:
                 stiffer = problem.refine_prob() if close else None
                 x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
                 if st2 != LbfgsStatus.CANCELED:
-                    refined = self._finish(problem, x2, field, view, peers, pack, brake)
+                    refined = self._finish(problem, x2, field, view, peers, pack, brake())
                     if (
                         stiffer is not None
                         and stiffer is not problem.prob
@@ -1544,7 +1552,7 @@ class FormationPlanner:
                         # where a peer overtaking it flies (0.37 m from it against 0.55 m)
                         x3, st3 = again(problem, x, self._lb_prm_refine, None)
                         if st3 != LbfgsStatus.CANCELED:
-                            plain = self._finish(problem, x3, field, view, peers, pack, brake)
+                            plain = self._finish(problem, x3, field, view, peers, pack, brake())
                             if beats(plain, refined, on_refused_tie=False):
                                 x2, st2, refined = x3, st3, plain
                     if beats(refined, first, on_refused_tie=True):
@@ -1602,7 +1610,7 @@ class FormationPlanner:
                 capped = (
                     None
                     if late()
-                    else self._cap_speed(problem, x, traj, again, field, view, peers, pack, brake)
+                    else self._cap_speed(problem, x, traj, again, field, view, peers, pack, brake())
                 )
                 if capped is not None:
                     x, traj, note = capped
@@ -1652,7 +1660,7 @@ class FormationPlanner:
                 if traj.t_end_s <= t_cut:
                     continue  # refused before its end: within APPROACH_S
                 safe, why, _, _ = self._check(
-                    traj.until(t_cut), t_start_s, field, view, peers, pack, brake
+                    traj.until(t_cut), t_start_s, field, view, peers, pack, brake()
                 )
                 if safe and not why:
                     return flown(entry, APPROACH)
@@ -1675,7 +1683,9 @@ class FormationPlanner:
             nonlocal kept_checked, kept
             if not kept_checked and previous is not None:
                 kept_checked = True
-                safe, why, _, _ = self._check(previous, t_start_s, field, view, peers, pack, brake)
+                safe, why, _, _ = self._check(
+                    previous, t_start_s, field, view, peers, pack, brake()
+                )
                 if safe and not why:
                     kept = previous
                 else:
@@ -1756,10 +1766,10 @@ class FormationPlanner:
         # the stop is as safe, and such moves would wander.
         outright: list[tuple[float, str, Trajectory]] = []
         marginal: list[tuple[float, str, Trajectory]] = []
-        if not canceled and self._margin(brake, t_start_s, peers, math.inf) < 0.0:
+        if not canceled and self._margin(brake(), t_start_s, peers, math.inf) < 0.0:
             for label, traj in self._evasions(t_start_s, sp, sv, sa):
                 safe, why, clearance, _ = self._check(
-                    traj, t_start_s, field, view, peers, pack, brake
+                    traj, t_start_s, field, view, peers, pack, brake()
                 )
                 if safe:
                     margin = self._margin(traj, t_start_s, peers, clearance)
@@ -1790,7 +1800,7 @@ class FormationPlanner:
             return flown(best_last[1], LAST_RESORT)
         return PlanResult(
             PlanStatus.EMERGENCY,
-            brake,
+            brake(),
             iters,
             evals,
             last_status,
