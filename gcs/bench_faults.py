@@ -464,8 +464,15 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "e_sim_remaining_mean": summary([r["e_sim_remaining_mean"] for r in rows]),
         "e_sim_remaining_max": summary([r["e_sim_remaining_max"] for r in rows]),
         "min_obstacle_clearance_m": min(r["min_obstacle_clearance_m"] for r in rows),
+        # a trial with no healthy drone has NaN here, which Python's min would keep or drop
+        # by where it stands
         "healthy_min_obstacle_clearance_m": min(
-            r["healthy_min_obstacle_clearance_m"] for r in rows
+            (
+                r["healthy_min_obstacle_clearance_m"]
+                for r in rows
+                if not math.isnan(r["healthy_min_obstacle_clearance_m"])
+            ),
+            default=math.nan,
         ),
         "min_drone_distance_m": min(r["min_drone_distance_m"] for r in rows),
         "stale_formation_uses": int(sum(r["stale_formation_uses"] for r in rows)),

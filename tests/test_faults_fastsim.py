@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -16,7 +17,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gcs.bench_faults import ReactionLog, bench_faults, draw_trial, run_bench, trial_config
+from gcs.bench_faults import (
+    ReactionLog,
+    bench_faults,
+    draw_trial,
+    run_bench,
+    summarise,
+    trial_config,
+)
 from gcs.fastsim import PeerAudit, PlanCall, SimConfig, SimResult, run_sim
 from onboard.agent import HOVER_S, PlanInputs
 from onboard.comm import InMemoryBus
@@ -267,6 +275,14 @@ def test_bench_faults_command_writes_the_report(tmp_path: Path) -> None:
     # the healthy drones' own minimum: never below every drone's, and the run's is the trials'
     assert row["healthy_min_obstacle_clearance_m"] >= row["min_obstacle_clearance_m"]
     assert rep["healthy_min_obstacle_clearance_m"] == row["healthy_min_obstacle_clearance_m"]
+    # a trial with no healthy drone (NaN) does not hide the others' minimum, wherever it stands
+    none_left = {**row, "healthy_min_obstacle_clearance_m": math.nan}
+    for rows in ([row, none_left], [none_left, row]):
+        assert (
+            summarise(rows)["healthy_min_obstacle_clearance_m"]
+            == (row["healthy_min_obstacle_clearance_m"])
+        )
+    assert math.isnan(summarise([none_left])["healthy_min_obstacle_clearance_m"])
     for key in ("silent_replans_no_kill", "healthy_hover_plans", "healthy_dropped_plans"):
         assert isinstance(rep[key], int)
     assert set(rep["reaction_killed"]) == {
