@@ -1316,16 +1316,14 @@ class FormationPlanner:
         self._check_time_and_peers(t_start_s, peers)
         pack = _pack_peers(peers)
         view = self._field_view(field)
-        braked: list[Trajectory] = []
 
+        @functools.cache
         def brake() -> Trajectory:
             """The stop flown if every attempt is refused: what a start inside the check's
             distance compares its ways out with. Made on first use, after the fresh start's
             solve is handed to the side executor (``attempt``): not on the way to that solve,
             which sets the replan's time."""
-            if not braked:
-                braked.append(self._stop(t_start_s, sp, sv, sa))
-            return braked[0]
+            return self._stop(t_start_s, sp, sv, sa)
 
         iters = evals = 0
         messages: list[str] = []
