@@ -276,12 +276,10 @@ def test_bench_faults_command_writes_the_report(tmp_path: Path) -> None:
     assert row["healthy_min_obstacle_clearance_m"] >= row["min_obstacle_clearance_m"]
     assert rep["healthy_min_obstacle_clearance_m"] == row["healthy_min_obstacle_clearance_m"]
     # a trial with no healthy drone (NaN) does not hide the others' minimum, wherever it stands
+    healthy_min = row["healthy_min_obstacle_clearance_m"]
     none_left = {**row, "healthy_min_obstacle_clearance_m": math.nan}
     for rows in ([row, none_left], [none_left, row]):
-        assert (
-            summarise(rows)["healthy_min_obstacle_clearance_m"]
-            == (row["healthy_min_obstacle_clearance_m"])
-        )
+        assert summarise(rows)["healthy_min_obstacle_clearance_m"] == healthy_min
     assert math.isnan(summarise([none_left])["healthy_min_obstacle_clearance_m"])
     for key in ("silent_replans_no_kill", "healthy_hover_plans", "healthy_dropped_plans"):
         assert isinstance(rep[key], int)
