@@ -279,10 +279,10 @@ def bench_planner(
 ) -> dict[str, Any]:
     """Record the flight ``cfg``, replay the chosen replans and return the report (JSON-able).
 
-    ``side_thread``: the replayed planners solve the fresh start on a second thread beside the
-    warm one, as the flight service does by default (``planning.side_thread``); the recorded
-    flight is the same either way. ``term_costs``: also where an evaluation's time goes, by
-    cost term (``_term_eval_us``; ``eval_us_by_term``, medians over the problems).
+    ``side_thread``: the replayed planners solve the fresh start beside the warm one, which
+    runs on a second thread, as the flight service does by default (``planning.side_thread``);
+    the recorded flight is the same either way. ``term_costs``: also where an evaluation's time
+    goes, by cost term (``_term_eval_us``; ``eval_us_by_term``, medians over the problems).
 
     Per problem: ``prepare(...) + solve()`` timed ``repeats`` times after one untimed run
     (median), the full ``plan(...)`` likewise, solver iterations and evaluations, the piece
@@ -290,8 +290,9 @@ def bench_planner(
     cost = evaluations x eval_us, solver and set-up overhead = replan - cost (medians reported).
     Where ``plan`` also solves the fresh start (``fresh_alternative``, a previous trajectory),
     its set-up and solve alone are timed the same way (``prepare(..., fresh=True)``): with the
-    side thread that solve runs beside the warm one, and the longer of the two sets the replan's
-    time (``fresh_ms`` over the problems that have one, ``fresh_share``: how many do).
+    side thread that solve runs beside the warm one (in the calling thread, the warm one's solve
+    and check on the side thread), and the longer of the two sets the replan's time
+    (``fresh_ms`` over the problems that have one, ``fresh_share``: how many do).
 
     ``cfg.perception`` 'mapped': the replans are replayed on the ESDF each drone planned on
     (at most ``max_problems``, or ``MAPPED_MAX_PROBLEMS`` when it is 0), only replans from
@@ -330,7 +331,7 @@ def bench_planner(
     term_us: list[dict[str, float]] = []  # --term-costs: one evaluation's time by term
     pieces: list[float] = []
     fresh_prep_ms: list[float] = []  # the fresh start's prepare(..., fresh=True)
-    fresh_solve_ms: list[float] = []  # and its solve (the side thread's job)
+    fresh_solve_ms: list[float] = []  # and its solve (beside the warm one)
     fresh_evals: list[float] = []
     # where plan() also solves the fresh start: how much cheaper than the warm start's solution
     # its solution is, relative to the warm one (negative: dearer; the solvers' own values)
@@ -339,7 +340,7 @@ def bench_planner(
     solver_statuses: dict[str, int] = {}
     rejected = 0  # first-attempt solutions the safety check refused
     clearance: list[float] = []  # their closest approach to an obstacle
-    # the flight service's side thread for the fresh start's solve (planning.side_thread)
+    # the flight service's side thread, for the warm start's part (planning.side_thread)
     side_pool = (
         ThreadPoolExecutor(max_workers=1, thread_name_prefix="side")
         if side_thread

@@ -789,8 +789,8 @@ def bench_table(
     "--side-thread/--no-side-thread",
     default=True,
     show_default=True,
-    help="Solve the fresh start on a second thread beside the warm one, as the flight service "
-    "does (planning.side_thread).",
+    help="Solve the fresh start beside the warm one, which runs on a second thread, as the "
+    "flight service does (planning.side_thread).",
 )
 @click.option(
     "--term-costs",
@@ -920,7 +920,8 @@ def bench_planner(
             f"ms median (p90 {_fmt(fr['solve']['p90'], '.2f')}; "
             f"{_fmt(fr['evaluations_median'], '.0f')} evaluations), "
             + (
-                "beside the warm solve (side thread): the longer of the two sets the replan"
+                "beside the warm start's solve and check (side thread): the longer of the two "
+                "sets the replan"
                 if side_thread
                 else "after the warm solve"
             )

@@ -4,6 +4,7 @@ import dataclasses
 import functools
 import itertools
 import math
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -26,6 +27,7 @@ from onboard.planner.planner import (
     PlanResult,
     PlanStatus,
     Problem,
+    _Beside,
     _pack_peers,
 )
 from onboard.planner.trajectory import Trajectory
@@ -852,11 +854,13 @@ def _far_way_round_a_trunk() -> tuple[
 
 
 def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> None:
-    """``side``: the fresh start's solve on a second thread changes no plan: the trajectory,
-    status, message and work counted are those of the two solves one after the other, where the
-    fresh start wins by a long way and by a little, and where the time budget runs out after
-    the warm solve (the side solve is then stopped, not flown, and not counted)."""
+    """``side``: the warm start's part on a second thread, the fresh start's solve beside it,
+    changes no plan: the trajectory, status, message and work counted are those of the two
+    solves one after the other, where the fresh start wins by a long way and by a little, where
+    the time budget runs out after the warm solve, and where a wall refuses the warm start (in
+    the last two the fresh solve is then stopped, not flown, and not counted)."""
     start, goal, base, far_way, field = _far_way_round_a_trunk()
+    wall = AnalyticField(_world([[2.0, y, 0.2, 0.0, 3.0] for y in np.arange(-3.0, 3.01, 0.3)]))
     short_way = FormationPlanner(base, LINE3, slot=1).plan(
         0.0, start, ZERO, ZERO, goal, [], field, far_way.trajectory
     )
@@ -870,7 +874,12 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
                 return pool.submit(fn)
 
         budgets: dict[bool, list[bool]] = {False: [True], True: [False, True]}  # give_up's
-        for previous, budget in ((far_way, False), (short_way, False), (far_way, True)):
+        for previous, budget, world, fresh_flown in (
+            (far_way, False, field, True),
+            (short_way, False, field, True),
+            (far_way, True, field, False),
+            (far_way, False, wall, False),
+        ):
             plans = {}
             for parallel in (False, True):
                 planner = FormationPlanner(
@@ -888,7 +897,7 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
                     ZERO,
                     goal,
                     [],
-                    field,
+                    world,
                     previous.trajectory,
                     give_up=give_up if budget else None,
                 )
@@ -897,15 +906,81 @@ def test_a_side_executor_flies_the_same_plans_as_one_solve_after_the_other() -> 
             one, two = plans[False], plans[True]
             assert one.status == two.status == PlanStatus.OK
             assert one.message == two.message
-            assert ("fresh start" in one.message) != budget
+            assert ("fresh start" in one.message) == fresh_flown
+            assert ("formation: obstacle clearance" in one.message) == (world is wall)
             np.testing.assert_array_equal(one.trajectory.coeffs, two.trajectory.coeffs)
             np.testing.assert_array_equal(one.trajectory.durations_s, two.trajectory.durations_s)
             assert (one.iterations, one.evaluations) == (two.iterations, two.evaluations)
 
 
+class _FreshSolveStub:
+    """A fresh start's problem for ``_Beside``: ``solve`` runs until its cancel flag is set
+    (CANCELED) or, when ``finish`` is set, returns at once (CONVERGENCE); it raises
+    ``RuntimeError`` when ``fail``. It gives up after 10 s (MAX_ITERATIONS) so that a test
+    whose flag is never set fails instead of hanging."""
+
+    def __init__(self, finish: bool = False, fail: bool = False) -> None:
+        self.cancel_flag = np.zeros(1, dtype=np.int64)
+        self.finish = finish
+        self.fail = fail
+
+    def solve(self) -> tuple[np.ndarray, LbfgsStatus]:
+        if self.fail:
+            raise RuntimeError("solver failed")
+        t_end = time.monotonic() + 10.0
+        while not self.finish and time.monotonic() < t_end:
+            if self.cancel_flag[0]:
+                return np.zeros(2), LbfgsStatus.CANCELED
+            time.sleep(0.001)
+        status = LbfgsStatus.CONVERGENCE if self.finish else LbfgsStatus.MAX_ITERATIONS
+        return np.ones(2), status
+
+
+def test_beside_stops_the_fresh_solve_that_the_warm_part_does_not_want() -> None:
+    """``_Beside``: the warm part's outcome comes back from ``solve`` after the fresh solve;
+    a warm part that does not want the fresh solution stops that solve (which would otherwise
+    run on), one that wants it leaves it to finish, and ``take`` hands over its result."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        unwanted = _FreshSolveStub()
+        beside = _Beside(unwanted, pool, lambda: ("refused", False))  # type: ignore[arg-type]
+        assert beside.solve() == "refused"
+        assert beside.take()[1] == LbfgsStatus.CANCELED
+        wanted = _FreshSolveStub(finish=True)
+        beside = _Beside(wanted, pool, lambda: ("accepted", True))  # type: ignore[arg-type]
+        assert beside.solve() == "accepted"
+        x, status = beside.take()
+        assert status == LbfgsStatus.CONVERGENCE and wanted.cancel_flag[0] == 0
+        np.testing.assert_array_equal(x, np.ones(2))
+
+
+def test_beside_a_failure_on_either_side_reaches_the_caller_after_both_are_over() -> None:
+    """``_Beside``: a warm part that raises stops the fresh solve and its exception comes out of
+    ``solve``; a fresh solve that raises comes out only once the warm part is over, so that no
+    planner code outlives the replan."""
+
+    def warm_fails() -> tuple[Any, bool]:
+        raise ValueError("warm part failed")
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        fresh = _FreshSolveStub()
+        with pytest.raises(ValueError, match="warm part failed"):
+            _Beside(fresh, pool, warm_fails).solve()  # type: ignore[arg-type]
+        assert fresh.cancel_flag[0] == 1
+        over: list[str] = []
+
+        def slow_warm() -> tuple[Any, bool]:
+            time.sleep(0.2)
+            over.append("warm")
+            return "accepted", True
+
+        with pytest.raises(RuntimeError, match="solver failed"):
+            _Beside(_FreshSolveStub(fail=True), pool, slow_warm).solve()  # type: ignore[arg-type]
+        assert over == ["warm"]
+
+
 @pytest.mark.parametrize("mode", ["line", "astar"])
 def test_prepare_fresh_is_the_problem_plan_solves_beside_the_warm_one(mode: str) -> None:
-    """``prepare(fresh=True)`` (what ``bench planner`` times as the side thread's job) builds
+    """``prepare(fresh=True)`` (what ``bench planner`` times beside the warm start) builds
     the problem of the fresh start's second solve as ``plan`` does: where the fresh start wins
     and is flown as solved, its solution is the flown trajectory to the bit; ``previous`` is not
     read; a fresh flag that is not a bool is refused."""

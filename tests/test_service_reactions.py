@@ -1825,7 +1825,7 @@ def test_stop_behind_a_stuck_planner_thread_returns_and_its_side_solve_still_com
 ) -> None:
     """``stop()`` with the planner thread stuck inside a replan (numba compiling, a slow solve)
     returns (its join times out), names the thread, and does not wait for the side executor
-    behind it; the fresh start's solve the replan had queued there is run, not cancelled, so
+    behind it; the warm start's part the replan had queued there is run, not cancelled, so
     that the replan, once the thread resumes, gets its result instead of an exception, and the
     thread then ends on the stop flag."""
     h = Harness(tmp_path, depth=False)
@@ -1838,7 +1838,7 @@ def test_stop_behind_a_stuck_planner_thread_returns_and_its_side_solve_still_com
 
     def stuck_plan_step() -> None:
         pool.submit(release.wait, 30.0)  # the executor's one worker busy: the next one queues
-        side = pool.submit(lambda: "side solve")
+        side = pool.submit(lambda: "warm part")
         entered.set()
         release.wait(30.0)
         got.append(side.result(timeout=10.0))
@@ -1858,5 +1858,5 @@ def test_stop_behind_a_stuck_planner_thread_returns_and_its_side_solve_still_com
         svc.request_stop()
     planner.join(10.0)
     assert not planner.is_alive()
-    assert got == ["side solve"]
+    assert got == ["warm part"]
     assert svc.counters.get("planner_errors", 0) == 0

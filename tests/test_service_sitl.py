@@ -115,7 +115,7 @@ def test_service_flies_the_mock(
         truth = f.latest_truth()[1]
         own_goal = start + [3.0, 0.0, 0.0]
         assert np.linalg.norm(np.array(truth.position_m) - own_goal) < 0.4
-        # the fresh starts were solved on the planner's side thread (planning.side_thread)
+        # the warm starts were solved on the planner's side thread (planning.side_thread)
         assert cfg.planning.side_thread
         assert any(t.name.startswith("svc-side") for t in threading.enumerate())
         c4 = bus.send(Land())

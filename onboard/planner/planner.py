@@ -5,8 +5,9 @@ A replan picks a local target ``horizon_m`` along the way to the goal, builds an
 optimises waypoints and durations of a MINCO trajectory with L-BFGS over the seven cost terms,
 and accepts the result only if it passes a safety check against the distance field and the
 peers' trajectories. An accepted solution from the previous trajectory is solved once more from
-a fresh start (``fresh_alternative``: the straight line by default; beside the warm solve on a
-``SideExecutor`` when given one) and the cheaper of the two that the check accepts is flown.
+a fresh start (``fresh_alternative``: the straight line by default; where a ``SideExecutor`` is
+given, the warm start's solve and check run on it meanwhile) and the cheaper of the two that
+the check accepts is flown.
 A refused solution is first solved again from where it is (tight tolerances; where it passes
 too close to an obstacle, also on denser constraint points with stiffer obstacle and limit
 penalties: ``refine_kappa_factor``, ``refine_penalty_scale``). A
@@ -489,36 +490,59 @@ class Pending(Protocol):
 
 
 class SideExecutor(Protocol):
-    """Where the fresh start's solve runs beside the warm one: anything that starts a call
-    and hands back its ``Pending`` result (``concurrent.futures.ThreadPoolExecutor`` is one; the
-    compiled solver releases the GIL). The caller owns it: the planner starts no thread."""
+    """Where the warm start's part of an attempt runs while the calling thread solves the fresh
+    start (``fresh_alternative``): anything that starts a call and hands back its ``Pending``
+    result (``concurrent.futures.ThreadPoolExecutor`` is one; the compiled solver and checks
+    release the GIL). The caller owns it: the planner starts no thread."""
 
     def submit(self, fn: Callable[[], Any], /) -> Pending: ...
 
 
-class _SideSolve:
-    """A problem solved on a ``SideExecutor``."""
+class _Beside:
+    """The fresh start's ``problem`` solved in the calling thread (``solve``) while ``work``,
+    the warm start's part of the attempt, runs on a ``SideExecutor``. The fresh solve sets a
+    replan's time, so it starts at once, not when another thread wakes up; the warm part, the
+    shorter, takes the hand-off. ``work`` returns (its outcome, whether the fresh solution is
+    still wanted); when it is not, the fresh solve is stopped at its next evaluation."""
 
-    def __init__(self, problem: Problem, side: SideExecutor) -> None:
+    def __init__(
+        self, problem: Problem, side: SideExecutor, work: Callable[[], tuple[Any, bool]]
+    ) -> None:
         self.problem = problem
-        self.taken = False
-        self._pending = side.submit(problem.solve)
+        self._x = np.zeros(0)
+        self._status = LbfgsStatus.CANCELED
 
-    def take(self, stop: bool) -> tuple[np.ndarray, LbfgsStatus]:
-        """(x, status) once the solve is done; ``stop``: cancel it first."""
-        self.taken = True
-        if stop:
-            self.problem.cancel_flag[0] = 1
-        x, status = self._pending.result()
-        return x, status
+        def run() -> Any:
+            wanted = False
+            try:
+                out, wanted = work()
+                return out
+            finally:
+                if not wanted:
+                    problem.cancel_flag[0] = 1
+
+        self._pending = side.submit(run)
+
+    def solve(self) -> Any:
+        """Solve the fresh start here, then wait for the warm part: its outcome. The warm part
+        is waited for also when the solve fails, so that no planner code outlives the replan."""
+        try:
+            self._x, self._status = self.problem.solve()
+        finally:
+            out = self._pending.result()
+        return out
+
+    def take(self) -> tuple[np.ndarray, LbfgsStatus]:
+        """(x, status) of the fresh solve, after ``solve``."""
+        return self._x, self._status
 
 
 class FormationPlanner:
     """Plans one drone's trajectory in the formation (its ``slot`` of ``formation``).
 
-    ``side``: where the fresh start's solve (``fresh_alternative``) runs beside the warm one
-    (None: after it, in the calling thread). The plans are the same either way; with a free
-    core they come sooner."""
+    ``side``: where the warm start's part of an attempt runs while the calling thread solves the
+    fresh start (``fresh_alternative``; None: one after the other, in the calling thread). The
+    plans are the same either way; with a free core they come sooner."""
 
     def __init__(
         self,
@@ -542,7 +566,7 @@ class FormationPlanner:
         self.mask = mask
         self._active: Problem | None = None
         self._side = side
-        self._aside: Problem | None = None  # the problem on the side executor
+        self._aside: Problem | None = None  # the fresh start solved beside the warm one
         self._prm_formation = self._param_vector(use_formation=True)
         self._prm_no_formation = self._param_vector(use_formation=False)
         self._lb_prm = params.lbfgs.to_array()
@@ -612,8 +636,8 @@ class FormationPlanner:
         return point
 
     def cancel(self) -> None:
-        """Ask a running solve (in another thread), and one on the side executor, to stop at its
-        next evaluation."""
+        """Ask a running solve (in another thread), and the fresh start's solved beside it, to
+        stop at their next evaluation."""
         for problem in (self._active, self._aside):
             if problem is not None:
                 problem.cancel_flag[0] = 1
@@ -1320,9 +1344,9 @@ class FormationPlanner:
         @functools.cache
         def brake() -> Trajectory:
             """The stop flown if every attempt is refused: what a start inside the check's
-            distance compares its ways out with. Made on first use, after the fresh start's
-            solve is handed to the side executor (``attempt``): not on the way to that solve,
-            which sets the replan's time."""
+            distance compares its ways out with. Made on first use, by the warm start's part
+            of the attempt (``attempt``): not on the way to the fresh start's solve, which sets
+            the replan's time."""
             return self._stop(t_start_s, sp, sv, sa)
 
         iters = evals = 0
@@ -1411,18 +1435,14 @@ class FormationPlanner:
             start (``fresh_alternative``), but for the time budget."""
             return use_formation and not force_astar and fresh_wanted
 
-        def collect(side: _SideSolve, stop: bool) -> tuple[Problem, np.ndarray, LbfgsStatus]:
-            """What the side executor made of its problem; ``stop``: cancel it first, as not
-            wanted any more (its work is then not counted: one solve after the other would not
-            have started it, and how far it got depends on the timing)."""
+        def collect(side: _Beside) -> tuple[Problem, np.ndarray, LbfgsStatus]:
+            """The fresh start solved beside the warm one, taken, its work counted (that of
+            one not taken is not: one solve after the other would not have started it, and how
+            far it got before it was stopped depends on the timing)."""
             nonlocal iters, evals
-            try:
-                x, status = side.take(stop)
-            finally:
-                self._aside = None
-            if not stop:
-                iters += side.problem.iterations
-                evals += side.problem.evaluations
+            x, status = side.take()
+            iters += side.problem.iterations
+            evals += side.problem.evaluations
             return side.problem, x, status
 
         def alternative(
@@ -1454,29 +1474,22 @@ class FormationPlanner:
             in the message, with the clearance of its A* path. A trajectory the check accepts
             only as a last resort (``MARGINAL``) is kept in ``last_resorts``
             and the attempt counts as refused."""
-            nonlocal last_status
             label = what if use_formation else f"{what} without formation"
-            # the fresh start's solve runs beside the warm one when it is wanted (the same
-            # result as one after the other: neither reads the other's work)
-            side: _SideSolve | None = None
+            # the fresh start's problem, solved beside the warm one when it is wanted (the
+            # same result as one after the other: neither reads the other's work)
+            fresh_problem: Problem | None = None
             if self._side is not None and wants_fresh(use_formation, force_astar) and not late():
-                side_problem = prepare_fresh(use_formation, formation_scale)
-                self._aside = side_problem
-                side = _SideSolve(side_problem, self._side)
-            try:
-                return attempt_on(
-                    use_formation,
-                    force_astar,
-                    ok_status,
-                    label,
-                    what,
-                    ladder,
-                    formation_scale,
-                    side,
-                )
-            finally:
-                if side is not None and not side.taken:  # not wanted: stopped, not counted
-                    collect(side, stop=True)
+                fresh_problem = prepare_fresh(use_formation, formation_scale)
+            return attempt_on(
+                use_formation,
+                force_astar,
+                ok_status,
+                label,
+                what,
+                ladder,
+                formation_scale,
+                fresh_problem,
+            )
 
         def attempt_on(
             use_formation: bool,
@@ -1486,25 +1499,11 @@ class FormationPlanner:
             what: str,
             ladder: tuple[float, ...],
             formation_scale: float,
-            side: _SideSolve | None,
+            fresh_problem: Problem | None,
         ) -> tuple[PlanResult | None, Problem, bool]:
-            """``attempt`` with the fresh start's solve, when wanted, already running on the
-            side executor (``side``)."""
+            """``attempt`` with the fresh start's problem when it is solved beside the warm
+            one (``fresh_problem``)."""
             nonlocal last_status
-            problem, x, last_status = solve(
-                prepare(use_formation, force_astar, ladder=ladder, formation_scale=formation_scale)
-            )
-            if last_status == LbfgsStatus.CANCELED:
-                messages.append("canceled")
-                return None, problem, True
-            traj, safe, why, clearance, ahead = self._finish(
-                problem, x, field, view, peers, pack, brake()
-            )
-            if traj is None:
-                messages.append(why)
-                return None, problem, False
-            first: _Finished = (traj, safe, why, clearance, ahead)
-            chosen: _Finished = first  # what is flown: the first solution or a refinement
             # each candidate's ``_margin``, computed once (the candidate held, so that its id
             # is not reused)
             margins: dict[int, tuple[_Finished, float]] = {}
@@ -1527,40 +1526,78 @@ class FormationPlanner:
                     return margin_of(new) > margin_of(old)
                 return s_new == 0 and on_refused_tie
 
-            if not safe or why:
-                # tighter; where it passes too close to an obstacle also on denser points
-                # and stiffer (NaN: the test stopped before the distances); a last resort is
-                # replaced by a trajectory the check accepts outright, or by a last resort
-                # that keeps farther beyond the check's distances, a refused one by any
-                close = clearance < self.params.check_obstacle_m
-                stiffer = problem.refine_prob() if close else None
-                x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
-                if st2 != LbfgsStatus.CANCELED:
-                    refined = self._finish(problem, x2, field, view, peers, pack, brake())
-                    if (
-                        stiffer is not None
-                        and stiffer is not problem.prob
-                        and _standing(refined) != 2
-                        and not late()
-                    ):
-                        # the stiffer solve (``refine_penalty_scale``, ``refine_kappa_factor``)
-                        # not accepted outright: the plain tight one too, and of the two the
-                        # one standing higher (the stiffer one on a tie). The stiffer obstacle
-                        # term alone can hold a drone in the middle of a corridor of trunks,
-                        # where a peer overtaking it flies (0.37 m from it against 0.55 m)
-                        x3, st3 = again(problem, x, self._lb_prm_refine, None)
-                        if st3 != LbfgsStatus.CANCELED:
-                            plain = self._finish(problem, x3, field, view, peers, pack, brake())
-                            if beats(plain, refined, on_refused_tie=False):
-                                x2, st2, refined = x3, st3, plain
-                    if beats(refined, first, on_refused_tie=True):
-                        if _standing(refined) == 2:
-                            # flown as refined: the first solution's refusal stays on record
-                            # (not counted as a refused attempt: it names no attempt first)
-                            messages.append(f"refined {label}: {why}")
-                        x, last_status = x2, st2
-                        traj, safe, why, clearance, ahead = refined
-                        chosen = refined
+            def warm() -> tuple[tuple[Problem, np.ndarray, _Finished, bool], bool]:
+                """The warm start's part: its solve, check and refinement. ((problem, x, the
+                candidate flown, whether the solve was canceled), whether the fresh start's
+                solution is still wanted: only beside an attempt accepted outright)."""
+                nonlocal last_status
+                problem, x, last_status = solve(
+                    prepare(
+                        use_formation, force_astar, ladder=ladder, formation_scale=formation_scale
+                    )
+                )
+                if last_status == LbfgsStatus.CANCELED:
+                    return (problem, x, (None, False, "canceled", math.nan, math.nan), True), False
+                first = self._finish(problem, x, field, view, peers, pack, brake())
+                traj, safe, why, clearance, ahead = first
+                if traj is None:
+                    return (problem, x, first, False), False
+                chosen: _Finished = first  # what is flown: the first solution or a refinement
+                if not safe or why:
+                    # tighter; where it passes too close to an obstacle also on denser points
+                    # and stiffer (NaN: the test stopped before the distances); a last resort
+                    # is replaced by a trajectory the check accepts outright, or by a last
+                    # resort that keeps farther beyond the check's distances, a refused one by
+                    # any
+                    close = clearance < self.params.check_obstacle_m
+                    stiffer = problem.refine_prob() if close else None
+                    x2, st2 = again(problem, x, self._lb_prm_refine, stiffer)
+                    if st2 != LbfgsStatus.CANCELED:
+                        refined = self._finish(problem, x2, field, view, peers, pack, brake())
+                        if (
+                            stiffer is not None
+                            and stiffer is not problem.prob
+                            and _standing(refined) != 2
+                            and not late()
+                        ):
+                            # the stiffer solve (``refine_penalty_scale``,
+                            # ``refine_kappa_factor``) not accepted outright: the plain tight
+                            # one too, and of the two the one standing higher (the stiffer one
+                            # on a tie). The stiffer obstacle term alone can hold a drone in the
+                            # middle of a corridor of trunks, where a peer overtaking it flies
+                            # (0.37 m from it against 0.55 m)
+                            x3, st3 = again(problem, x, self._lb_prm_refine, None)
+                            if st3 != LbfgsStatus.CANCELED:
+                                plain = self._finish(problem, x3, field, view, peers, pack, brake())
+                                if beats(plain, refined, on_refused_tie=False):
+                                    x2, st2, refined = x3, st3, plain
+                        if beats(refined, first, on_refused_tie=True):
+                            if _standing(refined) == 2:
+                                # flown as refined: the first solution's refusal stays on
+                                # record (not counted as a refused attempt: it names no attempt
+                                # first)
+                                messages.append(f"refined {label}: {why}")
+                            x, last_status = x2, st2
+                            chosen = refined
+                return (problem, x, chosen, False), _standing(chosen) == 2
+
+            beside: _Beside | None = None
+            if fresh_problem is None or self._side is None:
+                (problem, x, chosen, canceled), _ = warm()
+            else:
+                self._aside = fresh_problem
+                try:
+                    beside = _Beside(fresh_problem, self._side, warm)
+                    problem, x, chosen, canceled = beside.solve()
+                finally:
+                    self._aside = None  # its solve is over (it is counted once taken)
+            traj, safe, why, clearance, ahead = chosen
+            if canceled:
+                messages.append("canceled")
+                return None, problem, True
+            if traj is None:
+                messages.append(why)
+                return None, problem, False
             if safe and why:  # a last resort
                 assert traj is not None
                 last_resorts.append((margin_of(chosen), (ok_status, traj, last_status, problem, x)))
@@ -1568,8 +1605,8 @@ class FormationPlanner:
                 return None, problem, False
             if safe and wants_fresh(use_formation, force_astar) and not late():
                 solved = (
-                    collect(side, stop=False)
-                    if side is not None
+                    collect(beside)
+                    if beside is not None
                     else solve(prepare_fresh(use_formation, formation_scale))
                 )
                 # the costs first (the solver's own values): a fresh plan that costs no less

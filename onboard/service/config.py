@@ -382,9 +382,10 @@ class PlanningSection:
     warm_up: bool = True
     """Plan one small problem before READY, so the first real replan is at full speed."""
     side_thread: bool = True
-    """Solve the fresh start of ``planner.fresh_alternative`` on a second thread beside the
-    warm start (the compiled solver releases the GIL): the same plans, sooner where a core is
-    free (``bench planner`` median 1.6 ms against 2.1 ms one after the other; BENCHMARKS.md
+    """Solve the fresh start of ``planner.fresh_alternative`` beside the warm start: the warm
+    start's solve and check on a second thread, the fresh start's solve in the planning thread
+    (the compiled solver releases the GIL). The same plans, sooner where a core is free
+    (``bench planner`` median 1.6 ms against 2.1 ms one after the other; BENCHMARKS.md
     section 1). false: one after the other, in the planning thread."""
 
     def __post_init__(self) -> None:
