@@ -307,8 +307,8 @@ class PlanReport:
     ``params.unheard_params`` (a wider berth to every peer)."""
     plan_cpu_ms: float = math.nan
     """CPU time of the planner call in the planning thread (NaN: not measured). Against
-    ``plan_ms`` it tells computing from waiting for a core or the interpreter lock (a side
-    solve of ``side_executor`` runs in another thread: not counted)."""
+    ``plan_ms`` it tells computing from waiting for a core or the interpreter lock (the warm
+    start's part, where a side executor takes it, runs in another thread: not counted)."""
 
 
 @dataclass(frozen=True, eq=False)
