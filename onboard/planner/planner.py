@@ -1474,36 +1474,13 @@ class FormationPlanner:
             in the message, with the clearance of its A* path. A trajectory the check accepts
             only as a last resort (``MARGINAL``) is kept in ``last_resorts``
             and the attempt counts as refused."""
+            nonlocal last_status
             label = what if use_formation else f"{what} without formation"
             # the fresh start's problem, solved beside the warm one when it is wanted (the
             # same result as one after the other: neither reads the other's work)
             fresh_problem: Problem | None = None
             if self._side is not None and wants_fresh(use_formation, force_astar) and not late():
                 fresh_problem = prepare_fresh(use_formation, formation_scale)
-            return attempt_on(
-                use_formation,
-                force_astar,
-                ok_status,
-                label,
-                what,
-                ladder,
-                formation_scale,
-                fresh_problem,
-            )
-
-        def attempt_on(
-            use_formation: bool,
-            force_astar: bool,
-            ok_status: PlanStatus,
-            label: str,
-            what: str,
-            ladder: tuple[float, ...],
-            formation_scale: float,
-            fresh_problem: Problem | None,
-        ) -> tuple[PlanResult | None, Problem, bool]:
-            """``attempt`` with the fresh start's problem when it is solved beside the warm
-            one (``fresh_problem``)."""
-            nonlocal last_status
             # each candidate's ``_margin``, computed once (the candidate held, so that its id
             # is not reused)
             margins: dict[int, tuple[_Finished, float]] = {}
@@ -1526,10 +1503,11 @@ class FormationPlanner:
                     return margin_of(new) > margin_of(old)
                 return s_new == 0 and on_refused_tie
 
-            def warm() -> tuple[tuple[Problem, np.ndarray, _Finished, bool], bool]:
+            def warm() -> tuple[tuple[Problem, np.ndarray, _Finished], bool]:
                 """The warm start's part: its solve, check and refinement. ((problem, x, the
-                candidate flown, whether the solve was canceled), whether the fresh start's
-                solution is still wanted: only beside an attempt accepted outright)."""
+                candidate flown: no trajectory when the solve was canceled, ``last_status``
+                then says so), whether the fresh start's solution is still wanted: only beside
+                an attempt accepted outright)."""
                 nonlocal last_status
                 problem, x, last_status = solve(
                     prepare(
@@ -1537,11 +1515,11 @@ class FormationPlanner:
                     )
                 )
                 if last_status == LbfgsStatus.CANCELED:
-                    return (problem, x, (None, False, "canceled", math.nan, math.nan), True), False
+                    return (problem, x, (None, False, "canceled", math.nan, math.nan)), False
                 first = self._finish(problem, x, field, view, peers, pack, brake())
                 traj, safe, why, clearance, ahead = first
                 if traj is None:
-                    return (problem, x, first, False), False
+                    return (problem, x, first), False
                 chosen: _Finished = first  # what is flown: the first solution or a refinement
                 if not safe or why:
                     # tighter; where it passes too close to an obstacle also on denser points
@@ -1579,21 +1557,21 @@ class FormationPlanner:
                                 messages.append(f"refined {label}: {why}")
                             x, last_status = x2, st2
                             chosen = refined
-                return (problem, x, chosen, False), _standing(chosen) == 2
+                return (problem, x, chosen), _standing(chosen) == 2
 
             beside: _Beside | None = None
             if fresh_problem is None or self._side is None:
-                (problem, x, chosen, canceled), _ = warm()
+                (problem, x, chosen), _ = warm()
             else:
                 self._aside = fresh_problem
                 try:
                     beside = _Beside(fresh_problem, self._side, warm)
-                    problem, x, chosen, canceled = beside.solve()
+                    problem, x, chosen = beside.solve()
                 finally:
                     self._aside = None  # its solve is over (it is counted once taken)
             traj, safe, why, clearance, ahead = chosen
-            if canceled:
-                messages.append("canceled")
+            if last_status == LbfgsStatus.CANCELED:  # the warm solve (a refinement keeps none)
+                messages.append(why)
                 return None, problem, True
             if traj is None:
                 messages.append(why)
